@@ -1,0 +1,33 @@
+"""constrained-particles: 2D constrained particle systems in the style of Witkin & Baraff.
+
+>>> from constrained_particles import ParticleSystem, Gravity, Rod
+>>> s = ParticleSystem()
+>>> o = s.add_particle((0.0, 0.0), fixed=True)
+>>> a = s.add_particle((0.0, -1.0), mass=1.0)
+>>> s.add(Gravity((0.0, -9.81)), Rod(o, a))
+>>> s.step(1e-3, method="rk4")
+"""
+
+from . import scenes
+from .constraints import CircularWire, Constraint, FixedPoint, HorizontalWire, LineWire, Rod
+from .forces import (
+                     AngularSpring,
+                     ConstantForce,
+                     DampedSpring,
+                     Drag,
+                     Force,
+                     Gravity,
+                     MouseSpring,
+                     Wall,
+)
+from .integrators import METHODS, ORDERS
+from .system import ParticleSystem, SimulationDiverged
+from .terms import Shape
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
+    "FixedPoint", "Force", "Gravity", "HorizontalWire", "LineWire", "METHODS", "MouseSpring",
+    "ORDERS", "ParticleSystem", "Rod", "Shape", "SimulationDiverged", "Wall", "scenes",
+]
