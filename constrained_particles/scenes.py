@@ -46,7 +46,7 @@ def gravity(count: int = 5, floor: float = -1.0, drag: float = 0.0) -> ParticleS
 
 
 def cloth(nx: int = 8, ny: int = 8, spacing: float = 0.1, mass: float = 0.02,
-          ks: float = 20.0, kd: float = 0.05, shear: bool = True, bend: bool = True,
+          ks: float = 500.0, kd: float = 0.2, shear: bool = True, bend: bool = True,
           wire_height: float = 0.0, wall_x: float | None = 1.2, push: float = 0.0,
           drag: float = 0.01) -> ParticleSystem:
     """A spring-mass cloth hanging from a horizontal wire, with a wall to its right (figs. 2-3).
