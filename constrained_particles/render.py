@@ -70,13 +70,15 @@ class Renderer:
     @classmethod
     def fit(cls, system: ParticleSystem, size: Sequence[int] = (640, 480), margin: float = 0.15,
             points: np.ndarray | None = None) -> Renderer:
-        """A renderer whose view holds every particle, circular wire and ``points`` (k, 2) of
-        ``system``, plus ``margin`` (a fraction of the extent) on each side."""
+        """A renderer whose view holds every particle, circular wire, wall boundary and ``points``
+        (k, 2) of ``system``, plus ``margin`` (a fraction of the extent) on each side."""
         pts = [system.x]
         for shape in system.shapes():
             if shape.kind == "circle":
                 r = np.asarray(shape.value)[:, None]
                 pts += [shape.a - r, shape.a + r]
+            elif shape.kind == "halfplane":
+                pts.append(shape.a)
         if points is not None:
             pts.append(np.asarray(points, float).reshape(-1, 2))
         allp = np.concatenate(pts) if pts else np.zeros((1, 2))
