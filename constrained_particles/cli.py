@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("envs.demo", "run an agent on a Gymnasium environment and print its returns"),
     "verify": ("verification.__main__", "measure convergence orders and cross-check pymunk"),
     "view": ("constrained_particles.viewer", "interactive viewer (pygame-ce)"),
+    "bench": ("benchmarks.run", "benchmark against pymunk and the environments' throughput"),
 }
 
 

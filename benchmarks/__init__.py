@@ -1,0 +1,1 @@
+"""Performance benchmarks (run as `cparticles bench`, never as tests)."""
