@@ -66,6 +66,11 @@ class ConstraintSolver:
         self.Jdot = sp.csr_matrix((np.zeros(len(rows)), self._cols, indptr), shape=shape)
         self.J.has_sorted_indices = True
         self.Jdot.has_sorted_indices = True
+        # J^T in CSR with its own value permutation, so J^T lam needs no new scipy object
+        numbered = sp.csr_matrix((np.arange(1.0, len(rows) + 1), self._cols, indptr), shape=shape)
+        self.JT = numbered.T.tocsr()
+        self._perm_T = self.JT.data.astype(np.int64) - 1
+        self.JT.data[:] = 0.0
         # rows coupled through a shared coordinate make J W J^T non-diagonal
         structure = sp.csr_matrix((np.ones(len(rows)), self._cols, indptr), shape=shape)
         self.diagonal = (structure @ structure.T).nnz == self.m
@@ -82,6 +87,7 @@ class ConstraintSolver:
         self.Cdot = np.concatenate([p[1] for p in parts])
         self.J.data[:] = np.concatenate([p[2] for p in parts])[self._perm]
         self.Jdot.data[:] = np.concatenate([p[3] for p in parts])[self._perm]
+        self.JT.data[:] = self.J.data[self._perm_T]
 
     def _diag(self, w2: np.ndarray) -> np.ndarray:
         d = np.bincount(self._rows, weights=self.J.data**2 * w2[self._cols], minlength=self.m)
@@ -102,7 +108,7 @@ class ConstraintSolver:
         d = self._diag(w2)
         if self.diagonal:
             return b / d
-        J, JT = self.J, self.J.T.tocsr()
+        J, JT = self.J, self.JT
 
         def matvec(r: np.ndarray) -> np.ndarray:
             return J @ (w2 * (JT @ r))
@@ -150,11 +156,11 @@ class ConstraintSolver:
             self.refill(x, v)
             if not self.m or np.max(np.abs(self.C)) <= tol:
                 break
-            x -= (w2 * (self.J.T @ self._solve(self.C, w2, None))).reshape(shape)
+            x -= (w2 * (self.JT @ self._solve(self.C, w2, None))).reshape(shape)
         self.refill(x, v)
         if not self.m:
             return x, v.copy()
         mu = self._solve(self.J @ v.ravel(), w2, None)
-        v = v - (w2 * (self.J.T @ mu)).reshape(shape)
+        v = v - (w2 * (self.JT @ mu)).reshape(shape)
         self.refill(x, v)
         return x, v
