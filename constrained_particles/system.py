@@ -48,6 +48,11 @@ class ParticleSystem:
     project : if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
     divergence_limit : a step that produces a coordinate (m) or speed (m/s) above this, or a
         non-finite one, raises :class:`SimulationDiverged`.
+    drift_correction : ``method="implicit_euler"`` only: the fraction beta in [0, 1] of the
+        constraint error C removed per step (its constraint rows ask ``J v = -(beta/h) C``).
+    compliance : ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
+        unit of lam (m/N for line wires and fixed points); 0 is a hard constraint, and a small
+        value regularises redundant constraints. See :mod:`constrained_particles.implicit`.
 
     >>> from constrained_particles import ParticleSystem, Gravity, Rod
     >>> s = ParticleSystem()
@@ -61,7 +66,8 @@ class ParticleSystem:
     """
 
     def __init__(self, *, solver: str = "cg", tol: float = 1e-10, ks: float = 100.0,
-                 kd: float = 20.0, project: bool = False, divergence_limit: float = 1e6) -> None:
+                 kd: float = 20.0, project: bool = False, divergence_limit: float = 1e6,
+                 drift_correction: float = 1.0, compliance: float = 0.0) -> None:
         if solver not in SOLVER_METHODS:
             raise ValueError(f"solver must be one of {SOLVER_METHODS}, got {solver!r}")
         self.solver = solver
@@ -71,6 +77,11 @@ class ParticleSystem:
         self.project_each_step = bool(project)
         self.divergence_limit = float(as_param_array("divergence_limit", divergence_limit, 1,
                                                      positive=True)[0])
+        self.drift_correction = float(as_param_array("drift_correction", drift_correction, 1,
+                                                     nonnegative=True)[0])
+        if self.drift_correction > 1:
+            raise ValueError(f"drift_correction must be in [0, 1], got {drift_correction!r}")
+        self.compliance = float(as_param_array("compliance", compliance, 1, nonnegative=True)[0])
         self.x = np.zeros((0, 2))
         self.v = np.zeros((0, 2))
         self.mass = np.zeros(0)
