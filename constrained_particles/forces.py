@@ -8,14 +8,11 @@ Formulas follow shared/DESIGN.md ("Physics (corrected)").
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from .terms import Shape, Term, as_index_array, as_param_array, as_unit_vectors, scatter_add
-
-if TYPE_CHECKING:
-    from .system import ParticleSystem
 
 
 def _perp(p: np.ndarray) -> np.ndarray:
@@ -27,10 +24,45 @@ def _selected(idx: np.ndarray | None, n: int) -> np.ndarray:
     return np.arange(n) if idx is None else idx
 
 
+_NO_ENTRIES = np.zeros(0, dtype=np.int64)
+
+
+def _block_pattern(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns in q = (x_0, y_0, x_1, ...) of the 2x2 blocks (particle p, particle q).
+
+    ``p``, ``q`` are (k, blocks) particle arrays; entries are ordered by element, then block,
+    then row-major inside the block, matching ``values.ravel()`` of a (k, blocks, 2, 2) array.
+    """
+    rows = 2 * p[..., None] + np.array([0, 0, 1, 1])
+    cols = 2 * q[..., None] + np.array([0, 1, 0, 1])
+    return rows.ravel(), cols.ravel()
+
+
+def _diagonal_pattern(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the diagonal entries (x and y) of particles ``p``."""
+    rows = (2 * p[:, None] + np.array([0, 1])).ravel()
+    return rows, rows.copy()
+
+
+def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-element outer products a_k b_k^T of (k, 2) arrays: (k, 2, 2)."""
+    return a[:, :, None] * b[:, None, :]
+
+
+def _dperp_over_square(p: np.ndarray) -> np.ndarray:
+    """d/dp [perp(p) / |p|^2] for (k, 2) vectors p: (k, 2, 2) in 1/m^2 (0 where p = 0)."""
+    pp = np.einsum("kd,kd->k", p, p)
+    inv = 1.0 / np.where(pp > 0, pp, np.inf)
+    R = np.array([[0.0, -1.0], [1.0, 0.0]])
+    return inv[:, None, None] * R - 2.0 * (inv**2)[:, None, None] * _outer(_perp(p), p)
+
+
 class Force(Term):
     """Base class of force blocks."""
 
     conservative: ClassVar[bool] = False
+    #: True for forces that do not depend on positions or velocities (zero Jacobians).
+    state_independent: ClassVar[bool] = False
 
     def accumulate(self, x: np.ndarray, v: np.ndarray, mass: np.ndarray, F: np.ndarray) -> None:
         """Add this block's forces (N) at positions ``x`` (m), velocities ``v`` (m/s) into ``F``."""
@@ -48,6 +80,35 @@ class Force(Term):
         moved = np.flatnonzero(np.any(F != 0, axis=1))
         return x[moved], F[moved]
 
+    def jacobian_pattern(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns of the structural nonzeros of this block's force Jacobians.
+
+        Indices run over the 2n stacked coordinates ``q = (x_0, y_0, x_1, y_1, ...)`` of a
+        system of ``n`` particles; repeated (row, column) pairs are summed. The pattern depends
+        only on the block's particle indices, so an implicit integrator assembles its sparse
+        matrix once per topology and :meth:`jacobians` only refills values.
+        """
+        if self.state_independent:
+            return _NO_ENTRIES, _NO_ENTRIES
+        raise NotImplementedError(f"{type(self).__name__} has no force Jacobians "
+                                  "(jacobian_pattern and jacobians), which implicit_euler needs")
+
+    def jacobians(self, x: np.ndarray, v: np.ndarray, mass: np.ndarray, definite: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Values of ``df/dx`` (N/m) and ``df/dv`` (N s/m) at (x, v), in the order of
+        :meth:`jacobian_pattern`. Entry (r, c) is the derivative of force coordinate r with
+        respect to position (velocity) coordinate c.
+
+        ``definite=False`` gives the exact derivatives. ``definite=True`` gives symmetric
+        negative semi-definite approximations (the same where the exact ones already are), for
+        implicit integrators: a compressed spring's negative transverse stiffness or an angular
+        spring's curvature term predicts a buckling the next step then overshoots.
+        """
+        if self.state_independent:
+            return np.zeros(0), np.zeros(0)
+        raise NotImplementedError(f"{type(self).__name__} has no force Jacobians "
+                                  "(jacobian_pattern and jacobians), which implicit_euler needs")
+
 
 class Gravity(Force):
     """Uniform gravitational field ``g`` (m/s^2) on ``particles`` (default: every particle).
@@ -60,6 +121,7 @@ class Gravity(Force):
 
     index_fields = ("particles",)
     conservative = True
+    state_independent = True
 
     def __init__(self, g: Any = (0.0, -9.81), particles: Any = None) -> None:
         self.g = as_param_array("g", g, 1, width=2)[0]
@@ -89,6 +151,7 @@ class ConstantForce(Force):
 
     index_fields = ("particles",)
     element_fields = ("force",)
+    state_independent = True
 
     def __init__(self, particles: Any, force: Any) -> None:
         self.particles = as_index_array("particles", particles)
@@ -164,6 +227,36 @@ class DampedSpring(Force):
         length = np.linalg.norm(x[self.i] - x[self.j], axis=1)
         return float(0.5 * np.sum(self.ks * (length - self.rest) ** 2))
 
+    def jacobian_pattern(self, n):
+        """Blocks (i, i), (i, j), (j, i), (j, j) of every spring."""
+        i, j = self.i[:, None], self.j[:, None]
+        return _block_pattern(np.hstack([i, i, j, j]), np.hstack([i, j, i, j]))
+
+    def jacobians(self, x, v, mass, definite=False):
+        """Jacobians of the damped spring force.
+
+        Exact: with ``P = I - u u^T`` and ``s = ks (|l| - rest) + kd (ldot . u)``,
+        ``df_i/dl = -[ks u u^T + (s/|l|) P + (kd/|l|) u (P ldot)^T]``, whose ``s/|l|`` part holds
+        the transverse term ``ks (1 - rest/|l|) P`` (negative when compressed), and
+        ``df_i/dldot = -kd u u^T``; ``f_j = -f_i``. ``definite=True`` keeps
+        ``-[ks u u^T + max(ks (1 - rest/|l|), 0) P]``: no compressive transverse stiffness and
+        no damping terms in df/dx (Choi & Ko 2002).
+        """
+        _, length, u, ldot = self._geometry(x, v)
+        inv = 1.0 / np.where(length > 0, length, np.inf)
+        uu = _outer(u, u)
+        P = np.eye(2) - uu
+        if definite:
+            s = np.maximum(self.ks * (length - self.rest), 0.0)
+            Kl = -(self.ks[:, None, None] * uu + (s * inv)[:, None, None] * P)
+        else:
+            s = self.ks * (length - self.rest) + self.kd * np.einsum("kd,kd->k", ldot, u)
+            Kl = -(self.ks[:, None, None] * uu + (s * inv)[:, None, None] * P
+                   + (self.kd * inv)[:, None, None] * _outer(u, np.einsum("kij,kj->ki", P, ldot)))
+        Dl = -self.kd[:, None, None] * uu
+        return (np.stack([Kl, -Kl, -Kl, Kl], axis=1).ravel(),
+                np.stack([Dl, -Dl, -Dl, Dl], axis=1).ravel())
+
     def shapes(self, x, v):
         length = np.linalg.norm(x[self.i] - x[self.j], axis=1)
         strain = (length - self.rest) / np.where(self.rest > 0, self.rest, 1.0)
@@ -235,6 +328,43 @@ class AngularSpring(Force):
     def potential(self, x, mass):
         return float(0.5 * np.sum(self.k * self.deviation(x) ** 2))
 
+    def jacobian_pattern(self, n):
+        """All nine blocks (p, q), p and q in (a, b, c), p-major."""
+        t = np.stack([self.a, self.b, self.c], axis=1)
+        return _block_pattern(np.repeat(t, 3, axis=1), np.tile(t, (1, 3)))
+
+    def jacobians(self, x, v, mass, definite=False):
+        """Jacobians of ``f_p = -(k d + kd thetadot) g_p`` with ``g_p = dtheta/dx_p``.
+
+        Exact: ``df_p/dx_q = -g_p (k g_q + kd dthetadot/dx_q)^T - (k d + kd thetadot) H_pq``
+        with ``H`` the Hessian of theta (``dg_a/du = -d/du[perp(u)/|u|^2]``,
+        ``dg_c/dw = d/dw[perp(w)/|w|^2]``, ``g_b = -(g_a + g_c)``), and
+        ``df_p/dv_q = -kd g_p g_q^T``. ``definite=True`` keeps the Gauss-Newton part
+        ``-k g_p g_q^T`` of df/dx.
+        """
+        g = np.stack(self.gradients(x), axis=1)
+        gg = np.einsum("kpi,kqj->kpqij", g, g)
+        D = -self.kd[:, None, None, None, None] * gg
+        if definite:
+            return (-self.k[:, None, None, None, None] * gg).ravel(), D.ravel()
+        u = x[self.a] - x[self.b]
+        w = x[self.c] - x[self.b]
+        Gu = -_dperp_over_square(u)
+        Gw = _dperp_over_square(w)
+        zero = np.zeros_like(Gu)
+        H = np.stack([np.stack([Gu, -Gu, zero], axis=1),
+                      np.stack([-Gu, Gu + Gw, -Gw], axis=1),
+                      np.stack([zero, -Gw, Gw], axis=1)], axis=1)
+        vs = np.stack([v[self.a], v[self.b], v[self.c]], axis=1)
+        thetadot = np.einsum("kpd,kpd->k", g, vs)
+        # H is symmetric, so dthetadot/dx_q = sum_p H_pq v_p
+        dthetadot = np.einsum("kpqij,kpi->kqj", H, vs)
+        torque = self.k * self.deviation(x) + self.kd * thetadot
+        K = -(np.einsum("kpi,kqj->kpqij", g, self.k[:, None, None] * g
+                        + self.kd[:, None, None] * dthetadot)
+              + torque[:, None, None, None, None] * H)
+        return K.ravel(), D.ravel()
+
     def shapes(self, x, v):
         arms = np.stack([x[self.a], x[self.c]], axis=1)
         return [Shape("angle", "angular", x[self.b], arms, self.deviation(x))]
@@ -257,6 +387,15 @@ class Drag(Force):
             F -= self.kd * v
         else:
             scatter_add(F, self.particles, -self.kd * v[self.particles])
+
+    def jacobian_pattern(self, n):
+        """The x and y diagonal entries of every affected particle."""
+        return _diagonal_pattern(_selected(self.particles, n))
+
+    def jacobians(self, x, v, mass, definite=False):
+        """``df/dx = 0``, ``df/dv = -kd I``."""
+        k = 2 * len(_selected(self.particles, len(x)))
+        return np.zeros(k), np.full(k, -self.kd)
 
 
 class Wall(Force):
@@ -304,6 +443,21 @@ class Wall(Force):
         p = self.penetration(x)
         return float(0.5 * self.kw * np.sum(np.where(p > 0, p, 0.0) ** 2))
 
+    def jacobian_pattern(self, n):
+        """One 2x2 block per affected particle (zero while the particle is outside)."""
+        idx = _selected(self.particles, n)[:, None]
+        return _block_pattern(idx, idx)
+
+    def jacobians(self, x, v, mass, definite=False):
+        """``df/dx = -kw n n^T`` and ``df/dv = -cw n n^T`` for particles inside the wall whose
+        ``max(kw p + cw (n . v), 0)`` clamp is inactive; zero elsewhere (where the force is 0)."""
+        idx = _selected(self.particles, len(x))
+        p = x[idx] @ self.normal - self.offset
+        on = ((p > 0) & (self.kw * p + self.cw * (v[idx] @ self.normal) > 0)).astype(float)
+        nn = np.outer(self.normal, self.normal)
+        return ((-self.kw * on)[:, None, None] * nn).ravel(), ((-self.cw * on)[:, None, None]
+                                                                * nn).ravel()
+
     def shapes(self, x, v):
         point = self.normal * self.offset
         return [Shape("halfplane", "wall", point[None, :], self.normal[None, :])]
@@ -337,16 +491,14 @@ class MouseSpring(Force):
         self.ks = as_param_array("ks", ks, k, nonnegative=True)
         self.kd = as_param_array("kd", kd, k, nonnegative=True)
         self.active = np.full(k, attached)
-        self._n: int | None = None
-
-    def bind(self, system: ParticleSystem) -> None:
-        super().bind(system)
-        self._n = system.n
 
     def grab(self, particle: int, anchor: Any, element: int = 0) -> None:
-        """Attach spring ``element`` to ``particle`` with its anchor at ``anchor`` (m)."""
-        if self._n is not None and not 0 <= int(particle) < self._n:
-            raise ValueError(f"particle {particle} is not a particle index (n = {self._n})")
+        """Attach spring ``element`` to ``particle`` with its anchor at ``anchor`` (m).
+
+        The index is checked against the system's particle count at the next evaluation.
+        """
+        if int(particle) != particle or particle < 0:
+            raise ValueError(f"particle must be a particle index >= 0, got {particle!r}")
         self.particle[element] = int(particle)
         self.move(anchor, element)
         self.active[element] = True
@@ -366,8 +518,20 @@ class MouseSpring(Force):
         return x[p], f
 
     def accumulate(self, x, v, mass, F):
+        if np.any(self.particle >= len(x)):
+            raise ValueError(f"MouseSpring: particle holds unknown particle indices "
+                             f"{self.particle[self.particle >= len(x)].tolist()} "
+                             f"(system has {len(x)} particles)")
         _, f = self.element_forces(x, v, mass)
         scatter_add(F, self.particle, f)
+
+    def jacobian_pattern(self, n):
+        """The x and y diagonal entries of each spring's particle (zero while released)."""
+        return _diagonal_pattern(self.particle)
+
+    def jacobians(self, x, v, mass, definite=False):
+        """``df/dx = -ks I``, ``df/dv = -kd I`` for active springs, 0 for released ones."""
+        return (np.repeat(-self.ks * self.active, 2), np.repeat(-self.kd * self.active, 2))
 
     def potential(self, x, mass):
         d = x[self.particle] - self.anchor
