@@ -20,6 +20,7 @@ from .forces import (
                      MouseSpring,
                      Wall,
 )
+from .implicit import ImplicitSolveError, force_jacobians
 from .integrators import METHODS, ORDERS
 from .system import ParticleSystem, SimulationDiverged
 from .terms import Shape
@@ -28,6 +29,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
-    "FixedPoint", "Force", "Gravity", "HorizontalWire", "LineWire", "METHODS", "MouseSpring",
-    "ORDERS", "ParticleSystem", "Rod", "Shape", "SimulationDiverged", "Wall", "scenes",
+    "FixedPoint", "Force", "Gravity", "HorizontalWire", "ImplicitSolveError", "LineWire",
+    "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "Rod", "Shape", "SimulationDiverged",
+    "Wall", "force_jacobians", "scenes",
 ]

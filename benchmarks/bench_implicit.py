@@ -1,0 +1,195 @@
+"""Benchmark (not a test): implicit_euler against the explicit methods on the stiff cloth.
+
+The cloth of issue 3: 15 x 15 particles of 0.01 kg, 0.1 m apart, structural springs of
+ks = 2000 N/m and shear springs (``scenes.cloth`` gives them ks/2 = 1000 N/m; ``--shear-full``
+makes them 2000 N/m too), kd = 0.05 N s/m, no bend springs, no drag, the top row on a horizontal
+wire, gravity. Two scenarios, each simulated for 1 s:
+
+- ``hanging``: released from its flat rest shape (it sags a few millimetres and rings);
+- ``pushed``: the same with the report's horizontal force, 0.05 N on each top-row particle,
+  so the cloth slides along the wire and swings.
+
+Visual tolerance: the largest distance between any particle and its place in a fine reference
+run (rk4, dt = 1/1920 s), over every frame of 1/60 s that the run reaches (every 1/30 s for a run
+at dt = 1/30 s), must be at most ``--tol`` (default 1 cm, about a pixel at 100 px/m). The
+reference's own error is estimated against rk4 at dt = 1/3840 s and printed.
+
+For each method the largest step dt = 1/(60 k) that stays stable (no SimulationDiverged) and
+meets the tolerance is found by trying k = 1, 2, 3, 4, 6, 8, ... in turn (implicit_euler also
+tries 1/15 and 1/30 s). The wall (and CPU) time of 1 s at that dt is the best of ``--repeats`` runs.
+Prints a table and then the results as JSON.
+
+    python benchmarks/bench_implicit.py [--tol 0.01] [--repeats 5] [--shear-full]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from fractions import Fraction
+
+import numpy as np
+
+from constrained_particles import METHODS, ParticleSystem, SimulationDiverged, scenes
+
+FRAME = Fraction(1, 60)
+EXPLICIT_DIVISORS = (1, 2, 3, 4, 6, 8, 10, 12, 16, 20, 24, 32, 48, 64, 96, 128, 192, 256, 384,
+                     512)
+IMPLICIT_STEPS = (Fraction(1, 15), Fraction(1, 30)) + tuple(FRAME / k for k in (1, 2, 3, 4, 6, 8))
+REFERENCE_DT = FRAME / 32
+DURATION = Fraction(1)
+
+
+def stiff_cloth(scenario: str, shear_full: bool = False) -> ParticleSystem:
+    """The issue-3 cloth; ``scenario`` is ``"hanging"`` or ``"pushed"``."""
+    push = {"hanging": 0.0, "pushed": 0.05}[scenario]
+    s = scenes.cloth(15, 15, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None, drag=0.0,
+                     push=push)
+    if shear_full:
+        s.forces[1].ks[:] = 2000.0
+    return s
+
+
+def simulate(system: ParticleSystem, method: str, dt: Fraction, record: bool = True
+             ) -> tuple[list[np.ndarray], float, float]:
+    """Run ``DURATION`` seconds; positions after each frame of max(dt, 1/60) s, the wall time
+    and the CPU time of this process (both in seconds).
+
+    Raises SimulationDiverged if the method blows up.
+    """
+    per_frame = max(1, int(FRAME / dt))
+    frames = int(DURATION / (dt * per_frame))
+    h = float(dt)
+    out = []
+    start, cpu = time.perf_counter(), time.process_time()
+    for _ in range(frames):
+        for _ in range(per_frame):
+            system.step(h, method=method)
+        if record:
+            out.append(system.x.copy())
+    return out, time.perf_counter() - start, time.process_time() - cpu
+
+
+def frame_error(run: list[np.ndarray], dt: Fraction, reference: list[np.ndarray]) -> float:
+    """Largest particle distance (m) to the reference over the frames ``run`` reached."""
+    stride = max(1, int(dt / FRAME))
+    ref = reference[stride - 1::stride]
+    return max(float(np.max(np.linalg.norm(a - b, axis=1))) for a, b in zip(run, ref, strict=True))
+
+
+def search(scenario: str, method: str, reference: list[np.ndarray], tol: float,
+           shear_full: bool) -> dict:
+    """Largest dt for ``method`` that is stable and within ``tol``; every try is recorded."""
+    steps = IMPLICIT_STEPS if method == "implicit_euler" else tuple(FRAME / k
+                                                                    for k in EXPLICIT_DIVISORS)
+    tries = []
+    for dt in steps:
+        try:
+            run = simulate(stiff_cloth(scenario, shear_full), method, dt)[0]
+        except SimulationDiverged:
+            tries.append({"dt": float(dt), "stable": False})
+            continue
+        error = frame_error(run, dt, reference)
+        tries.append({"dt": float(dt), "stable": True, "max_error_m": error})
+        if error <= tol:
+            return {"dt": float(dt), "dt_label": f"1/{int(1 / dt)}", "steps": int(DURATION / dt),
+                    "max_error_m": error, "tries": tries, "_dt": dt}
+    return {"dt": None, "tries": tries}
+
+
+def timed(scenario: str, method: str, dt: Fraction, repeats: int, shear_full: bool
+          ) -> dict[str, float]:
+    """Best wall and CPU times (s) of ``repeats`` runs of 1 s (after a warm-up step)."""
+    wall, cpu = np.inf, np.inf
+    for _ in range(repeats):
+        system = stiff_cloth(scenario, shear_full)
+        system.copy().step(float(dt), method=method)
+        _, w, c = simulate(system, method, dt, record=False)
+        wall, cpu = min(wall, w), min(cpu, c)
+    return {"wall_s": float(wall), "cpu_s": float(cpu)}
+
+
+def bench(scenario: str, tol: float, repeats: int, shear_full: bool) -> dict:
+    """All methods on one scenario."""
+    reference, ref_time, _ = simulate(stiff_cloth(scenario, shear_full), "rk4", REFERENCE_DT)
+    finer = simulate(stiff_cloth(scenario, shear_full), "rk4", REFERENCE_DT / 2)[0]
+    start = stiff_cloth(scenario, shear_full).x
+    out = {
+        "scenario": scenario,
+        "reference": {"method": "rk4", "dt": float(REFERENCE_DT), "wall_s": ref_time,
+                      "error_vs_half_dt_m": frame_error(reference, FRAME, finer)},
+        "motion_m": max(float(np.max(np.linalg.norm(x - start, axis=1))) for x in reference),
+        "methods": {},
+    }
+    for method in METHODS:
+        found = search(scenario, method, reference, tol, shear_full)
+        dt = found.pop("_dt", None)
+        if dt is not None:
+            found.update(timed(scenario, method, dt, repeats, shear_full))
+        out["methods"][method] = found
+    at_60 = simulate(stiff_cloth(scenario, shear_full), "implicit_euler", FRAME)[0]
+    out["implicit_euler_at_60hz"] = {"max_error_m": frame_error(at_60, FRAME, reference),
+                                     **timed(scenario, "implicit_euler", FRAME, repeats,
+                                             shear_full)}
+    explicit = {m: r for m, r in out["methods"].items()
+                if m != "implicit_euler" and r["dt"] is not None}
+    fastest = min(explicit, key=lambda m: explicit[m]["wall_s"]) if explicit else None
+    implicit = out["methods"]["implicit_euler"]
+    out["fastest_explicit"] = fastest
+    for clock in ("wall_s", "cpu_s"):
+        out[f"speedup_{clock[:-2]}"] = (explicit[fastest][clock] / implicit[clock]
+                                        if fastest and implicit["dt"] is not None else None)
+    return out
+
+
+def table(result: dict, tol: float) -> str:
+    """A plain-text table of one scenario's results."""
+    ref = result["reference"]
+    lines = [f"scenario {result['scenario']}: largest motion {result['motion_m'] * 100:.2f} cm; "
+             f"reference rk4 dt = 1/1920 s ({ref['wall_s']:.1f} s wall), its error vs dt/2 "
+             f"{ref['error_vs_half_dt_m']:.1e} m; tolerance {tol * 100:g} cm",
+             f"{'method':<18}{'dt (s)':>9}{'steps':>7}{'max err (cm)':>14}{'wall (s)':>10}"
+             f"{'cpu (s)':>9}  unstable at"]
+    for method, r in result["methods"].items():
+        unstable = ", ".join(f"1/{round(1 / t['dt'])}" for t in r["tries"] if not t["stable"])
+        if len(unstable) > 40:
+            unstable = unstable[:37] + "..."
+        if r["dt"] is None:
+            lines.append(f"{method:<18}{'none within the searched steps':>49}  {unstable}")
+            continue
+        lines.append(f"{method:<18}{r['dt_label']:>9}{r['steps']:>7}{r['max_error_m'] * 100:>14.3f}"
+                     f"{r['wall_s']:>10.3f}{r['cpu_s']:>9.3f}  {unstable}")
+    r = result["implicit_euler_at_60hz"]
+    lines.append(f"{'implicit @ 60 Hz':<18}{'1/60':>9}{60:>7}{r['max_error_m'] * 100:>14.3f}"
+                 f"{r['wall_s']:>10.3f}{r['cpu_s']:>9.3f}")
+    wall, cpu = result["speedup_wall"], result["speedup_cpu"]
+    lines.append(f"fastest explicit: {result['fastest_explicit']}; implicit_euler is "
+                 + (f"{wall:.2f}x as fast in wall time, {cpu:.2f}x in CPU time" if wall
+                    else "not comparable"))
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tol", type=float, default=0.01, help="visual tolerance in metres")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per method (best)")
+    parser.add_argument("--shear-full", action="store_true",
+                        help="shear springs of 2000 N/m instead of scenes.cloth's ks/2")
+    parser.add_argument("--scenarios", nargs="+", default=["hanging", "pushed"],
+                        choices=["hanging", "pushed"])
+    args = parser.parse_args()
+    results = {"machine": platform.processor() or platform.machine(),
+               "python": platform.python_version(), "tolerance_m": args.tol,
+               "shear_ks": 2000.0 if args.shear_full else 1000.0, "scenarios": []}
+    for scenario in args.scenarios:
+        result = bench(scenario, args.tol, args.repeats, args.shear_full)
+        results["scenarios"].append(result)
+        print(table(result, args.tol), flush=True)
+        print()
+    print(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
