@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import numbers
 from typing import Any
 
 import numpy as np
@@ -224,7 +225,7 @@ class ParticleSystem:
         constraints. Raises :class:`SimulationDiverged`, keeping the old state, if the new
         state would be non-finite or beyond ``divergence_limit``.
         """
-        if not (isinstance(dt, (int, float, np.floating)) and np.isfinite(dt) and dt > 0):
+        if not (isinstance(dt, numbers.Real) and np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
         integrate = get_method(method)
         project = self.project_each_step if project is None else project
