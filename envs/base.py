@@ -1,0 +1,686 @@
+"""What the environments share: N scenes stepped as one particle system.
+
+A :class:`ParticleTask` holds ``num_envs`` copies of one scene as a single
+:class:`~constrained_particles.ParticleSystem` built with ``system.tile(num_envs)`` (block-diagonal
+constraint Jacobian, one derivative evaluation for all copies), writes the agents' actions into the
+tiled actuator blocks (``ConstantForce.force`` rows or ``MouseSpring`` elements), and measures the
+task on every copy at once. :class:`ParticleEnv` is the task with one copy behind the
+``gymnasium.Env`` interface; :class:`ParticleVectorEnv` is the same task with N copies behind the
+``gymnasium.vector.VectorEnv`` interface (the native vector env, in the style of gymnasium's
+``CartPoleVectorEnv``). Both therefore run the same code, and the vector env's copy ``i`` reproduces
+a single env seeded with ``seed + i``, like ``SyncVectorEnv``.
+
+Coordinates: an env's *view box* ``(xmin, ymin, xmax, ymax)`` (metres) maps onto normalized scene
+coordinates ``[-1, 1]^2``. Observed positions, the observed goal and the spring action's grab and
+target points all use that map; observed velocities use the same scale per second.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from constrained_particles import ConstantForce, MouseSpring, ParticleSystem, Shape
+from constrained_particles.integrators import METHODS
+from constrained_particles.system import SimulationDiverged
+
+#: Valid values of the ``action_mode`` argument.
+ACTION_MODES = ("force", "spring")
+#: Observations are clipped to [-OBS_LIMIT, OBS_LIMIT] (normalized units; the view box is [-1, 1]).
+OBS_LIMIT = 10.0
+#: Pixel size of rendered frames.
+FRAME_SIZE = (600, 400)
+
+
+def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: bool = False
+                   ) -> Any:
+    """``value`` as a finite number > 0 (>= 0 if ``allow_zero``; an int if ``integer``), else
+    ValueError naming ``name``."""
+    bound = ">= 0" if allow_zero else "> 0"
+    if isinstance(value, bool) or not isinstance(
+            value, (int, np.integer) if integer else (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be {'an integer' if integer else 'a number'} {bound}, "
+                         f"got {value!r}")
+    if not (math.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
+        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def check_range(name: str, value: Any) -> tuple[float, float]:
+    """``value`` as a finite ``(low, high)`` pair with ``low <= high``, else ValueError."""
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a (low, high) pair of numbers, got {value!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
+    return low, high
+
+
+def check_goal_range(goal_range: Any, min_distance: Any) -> tuple[tuple[float, float], float]:
+    """Validate a goal range and the minimum start-to-goal distance (m) drawn inside it."""
+    low, high = check_range("goal_range", goal_range)
+    gap = check_positive("min_distance", min_distance, allow_zero=True)
+    if gap > 0 and high - low <= 2 * gap:
+        raise ValueError(f"goal_range {goal_range!r} must be wider than twice min_distance = "
+                         f"{gap:g} m, or no goal could be that far from some starts")
+    return (low, high), gap
+
+
+def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
+                 gap: float) -> float:
+    """One draw, uniform on ``[low, high]`` minus ``(x0 - gap, x0 + gap)``.
+
+    Non-empty whenever ``high - low > 2 gap`` (see :func:`check_goal_range`).
+    """
+    left = max(0.0, min(x0 - gap, high) - low)
+    right = max(0.0, high - max(x0 + gap, low))
+    u = float(rng.uniform(0.0, left + right))
+    return low + u if u < left else max(x0 + gap, low) + (u - left)
+
+
+class ParticleTask:
+    """``num_envs`` copies of a scene as one tiled system, with a goal per copy.
+
+    Subclasses build the scene (:meth:`build_scene`), choose the particles the force action
+    pushes (:meth:`force_vectors`), sample starting states (:meth:`sample_start`), say which
+    scalar is driven to the goal (:meth:`tracked`) and define the reward (:meth:`reward`).
+    Every per-copy quantity is an array with a leading axis of length ``num_envs``.
+
+    Common arguments (validated here; a bad value raises ValueError):
+    ``action_mode`` (``"force"`` or ``"spring"``), ``dt`` (physics step, s), ``substeps``
+    (physics steps per env step), ``integrator`` (a name in ``constrained_particles.METHODS``),
+    ``max_force`` (N, the force of action 1), ``grab_radius`` (m), ``mouse_ks`` (N/m) and
+    ``mouse_kd`` (N s/m) of the spring action, and the success test: within ``goal_tolerance``
+    (m) of the goal with RMS particle speed below ``rest_speed`` (m/s) for ``hold_steps``
+    consecutive env steps.
+    """
+
+    #: Number of force-action components (subclasses set it).
+    force_dim: ClassVar[int] = 1
+
+    def __init__(self, num_envs: int, *, action_mode: str, dt: float, substeps: int,
+                 integrator: str, max_force: float, grab_radius: float, mouse_ks: float,
+                 mouse_kd: float, goal_tolerance: float, rest_speed: float,
+                 hold_steps: int) -> None:
+        self.num_envs = check_positive("num_envs", num_envs, integer=True)
+        if action_mode not in ACTION_MODES:
+            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
+        if integrator not in METHODS:
+            raise ValueError(f"integrator must be one of {sorted(METHODS)}, got {integrator!r}")
+        self.action_mode = action_mode
+        self.integrator = integrator
+        self.dt = check_positive("dt", dt)
+        self.substeps = check_positive("substeps", substeps, integer=True)
+        self.max_force = check_positive("max_force", max_force)
+        self.grab_radius = check_positive("grab_radius", grab_radius)
+        self.mouse_ks = check_positive("mouse_ks", mouse_ks)
+        self.mouse_kd = check_positive("mouse_kd", mouse_kd, allow_zero=True)
+        self.goal_tolerance = check_positive("goal_tolerance", goal_tolerance)
+        self.rest_speed = check_positive("rest_speed", rest_speed)
+        self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
+
+        scene = self.build_scene()
+        n = scene.n
+        self.n = n
+        if action_mode == "force":
+            handles = self.force_handles(scene)
+            self.actuator: ConstantForce | MouseSpring = ConstantForce(
+                handles, np.zeros((len(handles), 2)))
+        else:
+            self.actuator = MouseSpring(None, ks=self.mouse_ks, kd=self.mouse_kd)
+        scene.add(self.actuator)
+        #: One copy with the actuator: renders env ``i`` and finds which copy diverged.
+        self.single = scene
+        #: Positions (n, 2) where a diverged copy waits out the rest of a step.
+        self.park = scene.x.copy()
+        self.single_actuator = scene.forces[-1]
+        self.system = scene.tile(self.num_envs)
+        self.actuator = self.system.forces[-1]
+        self.rows_per_copy = len(self.single_actuator) if action_mode == "force" else 1
+        self.goal = np.zeros(self.num_envs)
+        self.hold = np.zeros(self.num_envs, dtype=np.int64)
+        self.action = np.zeros((self.num_envs, self.action_dim))
+        self._row_env = np.concatenate(
+            [np.repeat(np.arange(self.num_envs), c.n_rows // self.num_envs)
+             for c in self.system.constraints] or [np.zeros(0, np.int64)])
+        xmin, ymin, xmax, ymax = self.view
+        self.center = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2])
+        self.half = np.array([(xmax - xmin) / 2, (ymax - ymin) / 2])
+        self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
+        self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (4 * n + 1,), np.float32)
+
+    # ------------------------------------------------------------------ subclass hooks
+    #: ``(xmin, ymin, xmax, ymax)`` in metres: rendering bounds and the normalization box.
+    view: tuple[float, float, float, float]
+
+    def build_scene(self) -> ParticleSystem:
+        """One copy of the scene without actuators."""
+        raise NotImplementedError
+
+    def force_handles(self, scene: ParticleSystem) -> np.ndarray:
+        """Particles (indices within one copy) that the force action pushes."""
+        raise NotImplementedError
+
+    def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Forces (N) on the handles, (num_envs, handles, 2), for clipped actions
+        ``action`` (num_envs, force_dim) at positions ``x`` (num_envs, n, 2)."""
+        raise NotImplementedError
+
+    def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """A starting state of one copy: positions (n, 2) m, velocities (n, 2) m/s, goal (m)."""
+        raise NotImplementedError
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The x coordinate (m) driven to the goal, per copy, from positions (num_envs, n, 2)."""
+        raise NotImplementedError
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Reward per copy from the measures of :meth:`measure`."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ state
+    @property
+    def action_dim(self) -> int:
+        """Length of one copy's action vector."""
+        return self.force_dim if self.action_mode == "force" else 4
+
+    def copy_slice(self, i: int) -> slice:
+        """Rows of copy ``i`` in the tiled particle arrays."""
+        return slice(i * self.n, (i + 1) * self.n)
+
+    def positions(self) -> np.ndarray:
+        """Positions (num_envs, n, 2) in metres (a view)."""
+        return self.system.x.reshape(self.num_envs, self.n, 2)
+
+    def velocities(self) -> np.ndarray:
+        """Velocities (num_envs, n, 2) in m/s (a view)."""
+        return self.system.v.reshape(self.num_envs, self.n, 2)
+
+    def to_world(self, u: np.ndarray) -> np.ndarray:
+        """Normalized scene coordinates (..., 2) to metres."""
+        return self.center + self.half * u
+
+    def to_normalized(self, p: np.ndarray) -> np.ndarray:
+        """Metres (..., 2) to normalized scene coordinates."""
+        return (p - self.center) / self.half
+
+    def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
+        """Write starting states into the slices of copies ``envs`` only."""
+        for i, (x, v, goal) in zip(envs, starts, strict=True):
+            sl = self.copy_slice(i)
+            self.system.x[sl] = x
+            self.system.v[sl] = v
+            self.goal[i] = goal
+            self.hold[i] = 0
+            self.action[i] = 0.0
+            self._actuate_rows(i, None)
+            # the multiplier solve's warm start, so that a seed fixes the episode bit for bit
+            self._lam()[self._row_env == i] = 0.0
+
+    def reset_envs(self, envs: Sequence[int], rngs: Sequence[np.random.Generator]) -> None:
+        """Draw a starting state for each copy in ``envs`` from its generator and write it."""
+        self.write_start(envs, [self.sample_start(rng) for rng in rngs])
+
+    def get_state(self, i: int) -> dict[str, Any]:
+        """Copy ``i``'s full simulation state (positions, velocities, goal, steps held at the goal,
+        last action, time, the multiplier warm start)."""
+        sl = self.copy_slice(i)
+        rows = self._row_env == i
+        return {"t": float(self.system.t), "x": self.system.x[sl].copy(),
+                "v": self.system.v[sl].copy(), "goal": float(self.goal[i]),
+                "hold": int(self.hold[i]),
+                "action": self.action[i].copy(), "lam": self._lam()[rows].copy()}
+
+    def set_state(self, i: int, state: dict[str, Any]) -> None:
+        """Restore copy ``i`` from :meth:`get_state`; ValueError for a malformed state."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
+        missing = {"t", "x", "v", "goal", "hold", "action", "lam"} - set(state)
+        if missing:
+            raise ValueError(f"state is missing {sorted(missing)}")
+        rows = self._row_env == i
+        arrays = {"x": (self.n, 2), "v": (self.n, 2), "action": (self.action_dim,),
+                  "lam": (int(rows.sum()),), "t": (), "goal": (), "hold": ()}
+        values = {}
+        for key, shape in arrays.items():
+            arr = np.asarray(state[key], dtype=float)
+            if arr.shape != shape or not np.all(np.isfinite(arr)):
+                raise ValueError(f"state[{key!r}] must be a finite array of shape {shape}, "
+                                 f"got {arr!r}")
+            values[key] = arr
+        sl = self.copy_slice(i)
+        self.system.x[sl] = values["x"]
+        self.system.v[sl] = values["v"]
+        self.system.t = float(values["t"])
+        self.goal[i] = float(values["goal"])
+        self.hold[i] = int(values["hold"])
+        self.action[i] = values["action"]
+        self._actuate_rows(i, values["action"])
+        lam = self._lam()
+        lam[rows] = values["lam"]
+
+    def _lam(self) -> np.ndarray:
+        return self.system.constraint_solver.lam
+
+    # ------------------------------------------------------------------ actions and physics
+    def check_actions(self, actions: Any) -> np.ndarray:
+        """Validated, clipped actions (num_envs, action_dim) as float64.
+
+        ValueError for a wrong shape or a NaN/inf entry (nothing is changed then);
+        finite values outside [-1, 1] are clipped into the action Box.
+        """
+        shape = (self.num_envs, self.action_dim)
+        try:
+            a = np.asarray(actions, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be numeric, got {actions!r}") from None
+        if a.shape != shape:
+            if a.size != self.num_envs * self.action_dim:
+                raise ValueError(f"action must have {self.action_dim} entries per env "
+                                 f"(shape {shape}), got shape {a.shape}")
+            a = a.reshape(shape)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be finite, got {actions!r}")
+        return np.clip(a, -1.0, 1.0)
+
+    def _actuate_rows(self, i: int, action: np.ndarray | None) -> None:
+        """Write copy ``i``'s action into the tiled actuator (None: no actuation)."""
+        self._actuate(np.array([i]), None if action is None else action[None, :])
+
+    def _actuate(self, envs: np.ndarray, action: np.ndarray | None) -> None:
+        """Write actions (len(envs), action_dim) of copies ``envs`` into the tiled actuator."""
+        act = self.actuator
+        if action is None:
+            if isinstance(act, ConstantForce):
+                rows = (envs[:, None] * self.rows_per_copy + np.arange(self.rows_per_copy)).ravel()
+                act.force[rows] = 0.0
+            else:
+                act.active[envs] = False
+            return
+        x = self.positions()[envs]
+        if isinstance(act, ConstantForce):
+            forces = self.force_vectors(action, x)
+            rows = (envs[:, None] * self.rows_per_copy + np.arange(self.rows_per_copy)).ravel()
+            act.force[rows] = forces.reshape(-1, 2)
+            return
+        grab = self.to_world(action[:, :2])
+        target = self.to_world(action[:, 2:])
+        d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
+        nearest = np.argmin(d2, axis=1)
+        reach = d2[np.arange(len(envs)), nearest] <= self.grab_radius**2
+        act.particle[envs] = envs * self.n + nearest
+        act.anchor[envs] = target
+        act.active[envs] = reach
+
+    def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
+        """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
+        actuation (their action is ignored)."""
+        self.action[:] = actions
+        envs = np.arange(self.num_envs)
+        if idle is not None and idle.any():
+            self.action[idle] = 0.0
+            self._actuate(envs[idle], None)
+            envs = envs[~idle]
+        if len(envs):
+            self._actuate(envs, self.action[envs])
+
+    def simulate(self) -> np.ndarray:
+        """Advance every copy by ``substeps`` physics steps; returns the (num_envs,) mask of copies
+        whose simulation diverged.
+
+        A diverged copy ends the step in its state from before this call. For the remaining
+        physics steps it is parked in the scene's initial state, at rest and without actuation,
+        so that it cannot drag the other copies down; no NaN ever leaves this method.
+        """
+        s = self.system
+        x0, v0 = s.x.copy(), s.v.copy()
+        park = np.tile(self.park, (self.num_envs, 1))
+        rest = np.zeros_like(v0)
+        frozen = np.zeros(self.num_envs, bool)
+        for _ in range(self.substeps):
+            try:
+                s.step(self.dt, self.integrator)
+            except SimulationDiverged:
+                bad = self._diverging()
+                frozen |= bad if bad.any() else True
+                self._put(frozen, park, rest)
+                if not frozen.all():
+                    try:
+                        s.step(self.dt, self.integrator)
+                    except SimulationDiverged:
+                        frozen[:] = True
+            if frozen.all():
+                break
+            if frozen.any():
+                self._put(frozen, park, rest)
+        if frozen.any():
+            self._put(frozen, x0, v0)
+        return frozen
+
+    def _put(self, copies: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:
+        """Set the masked ``copies`` to their rows of ``x``, ``v``; switch off their actuation."""
+        rows = np.repeat(copies, self.n)
+        self.system.x[rows] = x[rows]
+        self.system.v[rows] = v[rows]
+        self._actuate(np.flatnonzero(copies), None)
+
+    def _diverging(self) -> np.ndarray:
+        """Which copies diverge when stepped alone from the current state (one physics step)."""
+        if self.num_envs == 1:
+            return np.ones(1, bool)
+        bad = np.zeros(self.num_envs, bool)
+        for i in range(self.num_envs):
+            self.load_single(i)
+            try:
+                self.single.step(self.dt, self.integrator)
+            except SimulationDiverged:
+                bad[i] = True
+        return bad
+
+    def load_single(self, i: int) -> ParticleSystem:
+        """Copy ``i``'s state and actuation into :attr:`single` (for drawing or testing it)."""
+        sl = self.copy_slice(i)
+        one = self.single
+        one.x, one.v, one.t = self.system.x[sl].copy(), self.system.v[sl].copy(), self.system.t
+        act, mine = self.actuator, self.single_actuator
+        if isinstance(act, ConstantForce):
+            mine.force[:] = act.force[i * self.rows_per_copy:(i + 1) * self.rows_per_copy]
+        else:
+            mine.particle[0] = act.particle[i] - i * self.n
+            mine.anchor[0] = act.anchor[i]
+            mine.active[0] = act.active[i]
+        return one
+
+    # ------------------------------------------------------------------ measures
+    def observe(self) -> np.ndarray:
+        """Observations (num_envs, 4 n + 1) float32: normalized positions, velocities, goal."""
+        N = self.num_envs
+        pos = self.to_normalized(self.positions()).reshape(N, -1)
+        vel = (self.velocities() / self.half).reshape(N, -1)
+        goal = (self.goal[:, None] - self.center[0]) / self.half[0]
+        obs = np.concatenate([pos, vel, goal], axis=1)
+        return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
+
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
+        ``kinetic_energy`` (J), ``constraint_residual`` (max |C|) and ``is_success``.
+
+        ``stepped`` masks the copies that just took an env step: their count of consecutive
+        steps at the goal and at rest advances (or restarts at 0).
+        """
+        N, n = self.num_envs, self.n
+        v = self.velocities()
+        v2 = np.ascontiguousarray(np.sum(v * v, axis=2))
+        mass = self.system.mass.reshape(N, n)
+        residual = np.zeros(N)
+        if self.system.constraints:
+            C, _ = self.system.constraint_residual()
+            np.maximum.at(residual, self._row_env, np.abs(C))
+        distance = np.abs(self.tracked(self.positions()) - self.goal)
+        speed = np.sqrt(np.mean(v2, axis=1))
+        if stepped is not None:
+            settled = (distance < self.goal_tolerance) & (speed < self.rest_speed)
+            self.hold[stepped] = np.where(settled[stepped], self.hold[stepped] + 1, 0)
+        return {"distance": distance, "speed": speed,
+                "kinetic_energy": 0.5 * np.sum(mass * v2, axis=1),
+                "constraint_residual": residual,
+                "is_success": self.hold >= self.hold_steps}
+
+    def shapes(self, i: int) -> tuple[ParticleSystem, list[Shape]]:
+        """Copy ``i`` as a drawable single system, and its goal marker."""
+        one = self.load_single(i)
+        return one, [Shape("marker", "goal", np.array([[self.goal[i], self.goal_height]]))]
+
+    #: Height (m) at which the goal marker is drawn (subclasses set it).
+    goal_height: float = 0.0
+
+
+def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
+    out = {k: v for k, v in m.items() if k != "speed"}
+    out["diverged"] = diverged
+    return out
+
+
+class _Rendering:
+    """Drawing through constrained_particles.render (pygame-ce imported lazily)."""
+
+    task: ParticleTask
+    metadata: dict[str, Any]
+
+    def _frame(self, i: int, surface: Any = None) -> np.ndarray | None:
+        from constrained_particles.render import Renderer
+
+        if getattr(self, "_renderer", None) is None:
+            self._renderer = Renderer(bounds=self.task.view, size=FRAME_SIZE)
+        system, extra = self.task.shapes(i)
+        if surface is None:
+            return self._renderer.rgb_array(system, extra=extra, forces=True)
+        self._renderer.draw(surface, system, extra=extra, forces=True)
+        return None
+
+
+class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
+    """A single environment: its task with one copy. Subclasses set ``task_class``."""
+
+    task_class: ClassVar[type[ParticleTask]]
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
+                                          "render_fps": 20}
+
+    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
+                             f"None, got {render_mode!r}")
+        self.task = self.task_class(1, **kwargs)
+        self.action_space = self.task.single_action_space
+        self.observation_space = self.task.single_observation_space
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata,
+                         "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
+        self._renderer = None
+        self._window = None
+        self._clock = None
+
+    def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
+                ) -> tuple[np.ndarray, dict[str, Any]]:
+        m = self.task.measure(stepped)
+        info = {k: v[0].item() for k, v in _info(m, diverged).items()}
+        self._last = m
+        return self.task.observe()[0], info
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``."""
+        super().reset(seed=seed)
+        self.task.reset_envs([0], [self.np_random])
+        obs, info = self._result(np.zeros(1, bool))
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply ``action`` for one env step (``substeps`` physics steps)."""
+        a = self.task.check_actions(action)
+        self.task.apply(a)
+        diverged = self.task.simulate()
+        obs, info = self._result(diverged, ~diverged)
+        reward = float(self.task.reward(self._last)[0])
+        terminated = bool(info["is_success"]) and not info["diverged"]
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, bool(info["diverged"]), info
+
+    def get_state(self) -> dict[str, Any]:
+        """The full simulation state, for planning: restore it with :meth:`set_state`.
+
+        Holds positions ``x`` (m), velocities ``v`` (m/s), time ``t`` (s), ``goal`` (m), the last
+        clipped ``action``, the constraint solver's warm start ``lam`` and the state of
+        ``np_random``. The ``TimeLimit`` wrapper's step counter is not part of it.
+        """
+        state = self.task.get_state(0)
+        state["np_random"] = self.np_random.bit_generator.state
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore a state from :meth:`get_state` (ValueError if it is malformed)."""
+        self.task.set_state(0, state)
+        if "np_random" in state:
+            self.np_random.bit_generator.state = state["np_random"]
+
+    def render(self) -> np.ndarray | None:
+        """``"rgb_array"``: an (H, W, 3) uint8 frame; ``"human"``: draw into a pygame window."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")
+            return None
+        if self.render_mode == "rgb_array":
+            return self._frame(0)
+        import pygame
+
+        if self._window is None:
+            pygame.display.init()
+            pygame.display.set_caption(type(self).__name__)
+            self._window = pygame.display.set_mode(FRAME_SIZE)
+            self._clock = pygame.time.Clock()
+        pygame.event.pump()
+        self._frame(0, self._window)
+        pygame.display.flip()
+        self._clock.tick(self.metadata["render_fps"])
+        return None
+
+    def close(self) -> None:
+        """Close the pygame window, if any (safe to call twice)."""
+        if self._window is not None:
+            import pygame
+
+            pygame.display.quit()
+            self._window = None
+            self._clock = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state.update(_renderer=None, _window=None, _clock=None)
+        return state
+
+
+class ParticleVectorEnv(_Rendering, VectorEnv):
+    """The native vector env: ``num_envs`` copies stepped as one system.
+
+    Autoreset is ``NEXT_STEP`` (a copy that ended is reset by the following ``step``, which
+    ignores its action and returns its first observation with reward 0); truncation after
+    ``max_episode_steps`` is handled here. Copy ``i`` draws its randomness from its own generator,
+    seeded with ``seed + i`` by ``reset(seed=seed)``, so it reproduces a single env (and
+    ``SyncVectorEnv``) seeded the same way. ``reset(options={"reset_mask": mask})`` resets only
+    the masked copies and writes only their slices.
+    """
+
+    task_class: ClassVar[type[ParticleTask]]
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 20,
+                                          "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+                 render_mode: str | None = None, **kwargs: Any) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
+                             f"None, got {render_mode!r}")
+        self.task = self.task_class(num_envs, **kwargs)
+        self.num_envs = self.task.num_envs
+        self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
+                                                integer=True)
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata,
+                         "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
+        self.single_action_space = self.task.single_action_space
+        self.single_observation_space = self.task.single_observation_space
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self._renderer = None
+        self._rngs: list[np.random.Generator] | None = None
+        self.steps = np.zeros(self.num_envs, dtype=np.int64)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+
+    def _seed_copies(self, seed: int | Sequence[int | None] | None) -> None:
+        N = self.num_envs
+        seeds = ([seed + i for i in range(N)] if isinstance(seed, (int, np.integer))
+                 else [None] * N if seed is None else list(seed))
+        if len(seeds) != N:
+            raise ValueError(f"seed must be an int, None or a list of {N} seeds, got {seed!r}")
+        if self._rngs is None:
+            self._rngs = [seeding.np_random(
+                int(self.np_random.integers(2**63)) if s is None else s)[0] for s in seeds]
+        else:
+            self._rngs = [r if s is None else seeding.np_random(s)[0]
+                          for r, s in zip(self._rngs, seeds, strict=True)]
+
+    def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
+                ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+        m = self.task.measure(stepped)
+        info = _info(m, diverged)
+        info.update({f"_{k}": np.ones(self.num_envs, bool) for k in list(info)})
+        return self.task.observe(), info, m
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every copy, or those in ``options["reset_mask"]`` (a (num_envs,) bool array)."""
+        super().reset(seed=seed if isinstance(seed, (int, np.integer)) else None)
+        self._seed_copies(seed)
+        mask = np.ones(self.num_envs, bool)
+        if options is not None and "reset_mask" in options:
+            mask = np.asarray(options["reset_mask"])
+            if mask.shape != (self.num_envs,) or mask.dtype != bool or not mask.any():
+                raise ValueError("options['reset_mask'] must be a bool array of shape "
+                                 f"({self.num_envs},) with at least one True")
+        envs = np.flatnonzero(mask)
+        self.task.reset_envs(envs, [self._rngs[i] for i in envs])
+        self.steps[mask] = 0
+        self._autoreset[mask] = False
+        obs, info, _ = self._result(np.zeros(self.num_envs, bool))
+        return obs, info
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          dict[str, Any]]:
+        """Step every copy; copies that ended on the previous step are reset instead."""
+        if self._rngs is None:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        a = self.task.check_actions(actions)
+        resetting = self._autoreset.copy()
+        envs = np.flatnonzero(resetting)
+        starts = [self.task.sample_start(self._rngs[i]) for i in envs]
+        self.task.write_start(envs, starts)
+        self.task.apply(a, idle=resetting)
+        diverged = self.task.simulate()
+        # the resetting copies were stepped along (no actuation); put their first state back
+        self.task.write_start(envs, starts)
+        diverged[resetting] = False
+        obs, info, m = self._result(diverged, ~resetting & ~diverged)
+        reward = self.task.reward(m)
+        self.steps += 1
+        self.steps[resetting] = 0
+        terminated = m["is_success"] & ~diverged & ~resetting
+        truncated = ((self.steps >= self.max_episode_steps) | diverged) & ~resetting
+        reward[resetting] = 0.0
+        self._autoreset = terminated | truncated
+        return obs, reward, terminated, truncated, info
+
+    def render(self) -> list[np.ndarray] | None:
+        """One (H, W, 3) uint8 frame per copy (``render_mode="rgb_array"``)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass it to make_vec()")
+            return None
+        return [self._frame(i) for i in range(self.num_envs)]
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_renderer"] = None
+        return state
+
+    def __repr__(self) -> str:
+        name = self.spec.id if self.spec is not None else type(self).__name__
+        return f"{type(self).__name__}({name}, num_envs={self.num_envs})"

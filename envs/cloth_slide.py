@@ -1,0 +1,268 @@
+"""ClothSlide-v0: slide a hanging cloth along its wire to a goal, without slamming into the wall."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.optimize
+
+from constrained_particles import ParticleSystem, Wall, scenes
+
+from .base import (
+    ParticleEnv,
+    ParticleTask,
+    ParticleVectorEnv,
+    check_goal_range,
+    check_positive,
+    uniform_away,
+)
+
+#: Reward on the step that reaches the goal at rest.
+SUCCESS_BONUS = 10.0
+
+
+class ClothSlide(ParticleTask):
+    """The ClothSlide physics and task for ``num_envs`` copies (see :class:`ClothSlideEnv`)."""
+
+    force_dim = 2
+
+    def __init__(self, num_envs: int = 1, *, action_mode: str = "force",
+                 cloth_size: tuple[int, int] = (6, 6), spacing: float = 0.1,
+                 particle_mass: float = 0.02, cloth_ks: float = 40.0, cloth_kd: float = 0.05,
+                 drag: float = 0.01, wall_x: float = 1.0, wall_penalty: float = 1.0,
+                 dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
+                 max_force: float = 1.0, goal_range: tuple[float, float] = (-0.6, 0.6),
+                 min_distance: float = 0.3, goal_tolerance: float = 0.05,
+                 rest_speed: float = 0.05, hold_steps: int = 5, grab_radius: float = 0.2,
+                 mouse_ks: float = 20.0, mouse_kd: float = 0.5) -> None:
+        try:
+            nx, ny = (int(c) for c in cloth_size)
+        except (TypeError, ValueError):
+            raise ValueError(f"cloth_size must be a (columns, rows) pair of ints, "
+                             f"got {cloth_size!r}") from None
+        if nx < 2 or ny < 2 or (nx, ny) != tuple(cloth_size):
+            raise ValueError(f"cloth_size must be two integers >= 2, got {cloth_size!r}")
+        self.nx, self.ny = nx, ny
+        self.spacing = check_positive("spacing", spacing)
+        self.particle_mass = check_positive("particle_mass", particle_mass)
+        self.cloth_ks = check_positive("cloth_ks", cloth_ks)
+        self.cloth_kd = check_positive("cloth_kd", cloth_kd, allow_zero=True)
+        self.drag = check_positive("drag", drag, allow_zero=True)
+        self.wall_x = check_positive("wall_x", wall_x)
+        self.wall_penalty = check_positive("wall_penalty", wall_penalty, allow_zero=True)
+        self.goal_range, self.min_distance = check_goal_range(goal_range, min_distance)
+        high = self.goal_range[1]
+        half_width = (nx - 1) * self.spacing / 2
+        if high + half_width >= self.wall_x:
+            raise ValueError(f"goal_range: a goal at {high} m would put the cloth's edge into the "
+                             f"wall at wall_x = {self.wall_x} m")
+        height = (ny - 1) * self.spacing
+        self.view = (-self.wall_x - 0.3, -1.6 * height - 0.2, self.wall_x + 0.3, 0.3)
+        super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
+                         integrator=integrator, max_force=max_force, grab_radius=grab_radius,
+                         mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
+                         rest_speed=rest_speed, hold_steps=hold_steps)
+        self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
+        self.weight = float(np.sum(self.single.mass) * scenes.G)
+
+    def build_scene(self) -> ParticleSystem:
+        """The cloth of ``scenes.cloth``, hanging in static equilibrium, centred on x = 0."""
+        s = scenes.cloth(self.nx, self.ny, spacing=self.spacing, mass=self.particle_mass,
+                         ks=self.cloth_ks, kd=self.cloth_kd, wire_height=0.0, wall_x=self.wall_x,
+                         drag=self.drag)
+        s.x[:, 0] -= s.x[:, 0].mean()
+        self.rest_shape = _hanging_equilibrium(s, top=np.arange(self.nx))
+        s.x = self.rest_shape.copy()
+        self.goal_height = float(self.rest_shape[:, 1].mean())
+        return s
+
+    def force_handles(self, scene: ParticleSystem) -> np.ndarray:
+        """The two top corners of the cloth."""
+        return np.array([0, self.nx - 1])
+
+    def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Horizontal forces ``action * max_force`` (N) on the left and right top corners."""
+        f = np.zeros((len(action), 2, 2))
+        f[:, :, 0] = action * self.max_force
+        return f
+
+    def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """The cloth at rest in equilibrium, centred at x0 ~ U(goal_range); the goal uniform over
+        goal_range at least ``min_distance`` from x0."""
+        low, high = self.goal_range
+        x0 = float(rng.uniform(low, high))
+        goal = uniform_away(rng, low, high, x0, self.min_distance)
+        x = self.rest_shape.copy()
+        x[:, 0] += x0
+        return x, np.zeros_like(x), goal
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The cloth's centre of mass x (m) (all particles have the same mass)."""
+        return np.mean(np.ascontiguousarray(x[:, :, 0]), axis=1)
+
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The common measures plus ``wall_force``: the wall's total contact force (N)."""
+        m = super().measure(stepped)
+        F = np.zeros_like(self.system.x)
+        self.wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
+        m["wall_force"] = np.sum(np.abs(np.ascontiguousarray(F[:, 0]).reshape(self.num_envs,
+                                                                              self.n)), axis=1)
+        return m
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``-distance - 0.1 speed - wall_penalty * wall_force / weight + 10 * is_success``."""
+        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
+                / self.weight + SUCCESS_BONUS * m["is_success"])
+
+
+def _hanging_equilibrium(s: ParticleSystem, top: np.ndarray) -> np.ndarray:
+    """Positions (n, 2) minimising the spring and gravity energy with ``top`` on the wire.
+
+    The applied forces at rest are minus the energy gradient, so L-BFGS gets exact gradients.
+    """
+    x0 = s.x.copy()
+    free = np.ones(x0.shape, bool)
+    free[top, 1] = False
+    rest = np.zeros_like(x0)
+
+    def energy(q: np.ndarray) -> tuple[float, np.ndarray]:
+        x = x0.copy()
+        x[free] = q
+        s.x = x
+        return s.potential_energy(), -s.applied_forces(x, rest)[free]
+
+    sol = scipy.optimize.minimize(energy, x0[free], jac=True, method="L-BFGS-B",
+                                  options={"gtol": 1e-10, "ftol": 1e-15, "maxiter": 5000})
+    x = x0.copy()
+    x[free] = sol.x
+    s.x = x0
+    return x
+
+
+class ClothSlideEnv(ParticleEnv):
+    """
+    ## Description
+
+    A spring-mass cloth hangs from a horizontal wire: its top row of particles slides along the
+    wire (a Lagrange-multiplier constraint, Witkin & Baraff), gravity pulls it down, structural,
+    shear and bend springs hold it together, and a wall stands to the right at ``wall_x``.
+    Bring the cloth's centre of mass to rest at a goal position on the wire without slamming
+    into the wall. The cloth swings like a pendulum hanging from a cart when it is pushed, so
+    stopping it at the goal takes some care.
+
+    ## Action Space
+
+    ``action_mode="force"`` (default): ``Box(-1, 1, (2,), float32)``, horizontal forces on the two
+    top corners of the cloth (left, right), each ``action * max_force`` newtons.
+
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
+    target_y)`` in normalized scene coordinates (the view box maps onto [-1, 1]^2). The particle
+    nearest the grab point, if within ``grab_radius`` metres of it, is pulled toward the target
+    by a mouse spring (``mouse_ks``, ``mouse_kd``) for this step; otherwise nothing is applied.
+
+    Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
+
+    ## Observation Space
+
+    ``Box(-10, 10, (4 n + 1,), float32)`` with ``n = columns * rows`` particles (145 by default),
+    in normalized scene coordinates (position ``(p - c) / h`` for the view box's centre ``c`` and
+    half-size ``h``; velocity ``v / h``), clipped to [-10, 10]. Particle ``k`` is at row
+    ``k // columns`` (0 is the top row, on the wire), column ``k % columns``.
+
+    | Index             | Observation                          | Min | Max |
+    |-------------------|--------------------------------------|-----|-----|
+    | 2k, 2k + 1        | particle k position x, y             | -10 | 10  |
+    | 2n + 2k, 2n + 2k + 1 | particle k velocity x, y (1/s)    | -10 | 10  |
+    | 4n                | goal x (on the same scale as x)      | -10 | 10  |
+
+    ## Rewards
+
+    Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) + 10 * success``, with ``d`` the
+    distance (m) from the cloth's centre of mass to the goal, ``s`` the RMS particle speed (m/s),
+    ``F_wall`` the wall's contact force (N) divided by the cloth's weight ``M g``, and ``success``
+    1 on the step that reaches the goal at rest.
+
+    ## Starting State
+
+    The cloth hangs at rest in static equilibrium, its centre at x0 ~ U(``goal_range``); the goal
+    is uniform over ``goal_range`` at least ``min_distance`` from x0. All draws come from
+    ``self.np_random``.
+
+    ## Episode End
+
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` (success; ``info["is_success"]``).
+    2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
+    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned and ``info["diverged"]`` is True.
+
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|, m),
+    ``wall_force`` (N), ``is_success`` and ``diverged``.
+
+    ## Arguments
+
+    ```python
+    >>> import gymnasium as gym
+    >>> import envs
+    >>> env = gym.make("ClothSlide-v0", action_mode="spring", cloth_size=(5, 4))
+    >>> obs, info = env.reset(seed=0)
+    >>> obs.shape, env.action_space.shape
+    ((81,), (4,))
+
+    ```
+
+    | Parameter        | Default              | Description                                  |
+    |------------------|----------------------|----------------------------------------------|
+    | `action_mode`    | `"force"`            | `"force"` or `"spring"`                      |
+    | `cloth_size`     | `(6, 6)`             | particle columns and rows, each >= 2         |
+    | `spacing`        | `0.1`                | rest distance between neighbours (m)         |
+    | `particle_mass`  | `0.02`               | mass of each particle (kg)                   |
+    | `cloth_ks`       | `40.0`               | structural springs (N/m; shear /2, bend /4)  |
+    | `cloth_kd`       | `0.05`               | spring damping (N s/m)                       |
+    | `drag`           | `0.01`               | air drag per particle (N s/m)                |
+    | `wall_x`         | `1.0`                | the wall fills x > wall_x (m)                |
+    | `wall_penalty`   | `1.0`                | weight of the wall term of the reward        |
+    | `dt`             | `0.01`               | physics step (s)                             |
+    | `substeps`       | `5`                  | physics steps per env step (0.05 s)          |
+    | `integrator`     | `"symplectic_euler"` | a name in `constrained_particles.METHODS`    |
+    | `max_force`      | `1.0`                | force of action 1 on each corner (N)         |
+    | `goal_range`     | `(-0.6, 0.6)`        | range of start and goal positions (m)        |
+    | `min_distance`   | `0.3`                | minimum start-to-goal distance (m)           |
+    | `goal_tolerance` | `0.05`               | success distance (m)                         |
+    | `rest_speed`     | `0.05`               | success RMS particle speed (m/s)             |
+    | `hold_steps`     | `5`                  | env steps the success test must hold         |
+    | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)  |
+    | `mouse_ks`       | `20.0`               | spring action stiffness (N/m)                |
+    | `mouse_kd`       | `0.5`                | spring action damping (N s/m)                |
+
+    Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
+    ``set_state(state)`` save and restore the full simulation state (positions, velocities,
+    time, goal, solver warm start, random generator) for planning.
+
+    ## Vectorized environment
+
+    ``gym.make_vec("ClothSlide-v0", num_envs=N, vectorization_mode="vector_entry_point")`` runs
+    :class:`ClothSlideVectorEnv`: the N cloths are one particle system (``system.tile(N)``), so
+    each physics step is one derivative evaluation for all of them. Autoreset is NEXT_STEP, and
+    copy ``i`` reproduces a single env reset with ``seed + i``.
+
+    ## Version History
+
+    * v0: Initial version.
+    """
+
+    task_class = ClothSlide
+
+
+class ClothSlideVectorEnv(ParticleVectorEnv):
+    """``num_envs`` ClothSlide copies stepped as one particle system (see :class:`ClothSlideEnv`).
+
+    Takes the same keyword arguments as the single env, plus ``num_envs`` and
+    ``max_episode_steps`` (default 200).
+    """
+
+    task_class = ClothSlide
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+                 render_mode: str | None = None, **kwargs: Any) -> None:
+        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)

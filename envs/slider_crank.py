@@ -1,0 +1,230 @@
+"""SliderCrank-v0: turn a crank on a circular wire until its rod-linked slider holds at a goal."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from constrained_particles import Drag, ParticleSystem, scenes
+
+from .base import (
+    ParticleEnv,
+    ParticleTask,
+    ParticleVectorEnv,
+    check_goal_range,
+    check_positive,
+    uniform_away,
+)
+from .cloth_slide import SUCCESS_BONUS
+
+
+class SliderCrank(ParticleTask):
+    """The SliderCrank physics and task for ``num_envs`` copies (see :class:`SliderCrankEnv`)."""
+
+    force_dim = 1
+
+    def __init__(self, num_envs: int = 1, *, action_mode: str = "force", radius: float = 0.3,
+                 rod: float = 0.8, particle_mass: float = 0.1, drag: float = 0.05,
+                 dt: float = 0.025, substeps: int = 2, integrator: str = "rk4",
+                 max_force: float = 2.0, goal_range: tuple[float, float] = (0.8, 1.05),
+                 min_distance: float = 0.1, max_start_speed: float = 2.0,
+                 goal_tolerance: float = 0.02, rest_speed: float = 0.05,
+                 hold_steps: int = 5, grab_radius: float = 0.2, mouse_ks: float = 20.0,
+                 mouse_kd: float = 1.0) -> None:
+        self.radius = check_positive("radius", radius)
+        self.rod = check_positive("rod", rod)
+        if self.rod <= self.radius:
+            raise ValueError(f"rod must exceed radius so the slider can always reach the wire, "
+                             f"got rod={rod}, radius={radius}")
+        self.particle_mass = check_positive("particle_mass", particle_mass)
+        self.drag = check_positive("drag", drag, allow_zero=True)
+        self.max_start_speed = check_positive("max_start_speed", max_start_speed,
+                                              allow_zero=True)
+        self.goal_range, self.min_distance = check_goal_range(goal_range, min_distance)
+        low, high = self.goal_range
+        if low <= self.rod - self.radius or high >= self.rod + self.radius:
+            raise ValueError(f"goal_range must lie inside the slider's stroke "
+                             f"({self.rod - self.radius:g}, {self.rod + self.radius:g}) m, "
+                             f"got {goal_range!r}")
+        r, L = self.radius, self.rod
+        self.view = (-r - 0.15, -r - 0.15, L + r + 0.15, r + 0.15)
+        self.goal_height = 0.0
+        super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
+                         integrator=integrator, max_force=max_force, grab_radius=grab_radius,
+                         mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
+                         rest_speed=rest_speed, hold_steps=hold_steps)
+
+    def build_scene(self) -> ParticleSystem:
+        """``scenes.wire_mixture`` (crank 0 on a circle about the origin, slider 1 on y = 0, a rod
+        between them) plus air drag on both particles."""
+        s = scenes.wire_mixture(radius=self.radius, rod=self.rod, wire_height=0.0, angle=0.0,
+                                omega=0.0, mass=self.particle_mass)
+        if self.drag > 0:
+            s.add(Drag(self.drag))
+        return s
+
+    def force_handles(self, scene: ParticleSystem) -> np.ndarray:
+        """The crank particle."""
+        return np.array([0])
+
+    def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``action * max_force`` (N) along the crank's counter-clockwise tangent."""
+        crank = x[:, 0, :]
+        tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        return (action * self.max_force)[:, :, None] * tangent[:, None, :]
+
+    def linkage(self, angle: float, omega: float) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
+        counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
+        r, L = self.radius, self.rod
+        c, s = np.cos(angle), np.sin(angle)
+        reach = np.sqrt(L**2 - (r * s) ** 2)
+        x = np.array([[r * c, r * s], [r * c + reach, 0.0]])
+        dslider = -r * s - (r * s) * (r * c) / reach  # d(slider x)/d(angle)
+        v = omega * np.array([[-r * s, r * c], [dslider, 0.0]])
+        return x, v
+
+    def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """Crank angle ~ U(-pi, pi), angular speed ~ U(+-max_start_speed / radius); the goal
+        uniform over goal_range at least ``min_distance`` from the slider's start."""
+        angle = float(rng.uniform(-np.pi, np.pi))
+        omega = float(rng.uniform(-1.0, 1.0)) * self.max_start_speed / self.radius
+        x, v = self.linkage(angle, omega)
+        low, high = self.goal_range
+        return x, v, uniform_away(rng, low, high, float(x[1, 0]), self.min_distance)
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The slider's x (m)."""
+        return x[:, 1, 0].copy()
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``-distance - 0.1 speed + 10 * is_success``."""
+        return -m["distance"] - 0.1 * m["speed"] + SUCCESS_BONUS * m["is_success"]
+
+
+class SliderCrankEnv(ParticleEnv):
+    """
+    ## Description
+
+    The constraint mixture of Witkin & Baraff's notes as a slider-crank: the crank particle rides
+    a circular wire of radius ``radius`` about the origin, the slider particle rides a horizontal
+    wire at y = 0, and a rigid rod of length ``rod`` joins them; all three are
+    Lagrange-multiplier constraints solved together. Gravity pulls the crank down and air drag
+    slows both. Bring the slider to a goal position on its wire and hold it there at rest.
+    Every slider position but the two dead centres has two crank angles; holding the crank away
+    from the bottom needs a steady force against gravity.
+
+    ## Action Space
+
+    ``action_mode="force"`` (default): ``Box(-1, 1, (1,), float32)``, a force of ``action *
+    max_force`` newtons on the crank along its counter-clockwise tangent (taken at the start of
+    the step and held for its substeps; its component off the wire is absorbed by the wire).
+
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
+    target_y)`` in normalized scene coordinates. The particle nearest the grab point, if within
+    ``grab_radius`` metres, is pulled toward the target by a mouse spring (``mouse_ks``,
+    ``mouse_kd``) for this step; otherwise nothing is applied.
+
+    Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
+
+    ## Observation Space
+
+    ``Box(-10, 10, (9,), float32)`` in normalized scene coordinates (position ``(p - c) / h`` for
+    the view box's centre ``c`` and half-size ``h``; velocity ``v / h``):
+
+    | Index | Observation                    | Min | Max |
+    |-------|--------------------------------|-----|-----|
+    | 0, 1  | crank position x, y            | -10 | 10  |
+    | 2, 3  | slider position x, y           | -10 | 10  |
+    | 4, 5  | crank velocity x, y (1/s)      | -10 | 10  |
+    | 6, 7  | slider velocity x, y (1/s)     | -10 | 10  |
+    | 8     | goal x (same scale as x)       | -10 | 10  |
+
+    ## Rewards
+
+    Every step: ``-d - 0.1 s + 10 * success``, with ``d`` the distance (m) from the slider to the
+    goal, ``s`` the RMS speed of the two particles (m/s) and ``success`` 1 on the step that
+    reaches the goal at rest.
+
+    ## Starting State
+
+    Crank angle ~ U(-pi, pi) and crank speed ~ U(-``max_start_speed``, ``max_start_speed``) m/s,
+    with the slider's position and velocity consistent with the constraints; the goal is uniform
+    over ``goal_range`` at least ``min_distance`` from the slider. All draws come from
+    ``self.np_random``.
+
+    ## Episode End
+
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` (success; ``info["is_success"]``).
+    2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
+    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned and ``info["diverged"]`` is True.
+
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|:
+    m for the line wire, m^2 for the circle and rod, whose C is (|d|^2 - r^2) / 2),
+    ``is_success`` and ``diverged``.
+
+    ## Arguments
+
+    ```python
+    >>> import gymnasium as gym
+    >>> import envs
+    >>> env = gym.make("SliderCrank-v0", integrator="midpoint", substeps=4, dt=0.0125)
+    >>> obs, info = env.reset(seed=0)
+    >>> obs.shape, env.action_space.shape
+    ((9,), (1,))
+
+    ```
+
+    | Parameter         | Default       | Description                                      |
+    |-------------------|---------------|--------------------------------------------------|
+    | `action_mode`     | `"force"`     | `"force"` or `"spring"`                          |
+    | `radius`          | `0.3`         | crank (circular wire) radius (m)                 |
+    | `rod`             | `0.8`         | rod length (m), > radius                         |
+    | `particle_mass`   | `0.1`         | mass of crank and slider (kg)                    |
+    | `drag`            | `0.05`        | air drag per particle (N s/m)                    |
+    | `dt`              | `0.025`       | physics step (s)                                 |
+    | `substeps`        | `2`           | physics steps per env step (0.05 s)              |
+    | `integrator`      | `"rk4"`       | a name in `constrained_particles.METHODS`        |
+    | `max_force`       | `2.0`         | tangential force of action 1 (N)                 |
+    | `goal_range`      | `(0.8, 1.05)` | goals (m), inside the stroke (rod -+ radius)     |
+    | `min_distance`    | `0.1`         | minimum start-to-goal distance (m)               |
+    | `max_start_speed` | `2.0`         | maximum starting crank speed (m/s)               |
+    | `goal_tolerance`  | `0.02`        | success distance (m)                             |
+    | `rest_speed`      | `0.05`        | success RMS speed (m/s)                          |
+    | `hold_steps`      | `5`           | env steps the success test must hold             |
+    | `grab_radius`     | `0.2`         | reach of the spring action's grab point (m)      |
+    | `mouse_ks`        | `20.0`        | spring action stiffness (N/m)                    |
+    | `mouse_kd`        | `1.0`         | spring action damping (N s/m)                    |
+
+    Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
+    ``set_state(state)`` save and restore the full simulation state for planning.
+
+    ## Vectorized environment
+
+    ``gym.make_vec("SliderCrank-v0", num_envs=N, vectorization_mode="vector_entry_point")`` runs
+    :class:`SliderCrankVectorEnv`: the N linkages are one particle system with a block-diagonal
+    constraint Jacobian, so each derivative evaluation is one multiplier solve for all of them.
+    Autoreset is NEXT_STEP, and copy ``i`` reproduces a single env reset with ``seed + i``
+    (up to the multiplier solve's 1e-10 tolerance).
+
+    ## Version History
+
+    * v0: Initial version.
+    """
+
+    task_class = SliderCrank
+
+
+class SliderCrankVectorEnv(ParticleVectorEnv):
+    """``num_envs`` SliderCrank copies stepped as one particle system (see
+    :class:`SliderCrankEnv`). Takes the single env's keyword arguments plus ``num_envs`` and
+    ``max_episode_steps`` (default 200)."""
+
+    task_class = SliderCrank
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+                 render_mode: str | None = None, **kwargs: Any) -> None:
+        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)

