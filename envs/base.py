@@ -129,23 +129,22 @@ class ParticleTask:
         self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
 
         scene = self.build_scene()
-        n = scene.n
-        self.n = n
+        n = self.n = scene.n
         if action_mode == "force":
             handles = self.force_handles(scene)
-            self.actuator: ConstantForce | MouseSpring = ConstantForce(
-                handles, np.zeros((len(handles), 2)))
+            scene.add(ConstantForce(handles, np.zeros((len(handles), 2))))
         else:
-            self.actuator = MouseSpring(None, ks=self.mouse_ks, kd=self.mouse_kd)
-        scene.add(self.actuator)
-        #: One copy with the actuator: renders env ``i`` and finds which copy diverged.
+            scene.add(MouseSpring(None, ks=self.mouse_ks, kd=self.mouse_kd))
+        #: One copy with its actuator (the last force block): draws copy ``i``, and finds which
+        #: copy diverged.
         self.single = scene
         #: Positions (n, 2) where a diverged copy waits out the rest of a step.
         self.park = scene.x.copy()
-        self.single_actuator = scene.forces[-1]
+        #: All copies as one system; copy ``i`` owns particles ``i n .. (i + 1) n - 1``.
         self.system = scene.tile(self.num_envs)
-        self.actuator = self.system.forces[-1]
-        self.rows_per_copy = len(self.single_actuator) if action_mode == "force" else 1
+        #: The tiled actuator: copy ``i``'s action is written into its rows only.
+        self.actuator: ConstantForce | MouseSpring = self.system.forces[-1]
+        self.rows_per_copy = len(scene.forces[-1])
         self.goal = np.zeros(self.num_envs)
         self.hold = np.zeros(self.num_envs, dtype=np.int64)
         self.action = np.zeros((self.num_envs, self.action_dim))
@@ -297,29 +296,25 @@ class ParticleTask:
         self._actuate(np.array([i]), None if action is None else action[None, :])
 
     def _actuate(self, envs: np.ndarray, action: np.ndarray | None) -> None:
-        """Write actions (len(envs), action_dim) of copies ``envs`` into the tiled actuator."""
+        """Write actions (len(envs), action_dim) of copies ``envs`` into their rows of the tiled
+        actuator; ``None`` switches their actuation off."""
         act = self.actuator
-        if action is None:
-            if isinstance(act, ConstantForce):
-                rows = (envs[:, None] * self.rows_per_copy + np.arange(self.rows_per_copy)).ravel()
-                act.force[rows] = 0.0
-            else:
-                act.active[envs] = False
-            return
-        x = self.positions()[envs]
         if isinstance(act, ConstantForce):
-            forces = self.force_vectors(action, x)
-            rows = (envs[:, None] * self.rows_per_copy + np.arange(self.rows_per_copy)).ravel()
-            act.force[rows] = forces.reshape(-1, 2)
-            return
-        grab = self.to_world(action[:, :2])
-        target = self.to_world(action[:, 2:])
-        d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
-        nearest = np.argmin(d2, axis=1)
-        reach = d2[np.arange(len(envs)), nearest] <= self.grab_radius**2
-        act.particle[envs] = envs * self.n + nearest
-        act.anchor[envs] = target
-        act.active[envs] = reach
+            k = self.rows_per_copy
+            rows = (envs[:, None] * k + np.arange(k)).ravel()
+            act.force[rows] = (0.0 if action is None else
+                               self.force_vectors(action, self.positions()[envs]).reshape(-1, 2))
+        elif action is None:
+            act.active[envs] = False
+        else:
+            # the spring action: the nearest particle within grab_radius of the grab point
+            x = self.positions()[envs]
+            grab = self.to_world(action[:, :2])
+            d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
+            nearest = np.argmin(d2, axis=1)
+            act.particle[envs] = envs * self.n + nearest
+            act.anchor[envs] = self.to_world(action[:, 2:])
+            act.active[envs] = d2[np.arange(len(envs)), nearest] <= self.grab_radius**2
 
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
@@ -391,7 +386,7 @@ class ParticleTask:
         sl = self.copy_slice(i)
         one = self.single
         one.x, one.v, one.t = self.system.x[sl].copy(), self.system.v[sl].copy(), self.system.t
-        act, mine = self.actuator, self.single_actuator
+        act, mine = self.actuator, one.forces[-1]
         if isinstance(act, ConstantForce):
             mine.force[:] = act.force[i * self.rows_per_copy:(i + 1) * self.rows_per_copy]
         else:
@@ -435,10 +430,14 @@ class ParticleTask:
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}
 
-    def shapes(self, i: int) -> tuple[ParticleSystem, list[Shape]]:
-        """Copy ``i`` as a drawable single system, and its goal marker."""
+    def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
+        """Copy ``i`` as a drawable single system, its goal marker and a status line."""
         one = self.load_single(i)
-        return one, [Shape("marker", "goal", np.array([[self.goal[i], self.goal_height]]))]
+        marker = Shape("marker", "goal", np.array([[self.goal[i], self.goal_height]]))
+        distance = abs(float(self.tracked(one.x[None])[0]) - self.goal[i])
+        status = (f"{type(self).__name__} ({self.action_mode})   distance to goal "
+                  f"{distance:.3f} m   held {self.hold[i]}/{self.hold_steps}")
+        return one, [marker], status
 
     #: Height (m) at which the goal marker is drawn (subclasses set it).
     goal_height: float = 0.0
@@ -461,10 +460,10 @@ class _Rendering:
 
         if getattr(self, "_renderer", None) is None:
             self._renderer = Renderer(bounds=self.task.view, size=FRAME_SIZE)
-        system, extra = self.task.shapes(i)
+        system, extra, status = self.task.drawing(i)
         if surface is None:
-            return self._renderer.rgb_array(system, extra=extra, forces=True)
-        self._renderer.draw(surface, system, extra=extra, forces=True)
+            return self._renderer.rgb_array(system, extra=extra, forces=True, hud=status)
+        self._renderer.draw(surface, system, extra=extra, forces=True, hud=status)
         return None
 
 
@@ -501,6 +500,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``."""
         super().reset(seed=seed)
         self.task.reset_envs([0], [self.np_random])
+        self.task.system.t = 0.0  # the episode's time (a vector env's copies share one clock)
         obs, info = self._result(np.zeros(1, bool))
         if self.render_mode == "human":
             self.render()

@@ -18,6 +18,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from constrained_particles.integrators import METHODS
+
 from . import ENV_IDS
 from .agents import AGENTS, make_agent
 from .base import ACTION_MODES
@@ -38,13 +40,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--save-gif", metavar="PATH", help="save episode 0 as an animated GIF")
     parser.add_argument("--watch", action="store_true",
                         help="show episode 0 in a pygame-ce window first")
+    parser.add_argument("--integrator", choices=sorted(METHODS),
+                        help="physics integrator (default: the environment's)")
+    parser.add_argument("--dt", type=float, help="physics step in seconds")
+    parser.add_argument("--substeps", type=int, help="physics steps per env step")
 
 
 def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
-                 action_mode: str = "force") -> dict[str, np.ndarray]:
-    """Run ``episodes`` episodes (seeds ``seed .. seed + episodes - 1``) in native vector envs.
-
-    Returns per-episode arrays ``return``, ``length`` and ``success``.
+                 action_mode: str = "force", **env_kwargs: Any) -> dict[str, np.ndarray]:
+    """Run ``episodes`` episodes (seeds ``seed .. seed + episodes - 1``) in native vector envs
+    made with ``env_kwargs``. Returns per-episode arrays ``return``, ``length`` and ``success``.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -52,7 +57,7 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
     for start in range(0, episodes, BATCH):
         n = min(BATCH, episodes - start)
         env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
-                           action_mode=action_mode)
+                           action_mode=action_mode, **env_kwargs)
         policy = make_agent(agent, env, seed=seed + start)
         obs, _ = env.reset(seed=seed + start)
         ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
@@ -72,9 +77,10 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
 
 
 def record_episode(env_id: str, agent: str, seed: int, action_mode: str,
-                   render_mode: str = "rgb_array") -> tuple[list[np.ndarray], dict[str, Any]]:
+                   render_mode: str = "rgb_array", **env_kwargs: Any
+                   ) -> tuple[list[np.ndarray], dict[str, Any]]:
     """Run one episode in a single env; returns its frames (``rgb_array``) and last info."""
-    env = gym.make(env_id, action_mode=action_mode, render_mode=render_mode)
+    env = gym.make(env_id, action_mode=action_mode, render_mode=render_mode, **env_kwargs)
     policy = make_agent(agent, env, seed=seed)
     obs, info = env.reset(seed=seed)
     frames = [env.render()] if render_mode == "rgb_array" else []
@@ -100,18 +106,23 @@ def save_gif(path: str, frames: list[np.ndarray], fps: float) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """``cparticles demo``: a table (or JSON) of return, length and success per episode."""
+    physics = {k: getattr(args, k) for k in ("integrator", "dt", "substeps")
+               if getattr(args, k) is not None}
     if args.watch:
-        record_episode(args.env, args.agent, args.seed, args.action_mode, render_mode="human")
+        record_episode(args.env, args.agent, args.seed, args.action_mode, render_mode="human",
+                       **physics)
     start = time.perf_counter()
-    res = run_episodes(args.env, args.agent, args.episodes, args.seed, args.action_mode)
+    res = run_episodes(args.env, args.agent, args.episodes, args.seed, args.action_mode,
+                       **physics)
     seconds = time.perf_counter() - start
     summary = {"env": args.env, "agent": args.agent, "action_mode": args.action_mode,
-               "episodes": args.episodes, "seed": args.seed,
+               **physics, "episodes": args.episodes, "seed": args.seed,
                "success_rate": float(res["success"].mean()),
                "mean_return": float(res["return"].mean()),
                "mean_length": float(res["length"].mean()), "seconds": round(seconds, 2)}
     if args.save_gif:
-        frames, info = record_episode(args.env, args.agent, args.seed, args.action_mode)
+        frames, info = record_episode(args.env, args.agent, args.seed, args.action_mode,
+                                      **physics)
         save_gif(args.save_gif, frames, info["fps"])
         summary["gif"] = args.save_gif
     if args.json:

@@ -172,7 +172,6 @@ def test_get_state_set_state_round_trip(env_id, mode):
     other.set_state(state)
     assert_same(ahead, rollout(other, actions))
     assert after["t"] > state["t"] and not np.array_equal(after["x"], state["x"])
-    assert state["x"].tobytes() == env.get_state()["x"].tobytes() or True
     bad = dict(state, x=np.full_like(state["x"], np.nan))
     with pytest.raises(ValueError, match="x"):
         env.set_state(bad)
@@ -437,7 +436,8 @@ def test_demo_cli_json_table_and_gif(tmp_path, capsys):
     with Image.open(gif) as im:
         assert im.n_frames > 5 and im.size == (600, 400)
     assert main(["demo", "--env", "ClothSlide-v0", "--agent", "random", "--episodes", "2",
-                 "--action-mode", "spring"]) == 0
+                 "--action-mode", "spring", "--integrator", "midpoint", "--dt", "0.0125",
+                 "--substeps", "4"]) == 0
     table = capsys.readouterr().out
     assert "success rate" in table and "episode" in table
     assert main(["demo", "--episodes", "0"]) == 2
