@@ -157,31 +157,34 @@ class ClothSlideEnv(ParticleEnv):
     top corners of the cloth (left, right), each ``action * max_force`` newtons.
 
     ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
-    target_y)`` in normalized scene coordinates (the view box maps onto [-1, 1]^2). The particle
-    nearest the grab point, if within ``grab_radius`` metres of it, is pulled toward the target
+    target_y)`` in normalized scene coordinates (see below). The particle nearest the grab
+    point, if within ``grab_radius`` metres of it, is pulled toward the target
     by a mouse spring (``mouse_ks``, ``mouse_kd``) for this step; otherwise nothing is applied.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
     ## Observation Space
 
+    Normalized scene coordinates map the view box ``env.unwrapped.task.view`` = ``(xmin, ymin,
+    xmax, ymax)``, by default ``(-1.3, -1.0, 1.3, 0.3)`` m, onto [-1, 1]^2.
+
     ``Box(-10, 10, (4 n + 1,), float32)`` with ``n = columns * rows`` particles (145 by default),
     in normalized scene coordinates (position ``(p - c) / h`` for the view box's centre ``c`` and
     half-size ``h``; velocity ``v / h``), clipped to [-10, 10]. Particle ``k`` is at row
     ``k // columns`` (0 is the top row, on the wire), column ``k % columns``.
 
-    | Index             | Observation                          | Min | Max |
-    |-------------------|--------------------------------------|-----|-----|
-    | 2k, 2k + 1        | particle k position x, y             | -10 | 10  |
-    | 2n + 2k, 2n + 2k + 1 | particle k velocity x, y (1/s)    | -10 | 10  |
-    | 4n                | goal x (on the same scale as x)      | -10 | 10  |
+    | Index                | Observation                     | Min | Max |
+    |----------------------|---------------------------------|-----|-----|
+    | 2k, 2k + 1           | particle k position x, y        | -10 | 10  |
+    | 2n + 2k, 2n + 2k + 1 | particle k velocity x, y (1/s)  | -10 | 10  |
+    | 4n                   | goal x (same scale as x)        | -10 | 10  |
 
     ## Rewards
 
     Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) + 10 * success``, with ``d`` the
     distance (m) from the cloth's centre of mass to the goal, ``s`` the RMS particle speed (m/s),
-    ``F_wall`` the wall's contact force (N) divided by the cloth's weight ``M g``, and ``success``
-    1 on the step that reaches the goal at rest.
+    ``F_wall`` the wall's total contact force (N), ``M g`` the cloth's weight (N), and
+    ``success`` 1 on the step that completes the success test (see Episode End).
 
     ## Starting State
 
@@ -191,7 +194,8 @@ class ClothSlideEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` (success; ``info["is_success"]``).
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+       steps (success, ``info["is_success"]``).
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.

@@ -131,6 +131,9 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Observation Space
 
+    Normalized scene coordinates map the view box ``env.unwrapped.task.view`` = ``(xmin, ymin,
+    xmax, ymax)``, by default ``(-0.45, -0.45, 1.25, 0.45)`` m, onto [-1, 1]^2.
+
     ``Box(-10, 10, (9,), float32)`` in normalized scene coordinates (position ``(p - c) / h`` for
     the view box's centre ``c`` and half-size ``h``; velocity ``v / h``):
 
@@ -146,7 +149,7 @@ class SliderCrankEnv(ParticleEnv):
 
     Every step: ``-d - 0.1 s + 10 * success``, with ``d`` the distance (m) from the slider to the
     goal, ``s`` the RMS speed of the two particles (m/s) and ``success`` 1 on the step that
-    reaches the goal at rest.
+    completes the success test (see Episode End).
 
     ## Starting State
 
@@ -157,7 +160,8 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` (success; ``info["is_success"]``).
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+       steps (success, ``info["is_success"]``).
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.

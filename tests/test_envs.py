@@ -265,6 +265,18 @@ def test_vector_env_is_one_tiled_system():
                                np.tile([0.5, -0.25], (5, 1)) * task.max_force)
 
 
+def test_vector_env_renders_one_frame_per_copy():
+    env = gym.make_vec("SliderCrank-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                       render_mode="rgb_array")
+    env.reset(seed=[3, 4])
+    frames = env.render()
+    single = gym.make("SliderCrank-v0", render_mode="rgb_array")
+    single.reset(seed=4)
+    assert len(frames) == 2 and frames[0].shape == frames[1].shape == (400, 600, 3)
+    assert frames[1].tobytes() == single.render().tobytes()
+    assert frames[0].tobytes() != frames[1].tobytes()
+
+
 @pytest.mark.parametrize("env_id", envs.ENV_IDS)
 def test_async_vector_env_with_two_workers(env_id):
     actions = np.random.default_rng(0).uniform(-1, 1, (3, 2, 2 if "Cloth" in env_id else 1))
