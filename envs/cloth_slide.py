@@ -30,7 +30,7 @@ class ClothSlide(ParticleTask):
     def __init__(self, num_envs: int = 1, *, action_mode: str = "force",
                  cloth_size: tuple[int, int] = (6, 6), spacing: float = 0.1,
                  particle_mass: float = 0.02, cloth_ks: float = 40.0, cloth_kd: float = 0.05,
-                 drag: float = 0.01, wall_x: float = 1.0, wall_penalty: float = 1.0,
+                 drag: float = 0.01, wall_x: float | None = None, wall_penalty: float = 1.0,
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
                  max_force: float = 1.0, goal_range: tuple[float, float] = (-0.6, 0.6),
                  min_distance: float = 0.3, goal_tolerance: float = 0.05,
@@ -49,16 +49,22 @@ class ClothSlide(ParticleTask):
         self.cloth_ks = check_positive("cloth_ks", cloth_ks)
         self.cloth_kd = check_positive("cloth_kd", cloth_kd, allow_zero=True)
         self.drag = check_positive("drag", drag, allow_zero=True)
-        self.wall_x = check_positive("wall_x", wall_x)
         self.wall_penalty = check_positive("wall_penalty", wall_penalty, allow_zero=True)
         self.goal_range, self.min_distance = check_goal_range(goal_range, min_distance)
-        high = self.goal_range[1]
+        low, high = self.goal_range
         half_width = (nx - 1) * self.spacing / 2
+        if wall_x is None:  # 15 cm beyond the cloth's edge at the farthest goal
+            wall_x = high + half_width + 0.15
+        if isinstance(wall_x, bool) or not isinstance(wall_x, (int, float, np.number)) \
+                or not np.isfinite(wall_x):
+            raise ValueError(f"wall_x must be a finite number (m) or None, got {wall_x!r}")
+        self.wall_x = float(wall_x)
         if high + half_width >= self.wall_x:
             raise ValueError(f"goal_range: a goal at {high} m would put the cloth's edge into the "
                              f"wall at wall_x = {self.wall_x} m")
         height = (ny - 1) * self.spacing
-        self.view = (-self.wall_x - 0.3, -1.6 * height - 0.2, self.wall_x + 0.3, 0.3)
+        left = min(-self.wall_x, low - half_width - 0.15)
+        self.view = (left - 0.3, -1.6 * height - 0.2, self.wall_x + 0.3, 0.3)
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -224,7 +230,7 @@ class ClothSlideEnv(ParticleEnv):
     | `cloth_ks`       | `40.0`               | structural springs (N/m; shear /2, bend /4)  |
     | `cloth_kd`       | `0.05`               | spring damping (N s/m)                       |
     | `drag`           | `0.01`               | air drag per particle (N s/m)                |
-    | `wall_x`         | `1.0`                | the wall fills x > wall_x (m)                |
+    | `wall_x`         | `None` (1.0)         | the wall fills x > wall_x (m) (*)            |
     | `wall_penalty`   | `1.0`                | weight of the wall term of the reward        |
     | `dt`             | `0.01`               | physics step (s)                             |
     | `substeps`       | `5`                  | physics steps per env step (0.05 s)          |
@@ -238,6 +244,8 @@ class ClothSlideEnv(ParticleEnv):
     | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)  |
     | `mouse_ks`       | `20.0`               | spring action stiffness (N/m)                |
     | `mouse_kd`       | `0.5`                | spring action damping (N s/m)                |
+
+    (*) ``wall_x=None`` puts the wall 0.15 m past the cloth's edge at the farthest goal.
 
     Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
     ``set_state(state)`` save and restore the full simulation state (positions, velocities,
