@@ -331,12 +331,14 @@ def plot_work_precision(orders: dict, pymunk: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_drift(drift: dict, key: str, ylabel: str, title: str, path: Path) -> None:
-    """One curve per integrator (solid: plain, dashed: projected) of ``drift[...][key]``."""
+def plot_drift(drift: dict, key: str, ylabel: str, title: str, path: Path,
+               top: float | None = None) -> None:
+    """One curve per integrator (solid: plain, dashed: projected) of ``drift[...][key]``;
+    values above ``top`` leave the plot (a run on its way to diverging)."""
     plt = _pyplot()
     methods = sorted(drift)
     colours = _colours(methods)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    fig, ax = plt.subplots(figsize=(10.5, 4.8))
     floor = 1e-17  # exact zeros (a step that lands on C = 0) drawn at the bottom
     for method in methods:
         for variant, style, lw in (("plain", "-", 1.4), ("projected", "--", 0.8)):
@@ -346,11 +348,13 @@ def plot_drift(drift: dict, key: str, ylabel: str, title: str, path: Path) -> No
             if run["diverged_at"] is not None:
                 label += f" (diverged at {run['diverged_at']:.2f} s)"
             ax.semilogy(run["t"], y, style, color=colours[method], label=label, lw=lw)
+    if top is not None:
+        ax.set_ylim(top=min(ax.get_ylim()[1], top))
     ax.set_xlabel("time t (s)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -528,7 +532,8 @@ def write(data: dict, out: str | os.PathLike) -> None:
     plot_convergence(data["_orders"], out / "convergence.png")
     plot_work_precision(data["_orders"], data["_pymunk"], out / "work_precision.png")
     plot_drift(data["drift"], "energy_error", "|E(t) - E(0)| / largest kinetic energy",
-               f"Energy drift, slider-crank, h = {DRIFT_H * 1e3:g} ms", out / "energy_drift.png")
+               f"Energy drift, slider-crank, h = {DRIFT_H * 1e3:g} ms", out / "energy_drift.png",
+               top=1e3)
     plot_drift(data["drift"], "constraint_distance", "max |C| / |J| (m)",
                f"Constraint drift, slider-crank, h = {DRIFT_H * 1e3:g} ms",
                out / "constraint_drift.png")
