@@ -68,13 +68,15 @@ def test_undamped_system_keeps_its_energy(s):
 @settings(max_examples=6)
 @given(systems(gravity=False, max_particles=6, solver="direct"))
 def test_rk4_energy_error_has_no_low_order_term(s):
-    # the direct solver: CG's 1e-10 tolerance would put a floor under the energy error. Single
-    # random systems are often pre-asymptotic at these steps (their local slopes climb towards
-    # 4 from anywhere in 2-4), so this only rules out a first- or second-order energy error.
-    hs = (0.01, 0.005, 0.0025)
+    # the direct solver: CG's 1e-10 tolerance would put a floor under the energy error.
+    # Between any two steps max_t |E(t) - E(0)| can dip on random systems (local slopes such
+    # as 5.8, 5.9, 2.3, 3.5 for h = 10 ... 0.625 ms), so the slope is a least-squares fit over
+    # an 8x range of h, using only errors above round-off (min 3.64 over 77 seeded systems).
+    hs = (0.005, 0.0025, 0.00125, 0.000625)
     errors = P.energy_errors(s, "rk4", hs, duration=0.3)
-    assume(min(errors) > 1e-12)  # above round-off: the system has forces that do work
-    assert P.fit_slope(hs[1:], errors[1:]) > 3.0
+    usable = [(h, e) for h, e in zip(hs, errors, strict=True) if e > 1e-12]
+    assume(len(usable) >= 3)  # the system has forces that do work, measurably
+    assert P.fit_slope(*zip(*usable, strict=True)) > 3.0
 
 
 @pytest.mark.parametrize("build", [scenes.pendulum, scenes.wire_mixture,
