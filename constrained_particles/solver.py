@@ -66,11 +66,8 @@ class ConstraintSolver:
         self.Jdot = sp.csr_matrix((np.zeros(len(rows)), self._cols, indptr), shape=shape)
         self.J.has_sorted_indices = True
         self.Jdot.has_sorted_indices = True
-        # J^T in CSR with its own value permutation, so J^T lam needs no new scipy object
-        numbered = sp.csr_matrix((np.arange(1.0, len(rows) + 1), self._cols, indptr), shape=shape)
-        self.JT = numbered.T.tocsr()
-        self._perm_T = self.JT.data.astype(np.int64) - 1
-        self.JT.data[:] = 0.0
+        # blocks whose values already come in CSR order need no permutation at refill
+        self._sorted = bool(np.array_equal(self._perm, np.arange(len(rows))))
         # rows coupled through a shared coordinate make J W J^T non-diagonal
         structure = sp.csr_matrix((np.ones(len(rows)), self._cols, indptr), shape=shape)
         self.diagonal = (structure @ structure.T).nnz == self.m
@@ -83,11 +80,23 @@ class ConstraintSolver:
         parts = [c.evaluate(x, v) for c in self.constraints]
         if not parts:
             return
-        self.C = np.concatenate([p[0] for p in parts])
-        self.Cdot = np.concatenate([p[1] for p in parts])
-        self.J.data[:] = np.concatenate([p[2] for p in parts])[self._perm]
-        self.Jdot.data[:] = np.concatenate([p[3] for p in parts])[self._perm]
-        self.JT.data[:] = self.J.data[self._perm_T]
+        if len(parts) == 1:
+            self.C, self.Cdot, jv, jdv = parts[0]
+        else:
+            self.C = np.concatenate([p[0] for p in parts])
+            self.Cdot = np.concatenate([p[1] for p in parts])
+            jv = np.concatenate([p[2] for p in parts])
+            jdv = np.concatenate([p[3] for p in parts])
+        self.J.data[:] = jv if self._sorted else jv[self._perm]
+        self.Jdot.data[:] = jdv if self._sorted else jdv[self._perm]
+
+    def J_times(self, q: np.ndarray) -> np.ndarray:
+        """``J q`` for a flat (2n,) vector ``q``, shape (m,)."""
+        return np.bincount(self._rows, self.J.data * q[self._cols], minlength=self.m)
+
+    def JT_times(self, lam: np.ndarray) -> np.ndarray:
+        """``J^T lam`` for (m,) multipliers, flat shape (2n,)."""
+        return np.bincount(self._cols, self.J.data * lam[self._rows], minlength=2 * self.n)
 
     def _diag(self, w2: np.ndarray) -> np.ndarray:
         d = np.bincount(self._rows, weights=self.J.data**2 * w2[self._cols], minlength=self.m)
@@ -108,17 +117,17 @@ class ConstraintSolver:
         d = self._diag(w2)
         if self.diagonal:
             return b / d
-        J, JT = self.J, self.JT
+        J = self.J
 
         def matvec(r: np.ndarray) -> np.ndarray:
-            return J @ (w2 * (JT @ r))
+            return self.J_times(w2 * self.JT_times(r))
 
         A = spla.LinearOperator((self.m, self.m), matvec=matvec, rmatvec=matvec, dtype=float)
         if self.method == "direct":
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("error")
-                    return spla.splu((J.multiply(w2) @ JT).tocsc()).solve(b)
+                    return spla.splu((J.multiply(w2) @ J.T).tocsc()).solve(b)
             except (RuntimeError, spla.MatrixRankWarning):
                 pass
         else:
@@ -138,8 +147,10 @@ class ConstraintSolver:
         feedback gains that pull drift back. Returns lam (m,); ``J^T lam`` is the constraint force.
         """
         self.refill(x, v)
-        qdot = v.ravel()
-        b = -(self.Jdot @ qdot) - self.J @ (w2 * Q.ravel()) - ks * self.C - kd * self.Cdot
+        rows, cols = self._rows, self._cols
+        # -Jdot qdot - J W Q in one pass over the nonzeros
+        g = self.Jdot.data * v.ravel()[cols] + self.J.data * (w2 * Q.ravel())[cols]
+        b = -np.bincount(rows, g, minlength=self.m) - ks * self.C - kd * self.Cdot
         self.lam = self._solve(b, w2, self.lam)
         return self.lam
 
@@ -156,11 +167,11 @@ class ConstraintSolver:
             self.refill(x, v)
             if not self.m or np.max(np.abs(self.C)) <= tol:
                 break
-            x -= (w2 * (self.JT @ self._solve(self.C, w2, None))).reshape(shape)
+            x -= (w2 * self.JT_times(self._solve(self.C, w2, None))).reshape(shape)
         self.refill(x, v)
         if not self.m:
             return x, v.copy()
-        mu = self._solve(self.J @ v.ravel(), w2, None)
-        v = v - (w2 * (self.JT @ mu)).reshape(shape)
+        mu = self._solve(self.J_times(v.ravel()), w2, None)
+        v = v - (w2 * self.JT_times(mu)).reshape(shape)
         self.refill(x, v)
         return x, v

@@ -218,7 +218,7 @@ class ParticleSystem:
         solver = self.constraint_solver
         w2 = np.repeat(self.inv_mass, 2)
         lam = solver.multipliers(x, v, Q, w2, self.ks, self.kd)
-        return (solver.JT @ lam).reshape(x.shape)
+        return solver.JT_times(lam).reshape(x.shape)
 
     def step(self, dt: float, method: str = "rk4", project: bool | None = None) -> None:
         """Advance ``x``, ``v`` and ``t`` by ``dt`` seconds with the integrator ``method``.
