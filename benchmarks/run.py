@@ -22,30 +22,27 @@ import time
 
 import numpy as np
 
-from constrained_particles import METHODS, SimulationDiverged
+from constrained_particles import METHODS
 
-from .cloth import our_cloth, pymunk_positions, pymunk_space, rate
+from .cloth import our_cloth, pymunk_cloth, pymunk_positions, rates
 
 DT = 1e-3
 
 
 def bench_pymunk(sizes: list[int], methods: list[str], repeats: int, seconds: float) -> dict:
-    """Section (a): particle-steps/s for each engine and the ratio ours / pymunk's."""
+    """Section (a): particle-steps/s for each engine and the ratio ours / pymunk's (None for an
+    integrator that diverges on this cloth at this dt)."""
     out: dict = {"ours": {}, "pymunk": {}, "ratio": {}}
     for n in sizes:
-        system = our_cloth(n)
-        space, _ = pymunk_space(system)
-        out["pymunk"][n] = rate(lambda space=space: space.step(DT), n * n, repeats, seconds)
-        out["ours"][n], out["ratio"][n] = {}, {}
+        scene = pymunk_cloth(our_cloth(n))
+        steps = {"pymunk": lambda scene=scene: scene.step(DT)}
         for method in methods:
-            s = our_cloth(n)
-            try:
-                ours = rate(lambda s=s, m=method: s.step(DT, m), n * n, repeats, seconds)
-            except SimulationDiverged:  # forward Euler on the undamped-enough cloth: no rate
-                out["ours"][n][method] = out["ratio"][n][method] = None
-                continue
-            out["ours"][n][method] = ours
-            out["ratio"][n][method] = ours / out["pymunk"][n]
+            system = our_cloth(n)
+            steps[method] = lambda s=system, m=method: s.step(DT, m)
+        measured = rates(steps, n * n, repeats, seconds)
+        out["pymunk"][n] = pymunk = measured.pop("pymunk")
+        out["ours"][n] = measured
+        out["ratio"][n] = {m: None if r is None else r / pymunk for m, r in measured.items()}
     return out
 
 
@@ -54,7 +51,7 @@ def bench_scaling(sizes: list[int], method: str, repeats: int, seconds: float) -
     cost = {}
     for n in sizes:
         s = our_cloth(n)
-        cost[n] = 1e6 / rate(lambda s=s: s.step(DT, method), n * n, repeats, seconds)
+        cost[n] = 1e6 / rates({n: lambda s=s: s.step(DT, method)}, n * n, repeats, seconds)[n]
     return {"method": method, "us_per_particle_step": cost,
             "scaling_ratio": cost[sizes[-1]] / cost[sizes[0]]}
 
@@ -84,11 +81,11 @@ def bench_accuracy(n: int = 10, horizon: float = 0.5) -> dict:
             s.step(dt, "rk4")
         out["rk4"].append((time.process_time() - t0, float(np.abs(s.x - reference.x).max()), dt))
     for dt in (1e-3, 5e-4, 2.5e-4, 1.25e-4, 6.25e-5):
-        space, bodies = pymunk_space(our_cloth(n), iterations=30)
+        scene = pymunk_cloth(our_cloth(n), iterations=30)
         t0 = time.process_time()
         for _ in range(int(round(horizon / dt))):
-            space.step(dt)
-        err = float(np.abs(pymunk_positions(bodies) - reference.x).max())
+            scene.step(dt)
+        err = float(np.abs(pymunk_positions(scene) - reference.x).max())
         out["pymunk"].append((time.process_time() - t0, err, dt))
     # each engine's error interpolated (log-log) at the CPU time where both have data
     t_common = min(max(r[0] for r in out["rk4"]), max(r[0] for r in out["pymunk"]))

@@ -168,9 +168,11 @@ class LineWire(_OneParticle):
             self.point = system.x[self.particles].copy()
 
     def evaluate(self, x, v):
-        C = np.einsum("kd,kd->k", self.normal, x[self.particles] - self.point)
-        Cdot = np.einsum("kd,kd->k", self.normal, v[self.particles])
-        return C, Cdot, self.normal.ravel(), np.zeros(2 * len(self.particles))
+        p, nx, ny = self.particles, self.normal[:, 0], self.normal[:, 1]
+        xp, vp = x.take(p, axis=0), v.take(p, axis=0)
+        C = nx * (xp[:, 0] - self.point[:, 0]) + ny * (xp[:, 1] - self.point[:, 1])
+        Cdot = nx * vp[:, 0] + ny * vp[:, 1]
+        return C, Cdot, self.normal.ravel(), np.zeros(2 * len(p))
 
     def shapes(self, x, v):
         direction = np.stack([self.normal[:, 1], -self.normal[:, 0]], axis=1)

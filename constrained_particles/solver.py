@@ -100,6 +100,8 @@ class ConstraintSolver:
 
     def _diag(self, w2: np.ndarray) -> np.ndarray:
         d = np.bincount(self._rows, weights=self.J.data**2 * w2[self._cols], minlength=self.m)
+        if d.min() > 0:  # also False for NaN
+            return d
         bad = ~(d > 0)
         if np.any(bad):
             rows = np.flatnonzero(bad)
