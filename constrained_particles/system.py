@@ -200,7 +200,7 @@ class ParticleSystem:
         A pure function of (t, x, v) apart from the solver's warm start.
         """
         Q = self.applied_forces(x, v)
-        if not np.all(np.isfinite(Q)):
+        if not np.isfinite(Q.sum()):  # a NaN or inf anywhere makes the sum non-finite
             raise SimulationDiverged("applied forces became non-finite")
         if self.constraints:
             Q = Q + self.constraint_force(x, v, Q)
@@ -247,7 +247,9 @@ class ParticleSystem:
 
     def _check(self, x: np.ndarray, v: np.ndarray) -> None:
         limit = self.divergence_limit
-        if not (np.all(np.abs(x) < limit) and np.all(np.abs(v) < limit)):
+        # max/min propagate NaN, and NaN < limit is False: one pass per bound, no temporaries
+        if not (x.max(initial=0.0) < limit and -x.min(initial=0.0) < limit
+                and v.max(initial=0.0) < limit and -v.min(initial=0.0) < limit):
             raise SimulationDiverged(
                 f"step at t = {self.t:.6g} s produced a non-finite state or one beyond "
                 f"divergence_limit = {limit:g}; state kept as it was before the step")

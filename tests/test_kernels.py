@@ -1,0 +1,76 @@
+"""The optional Numba spring kernel against the pure-numpy path (both must stay correct)."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from constrained_particles import DampedSpring, ParticleSystem, _kernels, scenes
+
+
+def random_springs(seed: int, n: int = 30, k: int = 120) -> tuple[ParticleSystem, DampedSpring]:
+    rng = np.random.default_rng(seed)
+    s = ParticleSystem()
+    s.add_particles(rng.uniform(-1, 1, (n, 2)), rng.normal(size=(n, 2)))
+    i = rng.integers(0, n, k)
+    j = (i + rng.integers(1, n, k)) % n
+    spring = DampedSpring(i, j, rest=rng.uniform(0, 1, k), ks=rng.uniform(0, 50, k),
+                          kd=rng.uniform(0, 2, k))
+    s.add(spring)
+    return s, spring
+
+
+def forces(spring: DampedSpring, x: np.ndarray, v: np.ndarray, kernel) -> np.ndarray:
+    saved = _kernels.spring_forces
+    _kernels.spring_forces = kernel
+    try:
+        F = np.zeros_like(x)
+        spring.accumulate(x, v, np.ones(len(x)), F)
+        return F
+    finally:
+        _kernels.spring_forces = saved
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_numpy_path_matches_the_per_element_formula(seed):
+    s, spring = random_springs(seed)
+    s.x[spring.j[0]] = s.x[spring.i[0]]  # one zero-length spring: no force, no NaN
+    F = forces(spring, s.x, s.v, None)
+    origin, f = spring.element_forces(s.x, s.v, s.mass)
+    expected = np.zeros_like(F)
+    np.add.at(expected, spring.i, f)
+    np.add.at(expected, spring.j, -f)
+    np.testing.assert_allclose(F, expected, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.skipif(_kernels.spring_forces is None, reason="numba is not installed")
+@pytest.mark.parametrize("seed", range(5))
+def test_numba_kernel_matches_numpy_path(seed):
+    s, spring = random_springs(seed)
+    s.x[spring.j[0]] = s.x[spring.i[0]]
+    np.testing.assert_allclose(forces(spring, s.x, s.v, _kernels.spring_forces),
+                               forces(spring, s.x, s.v, None), rtol=1e-12, atol=1e-12)
+
+
+def test_numpy_path_steps_a_cloth_like_the_active_path():
+    a, b = scenes.cloth(5, 5), scenes.cloth(5, 5)
+    saved = _kernels.spring_forces
+    try:
+        for _ in range(200):
+            a.step(1e-3, "rk4")
+            _kernels.spring_forces = None
+            b.step(1e-3, "rk4")
+            _kernels.spring_forces = saved
+    finally:
+        _kernels.spring_forces = saved
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-11)
+
+
+def test_environment_variable_disables_numba():
+    code = "from constrained_particles import _kernels; print(_kernels.spring_forces is None)"
+    env = {**os.environ, "CPARTICLES_NUMBA": "0"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "True"
