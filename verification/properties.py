@@ -95,10 +95,14 @@ def constraint_acceleration_residual(system: ParticleSystem, eps: float = 1e-2) 
     return float(np.max(residual) / scale) if scale > 0 else 0.0
 
 
-def constraint_power(system: ParticleSystem) -> float:
+def constraint_power(system: ParticleSystem, min_speed: float = 1e-9) -> float:
     """Relative power of the constraint force at the current state: ``|lam^T J v|`` divided by
     ``|J^T lam| |v|``. Zero (to the solver's tolerance) when ``Cdot = J v = 0``: ideal
-    constraints do no work. Returns 0 without constraints or without motion."""
+    constraints do no work. Returns 0 without constraints or without motion: speeds below
+    ``min_speed`` (m/s, norm over all particles) are rounding residue, e.g. 1e-16 m/s left by
+    a projection, to which the feedback force answers along the same direction."""
+    if np.linalg.norm(system.v) < min_speed:
+        return 0.0
     fc = system.constraint_force(system.x, system.v)
     scale = np.linalg.norm(fc) * np.linalg.norm(system.v)
     return float(abs(np.sum(fc * system.v)) / scale) if scale > 0 else 0.0
