@@ -158,14 +158,24 @@ def run_positions(system: ParticleSystem, method: str, h: float, times: np.ndarr
     """
     s = _copy_for_orders(system)
     out = np.empty((len(times), s.n, 2))
-    t_prev = s.t
-    for k, t in enumerate(times):
+    for k, steps in enumerate(steps_between(times, s.t, h)):
+        for _ in range(steps):
+            s.step(h, method=method, project=project)
+        out[k] = s.x
+    return out
+
+
+def steps_between(times: Sequence[float], start: float, h: float) -> list[int]:
+    """Whole numbers of steps ``h`` (s) from ``start`` to each checkpoint in ``times`` (s) in turn.
+
+    Raises ValueError if ``h`` does not divide a checkpoint interval.
+    """
+    out, t_prev = [], start
+    for t in times:
         steps = (t - t_prev) / h
         if abs(steps - round(steps)) > 1e-9 * max(steps, 1.0):
             raise ValueError(f"h = {h} does not divide the checkpoint interval {t - t_prev}")
-        for _ in range(int(round(steps))):
-            s.step(h, method=method, project=project)
-        out[k] = s.x
+        out.append(int(round(steps)))
         t_prev = t
     return out
 

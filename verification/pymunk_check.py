@@ -35,7 +35,7 @@ from constrained_particles import (
     scenes,
 )
 
-from .orders import checkpoints, run_positions
+from .orders import checkpoints, run_positions, steps_between
 from .properties import fit_slope
 
 #: Step (s) of our rk4 trajectory that pymunk is compared with (quick: 1 ms, where rk4's own
@@ -183,16 +183,11 @@ def pymunk_positions(system: ParticleSystem, dt: float, times: np.ndarray,
     (s), sampled at ``times`` (each a whole number of steps after the start)."""
     scene = to_pymunk(system, iterations)
     out = np.empty((len(times), system.n, 2))
-    t_prev = system.t
-    for k, t in enumerate(times):
-        steps = (t - t_prev) / dt
-        if abs(steps - round(steps)) > 1e-9 * max(steps, 1.0):
-            raise ValueError(f"dt = {dt} does not divide the checkpoint interval {t - t_prev}")
-        for _ in range(int(round(steps))):
+    for k, steps in enumerate(steps_between(times, system.t, dt)):
+        for _ in range(steps):
             scene.step(dt)
         out[k] = [system.x[i] if b is None else tuple(b.position)
                   for i, b in enumerate(scene.bodies)]
-        t_prev = t
     return out
 
 
