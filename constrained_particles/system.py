@@ -159,9 +159,15 @@ class ParticleSystem:
 
     @property
     def constraint_solver(self) -> ConstraintSolver:
-        """The sparse assembly for the current topology (rebuilt after particles or constraints
-        are added or removed)."""
-        if self._solver is None or self._solver.n != self.n:
+        """The sparse assembly for the current topology: rebuilt when particles or constraint
+        blocks are added, removed or replaced, or when ``solver`` or ``tol`` is changed."""
+        built = self._solver
+        if (built is None or built.n != self.n or built.method != self.solver
+                or built.tol != self.tol or len(built.constraints) != len(self.constraints)
+                or any(a is not b for a, b in zip(built.constraints, self.constraints,
+                                                  strict=True))):
+            if self.solver not in SOLVER_METHODS:
+                raise ValueError(f"solver must be one of {SOLVER_METHODS}, got {self.solver!r}")
             self._solver = ConstraintSolver(self.constraints, self.n, self.solver, self.tol)
         return self._solver
 

@@ -476,3 +476,27 @@ def test_shapes_describe_every_term():
             ("arrow", "constraint")} <= kinds
     for sh in s.shapes(constraint_forces=True):
         assert all(arr is None or np.all(np.isfinite(arr)) for arr in (sh.a, sh.b, sh.value))
+
+
+def test_changing_solver_options_after_construction_takes_effect():
+    s = scenes.wire_mixture()
+    s.step(1e-3)
+    s.tol = 1e-13
+    assert s.constraint_solver.tol == 1e-13
+    s.solver = "direct"
+    assert s.constraint_solver.method == "direct"
+    s.step(1e-3)
+    s.solver = "bogus"
+    with pytest.raises(ValueError, match="solver"):
+        s.step(1e-3)
+
+
+def test_replacing_a_constraint_block_rebuilds_the_assembly():
+    s = scenes.pendulum()
+    s.step(1e-3)
+    wire = s.constraints[0]
+    s.constraints[0] = CircularWire(wire.particles, wire.center, wire.radius * 0.5)
+    s.step(1e-3)  # the new (violated) wire is the one being enforced
+    C, _ = s.constraint_residual()
+    assert abs(C[0] - 0.5 * (np.sum((s.x[0] - wire.center[0]) ** 2) - (0.5 * wire.radius[0]) ** 2)
+               ) < 1e-12

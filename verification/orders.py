@@ -121,8 +121,7 @@ def default_steps(method: str, quick: bool = False) -> tuple[float, ...]:
 
 def _copy_for_orders(system: ParticleSystem) -> ParticleSystem:
     s = system.copy()
-    s.tol = SOLVE_TOL
-    s._solver = None
+    s.tol = SOLVE_TOL  # the system rebuilds its solver with the new tolerance
     return s
 
 

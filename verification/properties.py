@@ -278,7 +278,6 @@ def rigidly_moved(system: ParticleSystem, angle: float, shift: Sequence[float]
             f.anchor = f.anchor @ R.T + d
         elif not isinstance(f, (DampedSpring, AngularSpring, Drag)):
             raise ValueError(f"system: cannot move a {type(f).__name__} rigidly")
-    out._solver = None
     out.constraint_solver.lam = lam
     return out
 
