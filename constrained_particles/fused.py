@@ -710,8 +710,8 @@ if _kernels.ENABLED:
             if residual_limit < math.inf and m:
                 if not _distance_error(xs, circ, rod, line, fixed) <= residual_limit:
                     return DIVERGED, step
-            x[:, :] = xs
-            v[:, :] = vs
+            x, xs = xs, x  # the new state becomes current; the old buffers are reused
+            v, vs = vs, v
         x_out[:, :] = x
         v_out[:, :] = v
         return OK, steps
