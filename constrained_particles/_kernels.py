@@ -29,7 +29,7 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
         numba = None
     if numba is not None:
         ENABLED = True
-        njit = numba.njit(cache=True, nogil=True)
+        njit = numba.njit(cache=True)
 
         # ---------------------------------------------------------------- force elements
         @njit

@@ -281,19 +281,17 @@ if _kernels.ENABLED:
         wall_element,
     )
 
-    njit = numba.njit(cache=True, nogil=True)
+    # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
+    njit = numba.njit(cache=True)
 
     @njit
-    def _check_indices(n, grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                       m, lam):  # pragma: no cover - compiled
-        """False if any index array points outside the n particles or lengths disagree."""
-        for arr in (grav[0], const[0], spring[0], spring[1], ang[0], ang[1], ang[2], drag[0],
-                    wall[0], circ[0], rod[0], rod[1], line[0], fixed[0]):
-            for e in range(arr.shape[0]):
-                if arr[e] < 0 or arr[e] >= n:
-                    return False
+    def _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, m,
+                      lam):  # pragma: no cover - compiled
+        """False if the per-element arrays of a block disagree in length. (Particle indices are
+        checked where they are read: every loop below tests each index against n first.)"""
         if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
-                or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]):
+                or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
+                or drag[1].shape[0] != drag[0].shape[0]):
             return False
         for e in range(grav[1].shape[0]):
             if grav[1][e] < 0 or grav[1][e] >= grav[2].shape[0]:
@@ -313,13 +311,13 @@ if _kernels.ENABLED:
         if (mouse[1].shape[0] != k or mouse[2].shape[0] != k or mouse[3].shape[0] != k
                 or mouse[4].shape[0] != k):
             return False
-        for e in range(k):
-            if mouse[2][e] and (mouse[0][e] < 0 or mouse[0][e] >= n):
-                return False
         if (circ[1].shape[0] != circ[0].shape[0] or circ[2].shape[0] != circ[0].shape[0]
-                or rod[2].shape[0] != rod[0].shape[0] or line[1].shape[0] != line[0].shape[0]
-                or line[2].shape[0] != line[0].shape[0]
-                or fixed[1].shape[0] != fixed[0].shape[0]):
+                or circ[3].shape[0] != circ[0].shape[0] or rod[1].shape[0] != rod[0].shape[0]
+                or rod[2].shape[0] != rod[0].shape[0] or rod[3].shape[0] != rod[0].shape[0]
+                or line[1].shape[0] != line[0].shape[0] or line[2].shape[0] != line[0].shape[0]
+                or line[3].shape[0] != line[0].shape[0]
+                or fixed[1].shape[0] != fixed[0].shape[0]
+                or fixed[2].shape[0] != fixed[0].shape[0]):
             return False
         for rows in (circ[3], rod[3], line[3]):
             for e in range(rows.shape[0]):
@@ -333,21 +331,29 @@ if _kernels.ENABLED:
     @njit
     def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse):
         # pragma: no cover - compiled
-        """Applied forces Q (N) into F (overwritten), summed by block type."""
+        """Applied forces Q (N) into F (overwritten), summed by block type; False (and F
+        incomplete) if a particle index is out of range."""
+        n = x.shape[0]
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
             q, k = gi[e], gblock[e]
+            if q < 0 or q >= n:
+                return False
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
         for e in range(ci.shape[0]):
             q = ci[e]
+            if q < 0 or q >= n:
+                return False
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         for e in range(si.shape[0]):
             a, b = si[e], sj[e]
+            if a < 0 or a >= n or b < 0 or b >= n:
+                return False
             fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
                                     v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
             F[a, 0] += fx
@@ -357,6 +363,8 @@ if _kernels.ENABLED:
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]
+            if a < 0 or a >= n or b < 0 or b >= n or c < 0 or c >= n:
+                return False
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
                 v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
@@ -369,11 +377,15 @@ if _kernels.ENABLED:
         di, dkd = drag
         for e in range(di.shape[0]):
             q = di[e]
+            if q < 0 or q >= n:
+                return False
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
         for e in range(wi.shape[0]):
             q, k = wi[e], wblock[e]
+            if q < 0 or q >= n:
+                return False
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
@@ -382,17 +394,24 @@ if _kernels.ENABLED:
         for e in range(mi.shape[0]):
             if mact[e]:
                 q = mi[e]
+                if q < 0 or q >= n:
+                    return False
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
                 F[q, 0] += fx
                 F[q, 1] += fy
+        return True
 
     @njit
     def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):  # pragma: no cover
-        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row."""
+        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row; False if a particle
+        index is out of range."""
+        n = x.shape[0]
         cp, cc, cr, crow = circ
         for e in range(cp.shape[0]):
             q, r = cp[e], crow[e]
+            if q < 0 or q >= n:
+                return False
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
             Jv[r, 0], Jv[r, 1] = dx, dy
@@ -400,6 +419,8 @@ if _kernels.ENABLED:
         ra, rb, rl, rrow = rod
         for e in range(ra.shape[0]):
             a, b, r = ra[e], rb[e], rrow[e]
+            if a < 0 or a >= n or b < 0 or b >= n:
+                return False
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
             C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
@@ -408,6 +429,8 @@ if _kernels.ENABLED:
         lp, ln, lpt, lrow = line
         for e in range(lp.shape[0]):
             q, r = lp[e], lrow[e]
+            if q < 0 or q >= n:
+                return False
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
@@ -415,11 +438,14 @@ if _kernels.ENABLED:
         fp, fpt, frow = fixed
         for e in range(fp.shape[0]):
             q, r = fp[e], frow[e]
+            if q < 0 or q >= n:
+                return False
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
                 Cdot[r + axis] = v[q, axis]
                 Jv[r + axis, 0] = 1.0
                 Jdv[r + axis, 0] = 0.0
+        return True
 
     @njit
     def _distance_error(x, circ, rod, line, fixed):  # pragma: no cover - compiled
@@ -579,11 +605,14 @@ if _kernels.ENABLED:
     def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
                rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
                C, Cdot, Jv, Jdv, b, work, A, tmp):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out``; False if the solve failed."""
-        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse)
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out``; False if an index was out of range
+        or the solve failed."""
+        if not _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse):
+            return False
         m = C.shape[0]
         if m:
-            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
+            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):
+                return False
             for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
                 acc = 0.0
                 for k in range(nnz[r]):
@@ -609,8 +638,8 @@ if _kernels.ENABLED:
                      tol, lam, limit, residual_limit, x_out, v_out):  # pragma: no cover
         n = x0.shape[0]
         m = lam.shape[0]
-        if not _check_indices(n, grav, const, spring, ang, drag, wall, mouse, circ, rod, line,
-                              fixed, m, lam):
+        if not _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             m, lam):
             return FALLBACK, 0
         w2 = np.empty(2 * n)
         for q in range(n):
