@@ -44,7 +44,10 @@ if TYPE_CHECKING:
     from .system import ParticleSystem
 
 #: Integrators the fused kernel runs, with their codes.
-METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3}
+METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rattle": 4}
+#: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
+#: them): convergence and stall tolerances as fractions of the system's size, and iterations.
+RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
 #: Kernel status codes.
 OK, DIVERGED, FALLBACK = 0, 1, 2
 
@@ -633,6 +636,95 @@ if _kernels.ENABLED:
         return True
 
     @njit
+    def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
+                wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
+                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
+        """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
+        rattle` does it; False where the reference must take over (it raises the errors)."""
+        n = x.shape[0]
+        m = C.shape[0]
+        half = 0.5 * h
+        if not _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse):
+            return False
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
+                xs[q, d] = x[q, d] + h * vs[q, d]
+        if m:
+            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv):
+                return False
+            previous = math.inf
+            for iteration in range(RATTLE_MAX_ITERATIONS + 1):
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
+                worst = 0.0
+                finite = True
+                for r in range(m):
+                    g = 0.0
+                    for k in range(nnz[r]):
+                        g += Jv[r, k] * Jv[r, k]
+                    dist = abs(C[r]) / math.sqrt(g)
+                    if not dist < math.inf:
+                        finite = False
+                    elif dist > worst:
+                        worst = dist
+                size = 0.0
+                for q in range(n):
+                    for d in range(2):
+                        if not abs(xs[q, d]) <= size:
+                            size = abs(xs[q, d])
+                if not (finite and size < math.inf):
+                    return False
+                if worst <= RATTLE_POSITION_TOL * size:
+                    break
+                if worst > 0.5 * previous and worst <= RATTLE_STALL_TOL * size:
+                    break
+                if iteration == RATTLE_MAX_ITERATIONS:
+                    return False
+                previous = worst
+                for r in range(m):
+                    dl[r] = 0.0
+                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, C, dl, tol,
+                                         work, A, tmp):
+                    return False
+                for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
+                    for k in range(nnz[r]):
+                        tmp[cols[r, k]] += J0[r, k] * dl[r]
+                for q in range(n):
+                    for d in range(2):
+                        dq = w2[2 * q + d] * tmp[2 * q + d]
+                        tmp[2 * q + d] = 0.0
+                        xs[q, d] -= dq
+                        vs[q, d] -= dq / h
+        # velocity-dependent forces see the predicted v1 = 2 v_half - v0
+        for q in range(n):
+            for d in range(2):
+                f1[q, d] = 2.0 * vs[q, d] - v[q, d]
+        if not _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse):
+            return False
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
+        if m:  # J(x1) is current; mu such that J(x1) v1 = 0
+            for r in range(m):
+                acc = 0.0
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    acc += Jv[r, k] * vs[c // 2, c % 2]
+                b[r] = acc
+                dl[r] = 0.0
+            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
+                                     A, tmp):
+                return False
+            for r in range(m):
+                for k in range(nnz[r]):
+                    tmp[cols[r, k]] += Jv[r, k] * dl[r]
+            for q in range(n):
+                for d in range(2):
+                    vs[q, d] = vs[q, d] - w2[2 * q + d] * tmp[2 * q + d]
+                    tmp[2 * q + d] = 0.0
+        return True
+
+    @njit
     def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, grav, const, spring, ang, drag,
                      wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd,
                      tol, lam, limit, residual_limit, x_out, v_out):  # pragma: no cover
@@ -664,8 +756,16 @@ if _kernels.ENABLED:
         vs2 = np.empty_like(x)
         vs3 = np.empty_like(x)
         half = 0.5 * h
+        J0 = np.zeros((m, 4))
+        dl = np.zeros(m)
         for step in range(steps):
-            if method == 0 or method == 3:  # euler / symplectic_euler
+            if method == 4:
+                if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
+                               ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
+                               comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
+                               tmp):
+                    return FALLBACK, step
+            elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
