@@ -190,7 +190,8 @@ def bench_pymunk(sizes: list[int], methods: list[str], repeats: int, seconds: fl
             scene = pymunk_cloth(our_cloth(n), iterations)
             calls[f"pymunk_{iterations}"] = lambda scene=scene: scene.step(DT)
         for method in methods:
-            calls[method] = lambda s=our_cloth(n), m=method: s.step(DT, m)
+            system = our_cloth(n)
+            calls[method] = lambda s=system, m=method: s.step(DT, m)
         if progress is not None:
             progress.section(f"pymunk {n}x{n}")
         times = alternate(calls, repeats, seconds, progress)
@@ -286,7 +287,8 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
 
         if progress is not None:
             progress.section(f"{env_id} x{count}")
-        times = alternate({"env": lambda vec=vec: vec.step(next(batches)), "bare": bare_step},
+        times = alternate({"env": lambda vec=vec, b=batches: vec.step(next(b)),
+                           "bare": bare_step},
                           repeats, seconds, progress, warmup=2)
         vec.close()
         particle_steps = count * task.n * task.substeps
@@ -306,7 +308,8 @@ def bench_scaling(sizes: list[int], method: str, repeats: int, seconds: float,
     """Microseconds per particle-step for each cloth size, and the largest over the smallest."""
     if progress is not None:
         progress.section("scaling")
-    times = alternate({n: (lambda s=our_cloth(n): s.step(DT, method)) for n in sizes},
+    systems = {n: our_cloth(n) for n in sizes}
+    times = alternate({n: (lambda s=s: s.step(DT, method)) for n, s in systems.items()},
                       repeats, seconds, progress)
     cost = {n: 1e6 * median(times[n]) / (n * n) for n in sizes}
     return {"method": method, "us_per_particle_step": cost,
@@ -459,6 +462,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the environment sections (b), (c) and the env part of (d)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bar (it shows by default when stderr is a terminal)")
+    parser.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)
 
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -227,9 +227,9 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cparticles`` console script."""
     args = build_parser(argv).parse_args(argv)
-    if getattr(args, "check", None) is not None:
-        args.check(args.subparser, args)
     try:
+        if getattr(args, "check", None) is not None:
+            args.check(args.subparser, args)
         return int(args.handler(args) or 0)
     except (ValueError, MissingExtra) as exc:
         print(f"cparticles {args.command}: error: {exc}", file=sys.stderr)
