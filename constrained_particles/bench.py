@@ -473,18 +473,21 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 
 def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
-        progress: bool = False) -> dict[str, Any]:
-    """Every section; the JSON document ``cparticles bench --json`` prints."""
-    seconds = 0.05 if quick else 0.3
-    sizes = [20, 64] if quick else [10, 20, 40, 64]
+        progress: bool = False, *, sizes: list[int] | None = None,
+        copies: tuple[int, ...] = VECTOR_COPIES, seconds: float | None = None,
+        accuracy_n: int = ACCURACY_N) -> dict[str, Any]:
+    """Every section; the JSON document ``cparticles bench --json`` prints. ``sizes`` (cloth
+    sizes of section (a)), ``copies`` (section (c)), ``seconds`` (per timed batch) and
+    ``accuracy_n`` override the defaults of ``quick``."""
+    seconds = (0.05 if quick else 0.3) if seconds is None else seconds
+    sizes = ([20, 64] if quick else [10, 20, 40, 64]) if sizes is None else sizes
     methods = [OURS, "rk4"] if quick else [m for m in METHODS if m != "implicit_euler"]
-    copies = VECTOR_COPIES
     units = (len(sizes) * repeats + 5 + repeats + 2
              + (repeats * (1 + len(VECTOR_ENVS) * len(copies)) + repeats if envs else 0))
     bar = Progress(units, progress)
     try:
         bar.section("accuracy")
-        errors = cloth_errors(progress=bar)
+        errors = cloth_errors(accuracy_n, progress=bar)
         results: dict[str, Any] = {"cloth_errors": errors}
         results["pymunk"] = bench_pymunk(sizes, methods, repeats, seconds, bar)
         results["equal_accuracy"] = equal_accuracy(errors, results["pymunk"])
