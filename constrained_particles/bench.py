@@ -454,12 +454,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from .cli import int_at_least
 
     parser.add_argument("--quick", action="store_true",
-                        help="shorter batches, fewer sizes (a few minutes)")
+                        help="shorter batches, fewer sizes (about a minute)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     parser.add_argument("--repeats", type=int_at_least(MIN_REPEATS), default=MIN_REPEATS,
                         help=f"timed batches per figure, alternated (at least {MIN_REPEATS})")
     parser.add_argument("--skip-envs", action="store_true",
-                        help="skip the environment sections (b), (c) and the env part of (d)")
+                        help="skip the environment sections (small envs, vector scaling and "
+                        "vector modes)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bar (it shows by default when stderr is a terminal)")
     parser.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)

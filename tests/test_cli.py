@@ -201,3 +201,26 @@ def test_python_m_verification_reports_a_missing_extra(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "pymunk", None)
     assert run(["pymunk", "--quick"]) == 2
     assert "'verify' extra" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("tty, flags, shown", [
+    (True, {}, True), (False, {}, False), (True, {"quiet": True}, False),
+    (False, {"progress": True}, True), (True, {"quiet": True, "progress": True}, False)])
+def test_progress_shows_on_a_terminal_unless_quiet(tty, flags, shown, monkeypatch):
+    import argparse
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: tty)
+    assert cli.progress_enabled(argparse.Namespace(**flags)) is shown
+
+
+def test_verify_passes_progress_to_the_measurement(monkeypatch, capsys):
+    """On a terminal ``verify orders`` asks for progress bars; ``--quiet`` turns them off."""
+    import verification.orders as orders
+
+    seen = []
+    monkeypatch.setattr(orders, "measure_orders",
+                        lambda quick, progress: seen.append(progress) or {})
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert cli.main(["verify", "orders", "--json"]) == 0
+    assert cli.main(["verify", "orders", "--json", "--quiet"]) == 0
+    assert seen == [True, False]
