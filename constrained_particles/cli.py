@@ -231,7 +231,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "check", None) is not None:
             args.check(args.subparser, args)
         return int(args.handler(args) or 0)
-    except (ValueError, MissingExtra) as exc:
+    except MissingExtra as exc:  # the message names the command already
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
         print(f"cparticles {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -22,6 +22,10 @@ EXTRA_OF: dict[str, str] = {
 }
 
 
+#: importable module -> the distribution a user installs, where the names differ
+DISTRIBUTION: dict[str, str] = {"pygame": "pygame-ce", "PIL": "pillow"}
+
+
 class MissingExtra(ImportError):
     """A command needs an optional dependency that is not installed; the message is one line
     naming the extra and how to install it."""
@@ -52,6 +56,6 @@ def require(*modules: str, command: str) -> None:
     absent = missing(*modules)
     if absent:
         extra = EXTRA_OF.get(absent[0], "verify")
-        names = ", ".join(absent)
+        names = ", ".join(DISTRIBUTION.get(name, name) for name in absent)
         raise MissingExtra(f"{command} needs the '{extra}' extra (missing: {names}); "
                            f"install it with {install_hint(extra)}")

@@ -189,7 +189,9 @@ def test_missing_extra_is_one_line_before_any_work(argv, hidden, extra, monkeypa
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1, lines
-    assert f"'{extra}' extra" in lines[0] and hidden in lines[0]
+    shown = {"PIL": "pillow", "pygame": "pygame-ce"}.get(hidden, hidden)
+    assert f"'{extra}' extra" in lines[0] and f"missing: {shown}" in lines[0]
+    assert lines[0].startswith("error: cparticles ")
     assert f'pip install -e ".[{extra}]"' in lines[0]
     assert f'pip install "constrained-particles[{extra}]"' in lines[0]
     assert not (tmp_path / "out" / "report.md").exists() and not (tmp_path / "x.gif").exists()

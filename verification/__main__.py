@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the chosen subcommand; returns the exit status."""
-    require(*NEEDS[args.verify_command], command=f"verify {args.verify_command}")
+    require(*NEEDS[args.verify_command], command=f"cparticles verify {args.verify_command}")
     progress = progress_enabled(args)
     if args.verify_command == "orders":
         from .orders import measure_orders, orders_summary, orders_table
@@ -92,7 +92,10 @@ def run(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return main(args)
-    except (ValueError, MissingExtra) as exc:
+    except MissingExtra as exc:  # the message names the command already
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
         print(f"python -m verification {args.verify_command}: error: {exc}", file=sys.stderr)
         return 2
 
