@@ -226,3 +226,21 @@ def test_verify_passes_progress_to_the_measurement(monkeypatch, capsys):
     assert cli.main(["verify", "orders", "--json"]) == 0
     assert cli.main(["verify", "orders", "--json", "--quiet"]) == 0
     assert seen == [True, False]
+
+
+def test_demo_reports_diverged_episodes(capsys):
+    """Forward Euler at 20 ms is unstable on the cloth: every episode ends diverged, and the
+    table and the JSON say so; the default settings diverge in none."""
+    import json
+
+    argv = ["demo", "--env", "ClothSlide-v0", "--episodes", "2", "--integrator", "euler",
+            "--dt", "0.02", "--substeps", "1"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "diverged" in out.splitlines()[1] and "2 diverged" in out
+    assert cli.main([*argv, "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["diverged_episodes"] == 2 and data["diverged"] == [True, True]
+    assert data["success_rate"] == 0.0
+    assert cli.main(["demo", "--env", "SliderCrank-v0", "--episodes", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["diverged_episodes"] == 0
