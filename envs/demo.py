@@ -153,7 +153,7 @@ def main(args: argparse.Namespace) -> int:
         summary["gif"] = args.save_gif
     if args.json:
         summary.update(returns=res["return"].round(4).tolist(), lengths=res["length"].tolist(),
-                       successes=res["success"].tolist())
+                       successes=res["success"].tolist(), diverged=res["diverged"].tolist())
         print(json.dumps(summary, indent=2))
         return 0
     print(f"# {args.env}, {args.agent} agent, action_mode={args.action_mode}, "
