@@ -213,9 +213,11 @@ def equal_accuracy(errors: dict[str, float | None], pymunk: dict[str, Any]) -> d
         raise RuntimeError(f"{OURS} diverged on the benchmark cloth")
     close = [k for k, e in settings.items() if e is not None
              and e <= EQUAL_ACCURACY_FACTOR * ours]
-    first_size = next(iter(pymunk["pymunk"]))
-    if close:  # cheapest: the highest pymunk rate on the first size
-        chosen = max(close, key=lambda k: pymunk["pymunk"][first_size][k] or 0.0)
+    def cost(k: int) -> float:  # seconds per particle-step, summed over the cloth sizes
+        return sum(1.0 / rates[k] if rates[k] else np.inf for rates in pymunk["pymunk"].values())
+
+    if close:
+        chosen = min(close, key=cost)
         rule = f"cheapest pymunk setting with error <= {EQUAL_ACCURACY_FACTOR:g}x ours"
     else:
         chosen = min(settings, key=lambda k: settings[k] or np.inf)
@@ -390,7 +392,7 @@ def bench_accuracy_at_equal_time(n: int = 10, horizon: float = 0.5,
         pts = sorted(out[engine])
         t, e = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
         out[f"{engine}_error_at_equal_time"] = float(np.exp(np.interp(np.log(t_common), t, e)))
-    out["equal_cpu_seconds"] = t_common
+    out.update(equal_cpu_seconds=t_common, cloth=n, seconds=horizon)
     return out
 
 
@@ -405,9 +407,9 @@ def markdown(r: dict[str, Any]) -> str:
     lines = [f"pymunk at equal accuracy: {OURS} is "
              + ", ".join(f"{_x(v)} at {n}x{n}" for n, v in eq["ratio"].items())
              + f" pymunk with {eq['pymunk_iterations']} iteration(s) ({eq['rule']}; errors after "
-             f"{ACCURACY_SECONDS:g} s of the {ACCURACY_N}x{ACCURACY_N} cloth at dt = 1 ms against "
+             f"{eq['seconds']:g} s of the {eq['cloth']}x{eq['cloth']} cloth at dt = 1 ms against "
              f"rk4 at 0.1 ms: ours {eq['our_error']:.3g} m, pymunk {eq['pymunk_error']:.3g} m).",
-             "", "| engine | error after 0.3 s (m) |", "|---|---|"]
+             "", f"| engine | error after {eq['seconds']:g} s (m) |", "|---|---|"]
     lines += [f"| {name} | {'diverges' if e is None else f'{e:.3g}'} |"
               for name, e in r["cloth_errors"].items()]
     a = r["pymunk"]
@@ -442,9 +444,10 @@ def markdown(r: dict[str, Any]) -> str:
         lines += ["", f"Native vector env over SyncVectorEnv (64 envs): "
                   f"{r['vector_speedup']:.1f}x"]
     d = r["accuracy"]
-    lines += ["", f"Accuracy at equal CPU time ({d['equal_cpu_seconds']:.2f} s, 10x10 cloth, "
-              f"0.5 s): rk4 error {d['rk4_error_at_equal_time']:.2e} m, pymunk (30 iterations) "
-              f"error {d['pymunk_error_at_equal_time']:.2e} m."]
+    lines += ["", f"Accuracy at equal CPU time ({d['equal_cpu_seconds']:.2f} s, "
+              f"{d['cloth']}x{d['cloth']} cloth, {d['seconds']:g} s): rk4 error "
+              f"{d['rk4_error_at_equal_time']:.2e} m, pymunk (30 iterations) error "
+              f"{d['pymunk_error_at_equal_time']:.2e} m."]
     return "\n".join(lines)
 
 
@@ -476,10 +479,11 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
         progress: bool = False, *, sizes: list[int] | None = None,
         copies: tuple[int, ...] = VECTOR_COPIES, seconds: float | None = None,
-        accuracy_n: int = ACCURACY_N) -> dict[str, Any]:
+        accuracy_n: int = ACCURACY_N, accuracy_seconds: float = ACCURACY_SECONDS
+        ) -> dict[str, Any]:
     """Every section; the JSON document ``cparticles bench --json`` prints. ``sizes`` (cloth
-    sizes of section (a)), ``copies`` (section (c)), ``seconds`` (per timed batch) and
-    ``accuracy_n`` override the defaults of ``quick``."""
+    sizes of section (a)), ``copies`` (section (c)), ``seconds`` (per timed batch),
+    ``accuracy_n`` and ``accuracy_seconds`` (the equal-accuracy runs) override the defaults."""
     seconds = (0.05 if quick else 0.3) if seconds is None else seconds
     sizes = ([20, 64] if quick else [10, 20, 40, 64]) if sizes is None else sizes
     methods = [OURS, "rk4"] if quick else [m for m in METHODS if m != "implicit_euler"]
@@ -488,10 +492,11 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
     bar = Progress(units, progress)
     try:
         bar.section("accuracy")
-        errors = cloth_errors(accuracy_n, progress=bar)
+        errors = cloth_errors(accuracy_n, accuracy_seconds, progress=bar)
         results: dict[str, Any] = {"cloth_errors": errors}
         results["pymunk"] = bench_pymunk(sizes, methods, repeats, seconds, bar)
-        results["equal_accuracy"] = equal_accuracy(errors, results["pymunk"])
+        results["equal_accuracy"] = {**equal_accuracy(errors, results["pymunk"]),
+                                     "cloth": accuracy_n, "seconds": accuracy_seconds}
         results["pymunk_ratio_equal_accuracy"] = results["equal_accuracy"]["ratio"]
         results["pymunk_ratio"] = {k: {n: {m: r[m][k] for m in methods}
                                        for n, r in results["pymunk"]["ratio"].items()}

@@ -54,10 +54,8 @@ def test_json_carries_the_headline_keys(monkeypatch):
     monkeypatch.setattr(B, "bench_env_modes", lambda *a, **k: {"vector_speedup": 1.0})
     monkeypatch.setattr(B, "bench_accuracy_at_equal_time", lambda progress=None: {})
     monkeypatch.setattr(B, "bench_scaling", lambda *a, **k: {"scaling_ratio": 1.0})
-    short = B.cloth_errors
-    monkeypatch.setattr(B, "cloth_errors", lambda n, progress=None: short(n, seconds=0.02))
     out = json.loads(json.dumps(B.run(repeats=1, sizes=[4], copies=(1, 2), seconds=0.0,
-                                      accuracy_n=4)))
+                                      accuracy_n=4, accuracy_seconds=0.02)))
     assert out["pymunk_ratio_equal_accuracy"]["4"] > 0
     assert set(out["pymunk_ratio"]) == {"1", "10"}
     assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.SMALL_ENVS}
