@@ -408,9 +408,9 @@ def markdown(r: dict[str, Any]) -> str:
              + ", ".join(f"{_x(v)} at {n}x{n}" for n, v in eq["ratio"].items())
              + f" pymunk with {eq['pymunk_iterations']} iteration(s) ({eq['rule']}; errors after "
              f"{eq['seconds']:g} s of the {eq['cloth']}x{eq['cloth']} cloth at dt = 1 ms against "
-             f"rk4 at 0.1 ms: ours {eq['our_error']:.3g} m, pymunk {eq['pymunk_error']:.3g} m).",
+             f"rk4 at 0.1 ms: ours {eq['our_error']:.2e} m, pymunk {eq['pymunk_error']:.2e} m).",
              "", f"| engine | error after {eq['seconds']:g} s (m) |", "|---|---|"]
-    lines += [f"| {name} | {'diverges' if e is None else f'{e:.3g}'} |"
+    lines += [f"| {name} | {'diverges' if e is None else f'{e:.2e}'} |"
               for name, e in r["cloth_errors"].items()]
     a = r["pymunk"]
     methods = list(next(iter(a["ours"].values())))
