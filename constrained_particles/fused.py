@@ -200,6 +200,18 @@ class Packed:
         self.line = join(line, (_I0, _F02, _F02, _I0))
         self.fixed = join(fixed, (_I0, _F02, _I0))
         self._build_rows(system)
+        m = self.m
+        # scratch space reused by every call: state-sized stage arrays, per-row values,
+        # per-coordinate buffers, one dense component block
+        self.ws_n = np.zeros((10, n, 2))
+        self.ws_J = np.zeros((3, m, 4))
+        self.ws_r = np.zeros((5, m))
+        self.ws_q = np.zeros((2, 2 * n))
+        self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
+        self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
+                     self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
+                     self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
+                     self.ws_A)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -263,11 +275,9 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
     status, failed = _fused_steps(
-        METHOD_CODES[method], int(steps), float(dt), x, v, mass, inv_mass,
-        p.grav, p.const, p.spring, p.ang, p.drag, p.wall, p.mouse,
-        p.circ, p.rod, p.line, p.fixed, p.cols, p.nnz, p.comp_rows, p.comp_ptr,
-        float(system.ks), float(system.kd), float(system.tol), lam,
-        float(system.divergence_limit), float(residual_limit), x_out, v_out)
+        METHOD_CODES[method], int(steps), float(dt), x, v, mass, inv_mass, lam, x_out, v_out,
+        float(system.ks), float(system.kd), float(system.tol), float(system.divergence_limit),
+        float(residual_limit), *p.args)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -725,40 +735,38 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, grav, const, spring, ang, drag,
-                     wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd,
-                     tol, lam, limit, residual_limit, x_out, v_out):  # pragma: no cover
+    def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd, tol,
+                     limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ,
+                     rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
+                     ws_A):  # pragma: no cover - compiled
         n = x0.shape[0]
         m = lam.shape[0]
         if not _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
                              m, lam):
             return FALLBACK, 0
-        w2 = np.empty(2 * n)
+        if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
+                or ws_q.shape[1] != 2 * n or cols.shape[0] != m or nnz.shape[0] != m):
+            return FALLBACK, 0
+        w2, tmp = ws_q[0], ws_q[1]
         for q in range(n):
             w2[2 * q] = inv_mass[q]
             w2[2 * q + 1] = inv_mass[q]
-        C = np.empty(m)
-        Cdot = np.empty(m)
-        Jv = np.zeros((m, 4))
-        Jdv = np.zeros((m, 4))
-        b = np.empty(m)
-        work = np.empty(DIRECT_MAX)
-        A = np.empty((DIRECT_MAX, DIRECT_MAX))
-        tmp = np.zeros(2 * n)
-        x = x0.copy()
-        v = v0.copy()
-        a1 = np.empty_like(x)
-        a2 = np.empty_like(x)
-        a3 = np.empty_like(x)
-        a4 = np.empty_like(x)
-        xs = np.empty_like(x)
-        vs = np.empty_like(x)
-        vs2 = np.empty_like(x)
-        vs3 = np.empty_like(x)
+            tmp[2 * q] = 0.0
+            tmp[2 * q + 1] = 0.0
+        Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
+        C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
+        work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
+        a1, a2, a3, a4 = ws_n[2], ws_n[3], ws_n[4], ws_n[5]
+        vs2, vs3 = ws_n[8], ws_n[9]
+        # the first step reads the caller's state, the last writes the caller's output: no
+        # copies in or out, and x0, v0 are never written (the state before the call is kept)
+        x, v = x0, v0
+        xs, vs = ws_n[6], ws_n[7]
+        spare_x, spare_v = ws_n[0], ws_n[1]
         half = 0.5 * h
-        J0 = np.zeros((m, 4))
-        dl = np.zeros(m)
         for step in range(steps):
+            if step == steps - 1:
+                xs, vs = x_out, v_out
             if method == 4:
                 if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
                                ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
@@ -839,8 +847,13 @@ if _kernels.ENABLED:
             if residual_limit < math.inf and m:
                 if not _distance_error(xs, circ, rod, line, fixed) <= residual_limit:
                     return DIVERGED, step
-            x, xs = xs, x  # the new state becomes current; the old buffers are reused
-            v, vs = vs, v
-        x_out[:, :] = x
-        v_out[:, :] = v
+            if step == 0:  # the new state becomes current; never reuse the caller's arrays
+                x, xs = xs, spare_x
+                v, vs = vs, spare_v
+            else:
+                x, xs = xs, x
+                v, vs = vs, v
+        if steps == 0:
+            x_out[:, :] = x0
+            v_out[:, :] = v0
         return OK, steps
