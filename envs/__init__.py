@@ -17,6 +17,12 @@ _SPECS = {
     "SliderCrank-v0": dict(entry_point="envs.slider_crank:SliderCrankEnv",
                            vector_entry_point="envs.slider_crank:SliderCrankVectorEnv",
                            max_episode_steps=200),
+    "ChainSwing-v0": dict(entry_point="envs.chain_swing:ChainSwingEnv",
+                          vector_entry_point="envs.chain_swing:ChainSwingVectorEnv",
+                          max_episode_steps=200),
+    "ClothPin-v0": dict(entry_point="envs.cloth_pin:ClothPinEnv",
+                        vector_entry_point="envs.cloth_pin:ClothPinVectorEnv",
+                        max_episode_steps=200),
 }
 
 for _id, _kwargs in _SPECS.items():
