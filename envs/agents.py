@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from constrained_particles import ConstantForce
+from constrained_particles import ConstantForce, ParticleSystem
 from constrained_particles.scenes import G
 
 from .base import ParticleTask
@@ -166,14 +166,19 @@ class ChainSwingController(ScriptedAgent):
 
     For ``"swingup"`` the chain is first pumped up: in the carrier's frame a carrier
     acceleration ``a`` does work ``-a p`` on the chain per second (``p`` the chain's horizontal
-    momentum relative to the carrier), so pushing with ``-sign(p)`` while the chain's energy is
-    below that of the upright chain raises it; a weak spring keeps the carrier off the walls. The
-    LQR takes over once every link is within ``catch`` rad of upright.
+    momentum relative to the carrier, in kg m/s), so the controller asks for
+    ``a = -pump g (E* - E) / E* sign(p) - kx (x_c - goal) - kv xdot_c`` (m/s^2; ``E`` the
+    chain's energy in the carrier's frame, ``E*`` the upright chain's, ``(kx, kv) = center``)
+    and finds the force that gives it from the physics (:meth:`carrier_response`: the light
+    carrier's acceleration depends as much on the swinging chain as on the force). The LQR takes
+    over once every link is within ``catch`` rad of upright.
     """
 
-    def __init__(self, task: ChainSwing, catch: float = 0.5, pump: float = 4.0) -> None:
+    def __init__(self, task: ChainSwing, catch: float = 0.8, pump: float = 12.0,
+                 center: tuple[float, float] = (3.0, 2.0)) -> None:
         super().__init__(task)
-        self.catch, self.pump = catch, pump
+        self.catch, self.pump, self.center = catch, pump, center
+        self._tiled: tuple[int, ParticleSystem] | None = None
         self.spring_particle = 0
         L = task.links
         up = np.pi if task.target == "swingup" else 0.0
@@ -190,6 +195,22 @@ class ChainSwingController(ScriptedAgent):
         P = scipy.linalg.solve_discrete_are(Ad, Bd, Q, R)
         self.K = np.linalg.solve(R + Bd.T @ P @ Bd, Bd.T @ P @ Ad)[0]
         self.upright_energy = G * task.particle_mass * task.link * L * (L + 1) / 2
+
+    def carrier_response(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(a0, b)`` (B,) with the carrier's acceleration ``a0 + b F`` (m/s^2) under a force
+        ``F`` (N) on it, from the physics at positions ``x`` and velocities ``v`` (B, n, 2)."""
+        B = len(x)
+        if self._tiled is None or self._tiled[0] != B:
+            scene = self.task.build_scene()
+            scene.add(ConstantForce([0], [[0.0, 0.0]]))
+            self._tiled = (B, scene.tile(B))
+        s = self._tiled[1]
+        X, V = x.reshape(-1, 2), v.reshape(-1, 2)
+        s.forces[-1].force[:] = 0.0
+        a0 = s.acceleration(0.0, X, V).reshape(B, -1, 2)[:, 0, 0]
+        s.forces[-1].force[:, 0] = 1.0
+        a1 = s.acceleration(0.0, X, V).reshape(B, -1, 2)[:, 0, 0]
+        return a0, a1 - a0
 
     def state(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Link angles (B, L) in rad and their rates (B, L) in rad/s from particle states."""
@@ -212,8 +233,11 @@ class ChainSwingController(ScriptedAgent):
                       + 0.5 * t.stiffness * np.sum(_wrap(np.diff(phi, axis=1)) ** 2, axis=1))
             p = m * np.sum(rel[:, :, 0], axis=1)
             deficit = np.clip((self.upright_energy - energy) / self.upright_energy, -1.0, 1.0)
-            swing = (-self.pump * t.max_force * deficit * np.sign(p)
-                     - 3.0 * (x[:, 0, 0] - goal) - 1.0 * v[:, 0, 0])
+            kx, kv = self.center
+            a_want = (-self.pump * G * deficit * np.sign(p)
+                      - kx * (x[:, 0, 0] - goal) - kv * v[:, 0, 0])
+            a0, b = self.carrier_response(x, v)
+            swing = (a_want - a0) / b
             caught = np.all(np.abs(_wrap(phi - self.rest)) < self.catch, axis=1)
             F = np.where(caught, F, swing)
         if t.action_mode == "spring":  # the mouse spring's own damping, compensated

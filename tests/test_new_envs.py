@@ -215,7 +215,7 @@ def test_pickled_env_continues_identically(env_id, kwargs):
 @pytest.mark.parametrize(("env_id", "kwargs"), CASES[:2] + CASES[3:], ids=IDS[:2] + IDS[3:])
 def test_native_vector_env_matches_single_envs(env_id, kwargs):
     exact = env_id == "ClothPin-v0"
-    N, limit = 4, 90 if exact else 60
+    N, limit = 4, 90 if exact else 50
     native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
                           max_episode_steps=limit, **kwargs)
     sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", max_episode_steps=limit,
@@ -330,7 +330,7 @@ def test_scripted_spring_balances_the_push_at_rest():
 
 def test_chain_walls_limit_the_carrier_and_the_chain_stays_intact():
     """Pressed against a wall, the carrier sits where the wall's spring balances the push:
-    penetration ``max_force / kw`` on average (3 N on a 1000 N/m wall: 3 mm)."""
+    penetration ``max_force / kw`` on average (5 N on a 1000 N/m wall: 5 mm)."""
     env = gym.make("ChainSwing-v0").unwrapped
     env.reset(seed=0)
     task = env.task
@@ -358,11 +358,11 @@ def test_swingup_target_is_the_upright_chain():
 
 @pytest.mark.parametrize(("env_id", "kwargs"), CASES[:2] + CASES[3:], ids=IDS[:2] + IDS[3:])
 def test_default_physics_is_stable_under_random_actions(env_id, kwargs):
-    env = gym.make_vec(env_id, num_envs=8, vectorization_mode="vector_entry_point", **kwargs)
+    env = gym.make_vec(env_id, num_envs=16, vectorization_mode="vector_entry_point", **kwargs)
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     worst = 0.0
-    for _ in range(250):  # 2,000 env steps, 10,000 physics steps
+    for _ in range(130):  # 2,080 env steps, 10,400 physics steps
         obs, reward, _, truncated, info = env.step(
             rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
         assert not info["diverged"].any() and np.all(np.isfinite(obs))
@@ -450,6 +450,11 @@ def test_scripted_agent_succeeds_and_random_agent_fails(env_id, kwargs):
     if mode != "spring":
         rand = run_episodes(env_id, "random", 50, seed=100, action_mode=mode, **extra)
         assert rand["success"].mean() <= 0.1
+
+
+def test_scripted_swingup_balances_the_chain_upside_down():
+    res = run_episodes("ChainSwing-v0", "scripted", 24, seed=100, target="swingup")
+    assert res["success"].mean() >= 0.75  # 92% over 50 episodes from seed 0 (README)
 
 
 @pytest.mark.parametrize("module", [envs.chain_swing, envs.cloth_pin])
