@@ -60,7 +60,7 @@ class ChainSwing(ParticleTask):
                  particle_mass: float = 0.05, carrier_mass: float = 0.2,
                  stiffness: float = 1.0, joint_damping: float = 0.005, drag: float = 0.01,
                  travel: float = 1.0, dt: float = 0.01, substeps: int = 5,
-                 integrator: str = "midpoint", max_force: float = 5.0,
+                 integrator: str = "rk4", max_force: float = 5.0,
                  goal_range: tuple[float, float] | None = None,
                  min_distance: float | None = None, start_angle: float = 0.1,
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05, hold_steps: int = 5,
@@ -288,7 +288,7 @@ class ChainSwingEnv(ParticleEnv):
     | `travel`         | `1.0`                | the walls stand at x = -+travel (m)            |
     | `dt`             | `0.01`               | physics step (s)                               |
     | `substeps`       | `5`                  | physics steps per env step (0.05 s)            |
-    | `integrator`     | `"midpoint"`         | a name in `constrained_particles.METHODS`      |
+    | `integrator`     | `"rk4"`              | a name in `constrained_particles.METHODS`      |
     | `max_force`      | `5.0`                | force of action 1 on the carrier (N)           |
     | `goal_range`     | `None` (*)           | range of start and goal positions (m)          |
     | `min_distance`   | `None` (*)           | minimum start-to-goal distance (m)             |

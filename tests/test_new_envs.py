@@ -213,10 +213,10 @@ def test_pickled_env_continues_identically(env_id, kwargs):
 
 
 # ---------------------------------------------------------------------- vector envs
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:2] + CASES[3:], ids=IDS[:2] + IDS[3:])
+@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:1] + CASES[3:], ids=["chain", "pin"])
 def test_native_vector_env_matches_single_envs(env_id, kwargs):
     exact = env_id == "ClothPin-v0"
-    N, limit = 4, 90 if exact else 50
+    N, limit = 4, 90 if exact else 45
     native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
                           max_episode_steps=limit, **kwargs)
     sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", max_episode_steps=limit,
@@ -337,11 +337,11 @@ def test_chain_walls_limit_the_carrier_and_the_chain_stays_intact():
     task = env.task
     for a in (1.0, -1.0):
         depth = []
-        for _ in range(160):
+        for _ in range(110):
             env.step(np.array([a], np.float32))
             depth.append(a * task.positions()[0, 0, 0] - task.travel)
         assert max(depth) < 0.1  # the impact: kinetic energy into the wall's spring
-        assert np.mean(depth[-100:]) == pytest.approx(task.max_force / 1000.0, abs=1.5e-3)
+        assert np.mean(depth[-60:]) == pytest.approx(task.max_force / 1000.0, abs=1.5e-3)
     links = np.linalg.norm(np.diff(task.positions()[0], axis=0), axis=1)
     np.testing.assert_allclose(links, task.link, atol=2e-3)
 
@@ -357,7 +357,7 @@ def test_swingup_target_is_the_upright_chain():
     assert np.all(task.positions()[0, 1:, 1] > 0)  # every chain particle above the wire
 
 
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:2] + CASES[3:], ids=IDS[:2] + IDS[3:])
+@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:1] + CASES[3:], ids=["chain", "pin"])
 def test_default_physics_is_stable_under_random_actions(env_id, kwargs):
     env = gym.make_vec(env_id, num_envs=16, vectorization_mode="vector_entry_point", **kwargs)
     env.reset(seed=0)
@@ -454,8 +454,11 @@ def test_scripted_agent_succeeds_and_random_agent_fails(env_id, kwargs):
 
 
 def test_scripted_swingup_balances_the_chain_upside_down():
-    res = run_episodes("ChainSwing-v0", "scripted", 24, seed=100, target="swingup")
-    assert res["success"].mean() >= 0.75  # 92% over 50 episodes from seed 0 (README)
+    # 150 of the 200 steps to keep the test short: 21 of these 24 succeed (98% of 50 episodes
+    # from seed 0 with the full 200 steps, README)
+    res = run_episodes("ChainSwing-v0", "scripted", 24, seed=100, target="swingup",
+                       max_episode_steps=150)
+    assert res["success"].mean() >= 0.75
 
 
 @pytest.mark.parametrize("module", [envs.chain_swing, envs.cloth_pin])
