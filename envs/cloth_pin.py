@@ -485,33 +485,33 @@ class ClothPinEnv(ParticleEnv):
 
     ```
 
-    | Parameter        | Default              | Description                                    |
-    |------------------|----------------------|------------------------------------------------|
-    | `action_mode`    | `"draw"`             | the only mode                                  |
-    | `cloth_size`     | `(6, 6)`             | particle columns and rows, each >= 2           |
-    | `spacing`        | `0.1`                | rest distance between neighbours (m)           |
-    | `particle_mass`  | `0.02`               | mass of each cloth particle (kg)               |
-    | `cloth_ks`       | `40.0`               | structural springs (N/m; shear /2, bend /4)    |
-    | `cloth_kd`       | `0.05`               | cloth spring damping (N s/m)                   |
-    | `drag`           | `0.05`               | air drag per particle (N s/m)                  |
-    | `push`           | `0.1`                | the push on each top-row particle (N)          |
-    | `wall_x`         | `1.0`                | the wall fills x > wall_x (m)                  |
-    | `wall_penalty`   | `1.0`                | weight of the wall term of the reward          |
-    | `max_springs`    | `4`                  | springs per episode                            |
-    | `spring_cost`    | `0.1`                | reward cost of each placed spring              |
-    | `ks_range`       | `(0.2, 20.0)`        | stiffness range of drawn springs (N/m)         |
-    | `spring_kd`      | `0.02`               | damping of drawn springs (N s/m)               |
-    | `snap_radius`    | `0.1`                | an end within this of a particle snaps (m)     |
-    | `anchor_region`  | `(-1.3, -0.25, -0.9, 0.25)` | anchors only in this box (m) (*)        |
-    | `start_range`    | `(-0.5, -0.2)`       | range of start positions (m)                   |
-    | `goal_range`     | `(0.0, 0.5)`         | range of goal positions (m)                    |
-    | `min_distance`   | `0.2`                | start_range must end this far left of goals (m)|
-    | `dt`             | `0.01`               | physics step (s)                               |
-    | `substeps`       | `5`                  | physics steps per env step (0.05 s)            |
-    | `integrator`     | `"symplectic_euler"` | a name in `constrained_particles.METHODS`      |
-    | `goal_tolerance` | `0.05`               | success distance (m)                           |
-    | `rest_speed`     | `0.05`               | success RMS cloth particle speed (m/s)         |
-    | `hold_steps`     | `5`                  | env steps the success test must hold           |
+    | Parameter        | Default                     | Description                               |
+    |------------------|-----------------------------|-------------------------------------------|
+    | `action_mode`    | `"draw"`                    | the only mode                             |
+    | `cloth_size`     | `(6, 6)`                    | particle columns and rows, each >= 2      |
+    | `spacing`        | `0.1`                       | rest distance between neighbours (m)      |
+    | `particle_mass`  | `0.02`                      | mass of each cloth particle (kg)          |
+    | `cloth_ks`       | `40.0`                      | structural springs (N/m; shear /2, bend /4) |
+    | `cloth_kd`       | `0.05`                      | cloth spring damping (N s/m)              |
+    | `drag`           | `0.05`                      | air drag per particle (N s/m)             |
+    | `push`           | `0.1`                       | the push on each top-row particle (N)     |
+    | `wall_x`         | `1.0`                       | the wall fills x > wall_x (m)             |
+    | `wall_penalty`   | `1.0`                       | weight of the wall term of the reward     |
+    | `max_springs`    | `4`                         | springs per episode                       |
+    | `spring_cost`    | `0.1`                       | reward cost of each placed spring         |
+    | `ks_range`       | `(0.2, 20.0)`               | stiffness range of drawn springs (N/m)    |
+    | `spring_kd`      | `0.02`                      | damping of drawn springs (N s/m)          |
+    | `snap_radius`    | `0.1`                       | an end within this of a particle snaps (m) |
+    | `anchor_region`  | `(-1.3, -0.25, -0.9, 0.25)` | anchors only in this box (m) (*)          |
+    | `start_range`    | `(-0.5, -0.2)`              | range of start positions (m)              |
+    | `goal_range`     | `(0.0, 0.5)`                | range of goal positions (m)               |
+    | `min_distance`   | `0.2`                       | least gap from starts to goals (m)        |
+    | `dt`             | `0.01`                      | physics step (s)                          |
+    | `substeps`       | `5`                         | physics steps per env step (0.05 s)       |
+    | `integrator`     | `"symplectic_euler"`        | a name in `constrained_particles.METHODS` |
+    | `goal_tolerance` | `0.05`                      | success distance (m)                      |
+    | `rest_speed`     | `0.05`                      | success RMS cloth particle speed (m/s)    |
+    | `hold_steps`     | `5`                         | env steps the success test must hold      |
 
     (*) ``(xmin, ymin, xmax, ymax)``, ending at least ``snap_radius`` left of the cloth at its
     leftmost start.
