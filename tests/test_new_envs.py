@@ -285,6 +285,15 @@ def test_drawn_spring_snaps_sets_rest_length_and_refuses_bad_drawings():
     np.testing.assert_allclose(task.positions()[0, task.cloth_n], anchor, atol=1e-7)  # float32
     assert sp.rest[0] == pytest.approx(np.linalg.norm(x[3] - anchor), abs=1e-6)
     assert sp.ks[0] == pytest.approx(2.0, rel=1e-5) and lo <= sp.ks[0] <= hi
+    # the observation's spring table: slot 0 filled in, slot 1 still empty
+    nc, obs = task.cloth_n, task.observe()[0]
+    slot = obs[4 * nc + 1:4 * nc + 8]
+    ends = task.to_normalized(np.stack([task.positions()[0, 3], anchor])).ravel()
+    assert slot[0] == 1.0
+    np.testing.assert_allclose(slot[1:5], ends, atol=1e-6)
+    np.testing.assert_allclose(slot[5:], [np.log(2.0 / lo) / np.log(hi / lo) * 2 - 1,
+                                          sp.rest[0] / task.half[0]], atol=1e-5)
+    assert not obs[4 * nc + 8:].any()
     # an end near the placed anchor snaps to it instead of making a new one
     env.step(pin_action(task, task.positions()[0, 5], anchor + [0.02, 0.0]))
     assert (sp.j[1], task.anchors_used[0]) == (task.cloth_n, 1)
