@@ -32,6 +32,7 @@ MOUSE = (20, 160, 70)
 GOAL = (20, 150, 60)
 ANGULAR = (40, 110, 200)
 TEXT = (20, 20, 20)
+REGION = (226, 236, 250)
 
 
 def _pygame() -> Any:
@@ -133,8 +134,8 @@ class Renderer:
         pg = _pygame()
         surface.fill(BACKGROUND)
         shapes = [*system.shapes(constraint_forces=constraint_forces), *extra]
-        order = {"halfplane": 0, "line": 1, "circle": 1, "marker": 2, "segment": 3, "angle": 4,
-                 "arrow": 5}
+        order = {"region": 0, "halfplane": 0, "line": 1, "circle": 1, "marker": 2, "segment": 3,
+                 "angle": 4, "arrow": 5}
         shapes.sort(key=lambda s: order.get(s.kind, 9))
         arrows = [s for s in shapes if s.kind == "arrow" and (forces or s.style == "constraint")]
         longest: dict[str, float] = {}
@@ -200,6 +201,17 @@ class Renderer:
             pg.draw.polygon(surface, WALL, self._px(np.array(corners)))
             a, b = self.world_to_pixel([p - far * t, p + far * t])
             pg.draw.line(surface, (120, 110, 95), a, b, 3)
+
+    def _region(self, pg: Any, surface: Any, shape: Shape) -> None:
+        """A shaded rectangle per (lower-left ``a``, upper-right ``b``) pair: an area where
+        something is allowed (e.g. placing anchors)."""
+        for lo, hi in zip(shape.a, shape.b, strict=True):
+            (x0, y0), (x1, y1) = self.world_to_pixel([[lo[0], hi[1]], [hi[0], lo[1]]])
+            x0, x1 = max(x0, -10.0), min(x1, self.size[0] + 10.0)
+            y0, y1 = max(y0, -10.0), min(y1, self.size[1] + 10.0)
+            rect = (x0, y0, max(x1 - x0, 0.0), max(y1 - y0, 0.0))
+            pg.draw.rect(surface, REGION, rect)
+            pg.draw.line(surface, ANGULAR, (x1, y0), (x1, y1), 1)
 
     def _angle(self, pg: Any, surface: Any, shape: Shape) -> None:
         for vertex, dev in zip(self.world_to_pixel(shape.a), shape.value, strict=True):

@@ -1,15 +1,19 @@
 """Gymnasium environments on the constrained-particles simulator.
 
-Importing this package registers ``ClothSlide-v0`` and ``SliderCrank-v0`` (idempotently, so a
-second import or a subprocess re-import is silent). ``gym.make("envs:ClothSlide-v0")`` imports it
-for you. Both entry points live in :mod:`envs.cparticles`, so ``gym.pprint_registry()`` lists
-the two ids together under ``cparticles``.
+Importing this package registers ``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainSwing-v0`` and
+``ClothPin-v0`` (idempotently, so a second import or a subprocess re-import is silent).
+``gym.make("envs:ClothSlide-v0")`` imports it for you. Every entry point lives in
+:mod:`envs.cparticles`, so ``gym.pprint_registry()`` lists the ids together under ``cparticles``.
 """
 
 from gymnasium.envs.registration import register, registry
 
-#: The registered environment ids.
+#: The environments the shared tooling loops over (``cparticles demo``, tests/test_envs.py):
+#: action modes "force" and "spring", distance measured along x.
 ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0")
+#: Every registered id: ``ChainSwing-v0`` measures a 2-D distance to its target and
+#: ``ClothPin-v0`` has its own action mode ("draw"); tests/test_new_envs.py covers them.
+ALL_ENV_IDS = (*ENV_IDS, "ChainSwing-v0", "ClothPin-v0")
 
 _SPECS = {
     "ClothSlide-v0": dict(entry_point="envs.cparticles:ClothSlideEnv",
@@ -18,6 +22,12 @@ _SPECS = {
     "SliderCrank-v0": dict(entry_point="envs.cparticles:SliderCrankEnv",
                            vector_entry_point="envs.cparticles:SliderCrankVectorEnv",
                            max_episode_steps=200),
+    "ChainSwing-v0": dict(entry_point="envs.cparticles:ChainSwingEnv",
+                          vector_entry_point="envs.cparticles:ChainSwingVectorEnv",
+                          max_episode_steps=200),
+    "ClothPin-v0": dict(entry_point="envs.cparticles:ClothPinEnv",
+                        vector_entry_point="envs.cparticles:ClothPinVectorEnv",
+                        max_episode_steps=200),
 }
 
 for _id, _kwargs in _SPECS.items():

@@ -1,0 +1,335 @@
+"""ChainSwing-v0: a flexible chain hanging from a carrier on a wire; bring its tip to a target."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from constrained_particles import (
+    AngularSpring,
+    Drag,
+    Gravity,
+    HorizontalWire,
+    ParticleSystem,
+    Rod,
+    Shape,
+    Wall,
+    scenes,
+)
+
+from .base import (
+    ParticleEnv,
+    ParticleTask,
+    ParticleVectorEnv,
+    check_goal_range,
+    check_positive,
+    uniform_away,
+)
+from .cloth_slide import SUCCESS_BONUS
+
+#: Valid values of the ``target`` argument.
+TARGETS = ("lateral", "swingup")
+
+
+def track_success(task: ParticleTask, m: dict[str, np.ndarray], stepped: np.ndarray | None
+                  ) -> dict[str, np.ndarray]:
+    """Advance ``task.hold`` for the ``stepped`` copies from measures ``m`` whose ``distance``
+    (m) or ``speed`` (m/s) a task redefined, and set ``m["is_success"]`` to match (the rule of
+    :meth:`ParticleTask.measure`)."""
+    if stepped is not None:
+        settled = (m["distance"] < task.goal_tolerance) & (m["speed"] < task.rest_speed)
+        task.hold[stepped] = np.where(settled[stepped], task.hold[stepped] + 1, 0)
+    m["is_success"] = task.hold >= task.hold_steps
+    return m
+
+
+class ChainSwing(ParticleTask):
+    """The ChainSwing physics and task for ``num_envs`` copies (see :class:`ChainSwingEnv`).
+
+    Particle 0 is the carrier (on the wire at y = 0); particles 1 .. ``links`` hang below it,
+    particle ``links`` being the tip. The target point is ``(goal, goal_height)``: the tip
+    hanging straight below the goal (``"lateral"``) or standing straight above it
+    (``"swingup"``).
+    """
+
+    force_dim = 1
+
+    def __init__(self, num_envs: int = 1, *, action_mode: str = "force",
+                 target: str = "lateral", links: int = 4, link: float = 0.15,
+                 particle_mass: float = 0.05, carrier_mass: float = 0.2,
+                 stiffness: float = 1.0, joint_damping: float = 0.005, drag: float = 0.01,
+                 travel: float = 1.0, dt: float = 0.01, substeps: int = 5,
+                 integrator: str = "rk4", max_force: float = 5.0,
+                 goal_range: tuple[float, float] | None = None,
+                 min_distance: float | None = None, start_angle: float = 0.1,
+                 goal_tolerance: float = 0.05, rest_speed: float = 0.05, hold_steps: int = 5,
+                 grab_radius: float = 0.2, mouse_ks: float = 5.0,
+                 mouse_kd: float = 1.0) -> None:
+        if target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
+        self.target = target
+        self.links = check_positive("links", links, integer=True)
+        if self.links < 2:
+            raise ValueError(f"links must be an integer >= 2, got {links!r}")
+        self.link = check_positive("link", link)
+        self.particle_mass = check_positive("particle_mass", particle_mass)
+        self.carrier_mass = check_positive("carrier_mass", carrier_mass)
+        self.stiffness = check_positive("stiffness", stiffness)
+        self.joint_damping = check_positive("joint_damping", joint_damping, allow_zero=True)
+        self.drag = check_positive("drag", drag, allow_zero=True)
+        self.travel = check_positive("travel", travel)
+        self.start_angle = check_positive("start_angle", start_angle, allow_zero=True)
+        if self.start_angle >= np.pi / 2:
+            raise ValueError(f"start_angle must be below pi/2 rad, got {start_angle!r}")
+        lateral = target == "lateral"
+        if goal_range is None:
+            goal_range = (-0.6, 0.6) if lateral else (-0.3, 0.3)
+        if min_distance is None:
+            min_distance = 0.3 if lateral else 0.0
+        self.goal_range, self.min_distance = check_goal_range(goal_range, min_distance)
+        low, high = self.goal_range
+        if low <= -self.travel or high >= self.travel:
+            raise ValueError(f"goal_range {goal_range!r} must lie inside the carrier's travel "
+                             f"(-{self.travel:g}, {self.travel:g}) m")
+        #: Length of the straight chain (m).
+        self.length = self.links * self.link
+        self.goal_height = -self.length if lateral else self.length
+        reach = self.length + 0.2
+        self.view = (-self.travel - 0.3, -reach, self.travel + 0.3, reach)
+        super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
+                         integrator=integrator, max_force=max_force, grab_radius=grab_radius,
+                         mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
+                         rest_speed=rest_speed, hold_steps=hold_steps)
+
+    def build_scene(self) -> ParticleSystem:
+        """The carrier on a wire at y = 0 between walls at x = -+travel, the chain hanging
+        straight down from it: rods between neighbours and angular springs (rest angle pi) at
+        every chain particle but the tip."""
+        L = self.links
+        s = ParticleSystem()
+        pos = np.zeros((L + 1, 2))
+        pos[:, 1] = -self.link * np.arange(L + 1)
+        mass = np.full(L + 1, self.particle_mass)
+        mass[0] = self.carrier_mass
+        s.add_particles(pos, mass=mass)
+        i = np.arange(L + 1)
+        s.add(Gravity((0.0, -scenes.G)), HorizontalWire(0, 0.0),
+              Rod(i[:-1], i[1:], self.link),
+              AngularSpring(i[:-2], i[1:-1], i[2:], rest=np.pi, k=self.stiffness,
+                            kd=self.joint_damping),
+              Wall((1.0, 0.0), self.travel, kw=1000.0, cw=5.0, particles=[0]),
+              Wall((-1.0, 0.0), self.travel, kw=1000.0, cw=5.0, particles=[0]))
+        if self.drag > 0:
+            s.add(Drag(self.drag))
+        return s
+
+    def force_handles(self, scene: ParticleSystem) -> np.ndarray:
+        """The carrier."""
+        return np.array([0])
+
+    def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """A horizontal force ``action * max_force`` (N) on the carrier."""
+        f = np.zeros((len(action), 1, 2))
+        f[:, 0, 0] = action[:, 0] * self.max_force
+        return f
+
+    def chain(self, carrier_x: float, angles: np.ndarray, rates: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities (links + 1, 2) for the carrier at ``carrier_x`` (m) and link
+        angles ``angles`` (links,) in rad from the downward vertical, counter-clockwise positive
+        (pi: straight up); ``rates`` are the angles' rates (rad/s, default 0), the carrier at
+        rest."""
+        rates = np.zeros(self.links) if rates is None else rates
+        d = self.link * np.stack([np.sin(angles), -np.cos(angles)], axis=1)
+        dv = self.link * rates[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        x = np.zeros((self.links + 1, 2))
+        x[0, 0] = carrier_x
+        x[1:] = x[0] + np.cumsum(d, axis=0)
+        v = np.zeros_like(x)
+        v[1:] = np.cumsum(dv, axis=0)
+        return x, v
+
+    def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """The chain at rest hanging below the carrier at x0 ~ U(goal_range), each link turned by
+        ~ U(-start_angle, start_angle) rad; the goal uniform over goal_range at least
+        ``min_distance`` from x0."""
+        low, high = self.goal_range
+        x0 = float(rng.uniform(low, high))
+        angles = rng.uniform(-self.start_angle, self.start_angle, self.links)
+        goal = uniform_away(rng, low, high, x0, self.min_distance)
+        x, v = self.chain(x0, angles)
+        return x, v, goal
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The tip's x (m)."""
+        return x[:, -1, 0].copy()
+
+    def tip_distance(self, x: np.ndarray) -> np.ndarray:
+        """Distance (m) from the tip to the target point ``(goal, goal_height)``, per copy."""
+        tip = x[:, -1]
+        return np.hypot(tip[:, 0] - self.goal, tip[:, 1] - self.goal_height)
+
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The common measures, with ``distance`` the tip's distance to the target point (m)."""
+        m = super().measure(None)
+        m["distance"] = self.tip_distance(self.positions())
+        return track_success(self, m, stepped)
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``-distance - 0.1 speed + 10 * is_success``."""
+        return -m["distance"] - 0.1 * m["speed"] + SUCCESS_BONUS * m["is_success"]
+
+    def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
+        """The copy, its target point and a status line with the tip's distance."""
+        one, extra, _ = super().drawing(i)
+        status = (f"ChainSwing {self.target} ({self.action_mode})   tip to target "
+                  f"{float(self.tip_distance(one.x[None])[0]):.3f} m   "
+                  f"held {self.hold[i]}/{self.hold_steps}")
+        return one, extra, status
+
+
+class ChainSwingEnv(ParticleEnv):
+    """
+    ## Description
+
+    The report's angular-spring chain, hung from a cart. A carrier particle slides on a
+    horizontal wire at y = 0 (a Lagrange-multiplier constraint, Witkin & Baraff) between two
+    walls at x = -``travel`` and x = +``travel`` that stop it. A chain of ``links`` rigid rods
+    (``link`` metres each, constraints too) hangs from it; angular springs at the joints, with a
+    rest angle of straight, make the chain a flexible beam. Gravity pulls everything down and a
+    little air drag slows it. Only the carrier is driven: bring the chain's tip to a target
+    point and hold it there at rest.
+
+    ``target="lateral"`` (default, easy): the target is straight below a goal position on the
+    wire, ``(goal, -links * link)``: move the carrier there without leaving the chain swinging.
+    ``target="swingup"`` (hard): the target is straight above the goal, ``(goal,
+    links * link)``: swing the chain up by moving the carrier and balance it upside down, an
+    underactuated flexible inverted pendulum.
+
+    ## Action Space
+
+    ``action_mode="force"`` (default): ``Box(-1, 1, (1,), float32)``, a horizontal force of
+    ``action * max_force`` newtons on the carrier.
+
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
+    target_y)`` in normalized scene coordinates. The particle nearest the grab point, if within
+    ``grab_radius`` metres, is pulled toward the target by a mouse spring (``mouse_ks``,
+    ``mouse_kd``) for this step; otherwise nothing is applied.
+
+    Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
+
+    ## Observation Space
+
+    Normalized scene coordinates map the view box ``env.unwrapped.task.view`` = ``(xmin, ymin,
+    xmax, ymax)``, by default ``(-1.3, -0.8, 1.3, 0.8)`` m, onto [-1, 1]^2.
+
+    ``Box(-10, 10, (4 n + 1,), float32)`` with ``n = links + 1`` particles (21 floats by
+    default), in normalized scene coordinates (position ``(p - c) / h`` for the view box's
+    centre ``c`` and half-size ``h``; velocity ``v / h``), clipped to [-10, 10]. Particle 0 is
+    the carrier, particle ``links`` the tip.
+
+    | Index                | Observation                     | Min | Max |
+    |----------------------|---------------------------------|-----|-----|
+    | 2k, 2k + 1           | particle k position x, y        | -10 | 10  |
+    | 2n + 2k, 2n + 2k + 1 | particle k velocity x, y (1/s)  | -10 | 10  |
+    | 4n                   | goal x (same scale as x)        | -10 | 10  |
+
+    The target's height is fixed by ``target`` and not observed.
+
+    ## Rewards
+
+    Every step: ``-d - 0.1 s + 10 * success``, with ``d`` the distance (m) from the tip to the
+    target point, ``s`` the RMS particle speed (m/s) and ``success`` 1 on the step that
+    completes the success test (see Episode End). The walls bound the carrier, so the reward
+    cannot be gamed by running off.
+
+    ## Starting State
+
+    The chain hangs at rest below the carrier at x0 ~ U(``goal_range``), each link turned from
+    the vertical by ~ U(-``start_angle``, ``start_angle``) rad; the goal is uniform over
+    ``goal_range`` at least ``min_distance`` from x0. All draws come from ``self.np_random``.
+
+    ## Episode End
+
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+       steps (success, ``info["is_success"]``).
+    2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
+    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned and ``info["diverged"]`` is True.
+
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|:
+    m for the wire, m^2 for the rods, whose C is (|d|^2 - L^2) / 2), ``is_success`` and
+    ``diverged``.
+
+    ## Arguments
+
+    ```python
+    >>> import gymnasium as gym
+    >>> import envs
+    >>> env = gym.make("ChainSwing-v0", target="swingup", links=5)
+    >>> obs, info = env.reset(seed=0)
+    >>> obs.shape, env.action_space.shape
+    ((25,), (1,))
+
+    ```
+
+    | Parameter        | Default              | Description                                    |
+    |------------------|----------------------|------------------------------------------------|
+    | `action_mode`    | `"force"`            | `"force"` or `"spring"`                        |
+    | `target`         | `"lateral"`          | `"lateral"` (below the goal) or `"swingup"`    |
+    | `links`          | `4`                  | rods in the chain, >= 2                        |
+    | `link`           | `0.15`               | rod length (m)                                 |
+    | `particle_mass`  | `0.05`               | mass of each chain particle (kg)               |
+    | `carrier_mass`   | `0.2`                | mass of the carrier (kg)                       |
+    | `stiffness`      | `1.0`                | angular springs (N m/rad)                      |
+    | `joint_damping`  | `0.005`              | angular spring damping (N m s/rad)             |
+    | `drag`           | `0.01`               | air drag per particle (N s/m)                  |
+    | `travel`         | `1.0`                | the walls stand at x = -+travel (m)            |
+    | `dt`             | `0.01`               | physics step (s)                               |
+    | `substeps`       | `5`                  | physics steps per env step (0.05 s)            |
+    | `integrator`     | `"rk4"`              | a name in `constrained_particles.METHODS`      |
+    | `max_force`      | `5.0`                | force of action 1 on the carrier (N)           |
+    | `goal_range`     | `None` (*)           | range of start and goal positions (m)          |
+    | `min_distance`   | `None` (*)           | minimum start-to-goal distance (m)             |
+    | `start_angle`    | `0.1`                | largest starting link angle (rad)              |
+    | `goal_tolerance` | `0.05`               | success distance (m)                           |
+    | `rest_speed`     | `0.05`               | success RMS particle speed (m/s)               |
+    | `hold_steps`     | `5`                  | env steps the success test must hold           |
+    | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)    |
+    | `mouse_ks`       | `5.0`                | spring action stiffness (N/m) (**)             |
+    | `mouse_kd`       | `1.0`                | spring action damping (N s/m)                  |
+
+    (*) ``"lateral"``: ``goal_range=(-0.6, 0.6)``, ``min_distance=0.3``; ``"swingup"``:
+    ``(-0.3, 0.3)`` and ``0``. The goal range must lie inside the travel.
+    (**) Softer than the other envs' 20 N/m: a 20 N/m spring pulling a 50 g chain particle
+    across the frame whips the chain fast enough to make the explicit integrators diverge.
+
+    Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
+    ``set_state(state)`` save and restore the full simulation state for planning.
+
+    ## Vectorized environment
+
+    ``gym.make_vec("ChainSwing-v0", num_envs=N, vectorization_mode="vector_entry_point")`` runs
+    :class:`ChainSwingVectorEnv`: the N chains are one particle system with a block-diagonal
+    constraint Jacobian. Autoreset is NEXT_STEP, and copy ``i`` reproduces a single env reset
+    with ``seed + i`` (up to the multiplier solve's 1e-10 tolerance).
+
+    ## Version History
+
+    * v0: Initial version.
+    """
+
+    task_class = ChainSwing
+
+
+class ChainSwingVectorEnv(ParticleVectorEnv):
+    """``num_envs`` ChainSwing copies stepped as one particle system (see
+    :class:`ChainSwingEnv`). Takes the single env's keyword arguments plus ``num_envs`` and
+    ``max_episode_steps`` (default 200)."""
+
+    task_class = ChainSwing
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+                 render_mode: str | None = None, **kwargs: Any) -> None:
+        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)

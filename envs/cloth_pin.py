@@ -1,0 +1,546 @@
+"""ClothPin-v0: draw persistent springs that hold a pushed cloth at a goal short of the wall."""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+
+from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
+
+from .base import (
+    OBS_LIMIT,
+    ParticleEnv,
+    ParticleTask,
+    ParticleVectorEnv,
+    check_positive,
+    check_range,
+)
+from .chain_swing import track_success
+from .cloth_slide import SUCCESS_BONUS, _hanging_equilibrium
+
+#: Valid values of ClothPin's ``action_mode`` argument.
+DRAW_MODES = ("draw",)
+#: Observed values per spring slot: placed flag, both ends (x, y), stiffness, rest length.
+SLOT_SIZE = 7
+
+
+class ClothPin(ParticleTask):
+    """The ClothPin physics and task for ``num_envs`` copies (see :class:`ClothPinEnv`).
+
+    One copy's particles: the cloth (``nx * ny``, row-major from the top row on the wire), then
+    ``max_springs`` fixed anchor particles parked far outside the view. The spring budget is one
+    :class:`DampedSpring` block of ``max_springs`` elements per copy with ``ks = kd = 0`` until
+    placed; placing a spring (:meth:`place`) rewrites one element's ends, rest length and
+    constants, and may move one anchor into the anchor region. Nothing is ever added to the
+    system, so every copy keeps one sparse pattern. The report's push on the top row is the
+    copy's ``ConstantForce`` block, switched on while the copy is stepped.
+    """
+
+    force_dim = 0
+
+    def __init__(self, num_envs: int = 1, *, action_mode: str = "draw",
+                 cloth_size: tuple[int, int] = (6, 6), spacing: float = 0.1,
+                 particle_mass: float = 0.02, cloth_ks: float = 40.0, cloth_kd: float = 0.05,
+                 drag: float = 0.05, push: float = 0.1, wall_x: float = 1.0,
+                 wall_penalty: float = 1.0, max_springs: int = 4, spring_cost: float = 0.1,
+                 ks_range: tuple[float, float] = (0.2, 20.0), spring_kd: float = 0.02,
+                 snap_radius: float = 0.1,
+                 anchor_region: tuple[float, float, float, float] = (-1.3, -0.25, -0.9, 0.25),
+                 start_range: tuple[float, float] = (-0.5, -0.2),
+                 goal_range: tuple[float, float] = (0.0, 0.5), min_distance: float = 0.2,
+                 dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
+                 goal_tolerance: float = 0.05, rest_speed: float = 0.05,
+                 hold_steps: int = 5) -> None:
+        if action_mode not in DRAW_MODES:
+            raise ValueError(f"action_mode must be one of {DRAW_MODES}, got {action_mode!r}")
+        try:
+            nx, ny = (int(c) for c in cloth_size)
+        except (TypeError, ValueError):
+            raise ValueError(f"cloth_size must be a (columns, rows) pair of ints, "
+                             f"got {cloth_size!r}") from None
+        if nx < 2 or ny < 2 or (nx, ny) != tuple(cloth_size):
+            raise ValueError(f"cloth_size must be two integers >= 2, got {cloth_size!r}")
+        self.nx, self.ny, self.cloth_n = nx, ny, nx * ny
+        self.spacing = check_positive("spacing", spacing)
+        self.particle_mass = check_positive("particle_mass", particle_mass)
+        self.cloth_ks = check_positive("cloth_ks", cloth_ks)
+        self.cloth_kd = check_positive("cloth_kd", cloth_kd, allow_zero=True)
+        self.drag = check_positive("drag", drag, allow_zero=True)
+        self.push = check_positive("push", push)
+        self.wall_penalty = check_positive("wall_penalty", wall_penalty, allow_zero=True)
+        self.max_springs = check_positive("max_springs", max_springs, integer=True)
+        self.spring_cost = check_positive("spring_cost", spring_cost, allow_zero=True)
+        self.ks_range = check_range("ks_range", ks_range)
+        if self.ks_range[0] <= 0 or self.ks_range[1] <= self.ks_range[0]:
+            raise ValueError(f"ks_range must be (low, high) with 0 < low < high N/m, "
+                             f"got {ks_range!r}")
+        self.spring_kd = check_positive("spring_kd", spring_kd, allow_zero=True)
+        self.snap_radius = check_positive("snap_radius", snap_radius)
+        self.start_range = check_range("start_range", start_range)
+        self.goal_range = check_range("goal_range", goal_range)
+        self.min_distance = check_positive("min_distance", min_distance, allow_zero=True)
+        if isinstance(wall_x, bool) or not isinstance(wall_x, (int, float, np.number)) \
+                or not math.isfinite(wall_x):
+            raise ValueError(f"wall_x must be a finite number (m), got {wall_x!r}")
+        self.wall_x = float(wall_x)
+        try:
+            box = tuple(float(b) for b in anchor_region)
+        except (TypeError, ValueError):
+            box = ()
+        if len(box) != 4 or not all(map(math.isfinite, box)) or box[2] <= box[0] \
+                or box[3] <= box[1]:
+            raise ValueError(f"anchor_region must be finite (xmin, ymin, xmax, ymax) m with "
+                             f"xmin < xmax and ymin < ymax, got {anchor_region!r}")
+        self.anchor_region = box
+        half_width = (nx - 1) * self.spacing / 2
+        if self.start_range[1] + self.min_distance > self.goal_range[0]:
+            raise ValueError(f"start_range {start_range!r} must end min_distance = "
+                             f"{self.min_distance:g} m left of goal_range {goal_range!r}")
+        if self.goal_range[1] + half_width >= self.wall_x:
+            raise ValueError(f"goal_range: a goal at {self.goal_range[1]} m would put the "
+                             f"cloth's edge into the wall at wall_x = {self.wall_x} m")
+        if box[2] + self.snap_radius >= self.start_range[0] - half_width:
+            raise ValueError(f"anchor_region {anchor_region!r} must end snap_radius left of the "
+                             f"cloth's left edge at the leftmost start")
+        height = (ny - 1) * self.spacing
+        self.view = (min(box[0], box[2] - 0.4), -1.6 * height - 0.2, self.wall_x + 0.3, 0.3)
+        super().__init__(num_envs, action_mode="force", dt=dt, substeps=substeps,
+                         integrator=integrator, max_force=self.push, grab_radius=snap_radius,
+                         mouse_ks=1.0, mouse_kd=0.0, goal_tolerance=goal_tolerance,
+                         rest_speed=rest_speed, hold_steps=hold_steps)
+        self.action_mode = action_mode
+        N, B = self.num_envs, self.max_springs
+        self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
+        self.springs: DampedSpring = self.system.forces[self._block]
+        #: Springs placed (N,), anchors moved into the region (N,), and the copies that placed
+        #: one on the last step (N,).
+        self.placed = np.zeros(N, dtype=np.int64)
+        self.anchors_used = np.zeros(N, dtype=np.int64)
+        self.placed_now = np.zeros(N, dtype=bool)
+        self.movable = np.tile(~self.single.fixed, N)
+        self.weight = self.cloth_n * self.particle_mass * scenes.G
+        obs_dim = 4 * self.cloth_n + 1 + SLOT_SIZE * B
+        self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (obs_dim,), np.float32)
+
+    # ------------------------------------------------------------------ scene
+    @property
+    def action_dim(self) -> int:
+        """``(a_x, a_y, b_x, b_y, stiffness, draw)``."""
+        return 6
+
+    def build_scene(self) -> ParticleSystem:
+        """The cloth of ``scenes.cloth`` hanging in static equilibrium centred on x = 0, the
+        parked anchors, and the spring budget (every element anchor k -> particle 0, ks = 0)."""
+        s = scenes.cloth(self.nx, self.ny, spacing=self.spacing, mass=self.particle_mass,
+                         ks=self.cloth_ks, kd=self.cloth_kd, wire_height=0.0, wall_x=self.wall_x,
+                         drag=self.drag)
+        s.x[:, 0] -= s.x[:, 0].mean()
+        self.rest_shape = _hanging_equilibrium(s, top=np.arange(self.nx))
+        s.x = self.rest_shape.copy()
+        self.goal_height = float(self.rest_shape[:, 1].mean())
+        B = self.max_springs
+        xmin, _, _, ymax = self.view
+        self.parking = np.stack([xmin - 2.0 - 0.1 * np.arange(B), np.full(B, ymax + 2.0)], axis=1)
+        self.anchors = s.add_particles(self.parking, mass=self.particle_mass, fixed=True)
+        s.add(DampedSpring(self.anchors, np.zeros(B, np.int64), rest=0.0, ks=0.0, kd=0.0))
+        self._block = len(s.forces) - 1
+        return s
+
+    def force_handles(self, scene: ParticleSystem) -> np.ndarray:
+        """The top row: the report's push acts there."""
+        return np.arange(self.nx)
+
+    def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The push: ``push`` newtons in +x on every top-row particle, whatever the action."""
+        f = np.zeros((len(action), self.nx, 2))
+        f[:, :, 0] = self.push
+        return f
+
+    def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """The cloth at rest in equilibrium centred at x0 ~ U(start_range), anchors parked; the
+        goal ~ U(goal_range)."""
+        x0 = float(rng.uniform(*self.start_range))
+        goal = float(rng.uniform(*self.goal_range))
+        x = np.concatenate([self.rest_shape + [x0, 0.0], self.parking])
+        return x, np.zeros_like(x), goal
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The cloth's centre of mass x (m) (all cloth particles have the same mass)."""
+        return np.mean(np.ascontiguousarray(x[:, :self.cloth_n, 0]), axis=1)
+
+    # ------------------------------------------------------------------ springs
+    def stiffness(self, s: np.ndarray) -> np.ndarray:
+        """Spring constant (N/m) of stiffness action ``s`` in [-1, 1]: log-uniform over
+        ``ks_range``."""
+        lo, hi = self.ks_range
+        return lo * (hi / lo) ** ((np.asarray(s) + 1.0) / 2.0)
+
+    def stiffness_action(self, ks: np.ndarray) -> np.ndarray:
+        """The stiffness action in [-1, 1] for spring constants ``ks`` (N/m), clipped."""
+        lo, hi = self.ks_range
+        return np.clip(2.0 * np.log(np.asarray(ks) / lo) / np.log(hi / lo) - 1.0, -1.0, 1.0)
+
+    def _slots(self, envs: np.ndarray) -> np.ndarray:
+        """Global spring-element indices (len(envs), max_springs) of copies ``envs``."""
+        return envs[:, None] * self.max_springs + np.arange(self.max_springs)
+
+    def resolve(self, envs: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Particle (index within a copy) that each drawn end ``points`` (len(envs), 2) m of
+        copies ``envs`` snaps to: the nearest cloth particle or placed anchor within
+        ``snap_radius``; ``-2`` for a new anchor (no particle near, the point in the anchor
+        region); ``-1`` when neither (the drawing is refused)."""
+        x = self.positions()[envs]
+        d2 = np.sum((x - points[:, None, :]) ** 2, axis=2)
+        local = np.arange(self.n)
+        anchor_rank = local - self.cloth_n
+        usable = (local < self.cloth_n) | (anchor_rank < self.anchors_used[envs, None])
+        d2 = np.where(usable, d2, np.inf)
+        nearest = np.argmin(d2, axis=1)
+        near = d2[np.arange(len(envs)), nearest] <= self.snap_radius**2
+        xmin, ymin, xmax, ymax = self.anchor_region
+        region = ((points[:, 0] >= xmin) & (points[:, 0] <= xmax)
+                  & (points[:, 1] >= ymin) & (points[:, 1] <= ymax))
+        return np.where(near, nearest, np.where(region, -2, -1))
+
+    def place(self, envs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """Draw one spring per copy in ``envs`` from clipped actions (len(envs), 6), the
+        drawing being valid; returns the mask of copies that placed one.
+
+        A drawing is refused (nothing changes) when the budget is spent, an end neither snaps to
+        a particle nor lies in the anchor region, both ends are the same particle, or neither
+        end is a cloth particle. A new anchor is the copy's next parked anchor, moved to the
+        drawn point. The rest length is the distance between the two ends as placed.
+        """
+        N = len(envs)
+        ends = np.stack([self.resolve(envs, self.to_world(action[:, 0:2])),
+                         self.resolve(envs, self.to_world(action[:, 2:4]))], axis=1)
+        cloth_end = np.any((ends >= 0) & (ends < self.cloth_n), axis=1)
+        new = ends == -2
+        ok = (np.all(ends != -1, axis=1) & (ends[:, 0] != ends[:, 1]) & cloth_end
+              & (new.sum(axis=1) <= 1) & (self.placed[envs] < self.max_springs))
+        if not ok.any():
+            return ok
+        envs, ends, new, action = envs[ok], ends[ok], new[ok], action[ok]
+        # a new anchor becomes the copy's next unused anchor particle, at the drawn point
+        anchor = self.cloth_n + self.anchors_used[envs]
+        drawn = np.where(new[:, :1], action[:, 0:2], action[:, 2:4])
+        has_new = new.any(axis=1)
+        base = envs * self.n
+        self.system.x[(base + anchor)[has_new]] = self.to_world(drawn[has_new])
+        self.anchors_used[envs] += has_new
+        ends = np.where(new, anchor[:, None], ends) + base[:, None]
+        k = envs * self.max_springs + self.placed[envs]
+        sp = self.springs
+        sp.i[k], sp.j[k] = ends[:, 0], ends[:, 1]
+        sp.rest[k] = np.linalg.norm(self.system.x[ends[:, 0]] - self.system.x[ends[:, 1]],
+                                    axis=1)
+        sp.ks[k] = self.stiffness(action[:, 4])
+        sp.kd[k] = self.spring_kd
+        self.placed[envs] += 1
+        out = np.zeros(N, bool)
+        out[np.flatnonzero(ok)] = True
+        return out
+
+    def _clear_springs(self, envs: np.ndarray) -> None:
+        """Every spring of copies ``envs`` back to unplaced (anchor k -> particle 0, ks = 0)."""
+        k = self._slots(envs)
+        base = envs[:, None] * self.n
+        sp = self.springs
+        sp.i[k] = base + self.anchors[None, :]
+        sp.j[k] = base
+        sp.rest[k] = sp.ks[k] = sp.kd[k] = 0.0
+        self.placed[envs] = 0
+        self.anchors_used[envs] = 0
+        self.placed_now[envs] = False
+
+    # ------------------------------------------------------------------ base hooks
+    def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
+        """Place the springs that copies draw (``draw > 0``), then switch the push on (off for
+        ``idle`` copies, whose action is ignored)."""
+        envs = np.arange(self.num_envs)
+        drawing = actions[:, 5] > 0
+        if idle is not None:
+            drawing &= ~idle
+        self.placed_now[:] = False
+        if drawing.any():
+            self.placed_now[drawing] = self.place(envs[drawing], actions[drawing])
+        super().apply(actions, idle)
+
+    def write_start(self, envs: Any, starts: Any) -> None:
+        """Write starting states and clear the copies' springs."""
+        super().write_start(envs, starts)
+        self._clear_springs(np.asarray(envs, dtype=np.int64).reshape(-1))
+
+    def _put(self, copies: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:
+        """As the base, but anchors stay where they are (they never move during a step)."""
+        rows = np.repeat(copies, self.n) & self.movable
+        self.system.x[rows] = x[rows]
+        self.system.v[rows] = v[rows]
+        self._actuate(np.flatnonzero(copies), None)
+
+    def load_single(self, i: int) -> ParticleSystem:
+        """Copy ``i``'s state, push and springs into :attr:`single`."""
+        one = super().load_single(i)
+        mine, k = one.forces[self._block], self._slots(np.array([i]))[0]
+        for name in ("i", "j"):
+            getattr(mine, name)[:] = getattr(self.springs, name)[k] - i * self.n
+        for name in ("rest", "ks", "kd"):
+            getattr(mine, name)[:] = getattr(self.springs, name)[k]
+        return one
+
+    #: Keys of a copy's spring state in :meth:`get_state`.
+    SPRING_KEYS: ClassVar[tuple[str, ...]] = ("spring_i", "spring_j", "spring_rest", "spring_ks",
+                                              "spring_kd", "placed", "anchors_used")
+
+    def get_state(self, i: int) -> dict[str, Any]:
+        """The base state plus copy ``i``'s springs: ends (particle indices within the copy),
+        rest lengths (m), ks (N/m), kd (N s/m), and the counts of springs and anchors placed."""
+        state = super().get_state(i)
+        k = self._slots(np.array([i]))[0]
+        sp = self.springs
+        state.update(spring_i=sp.i[k] - i * self.n, spring_j=sp.j[k] - i * self.n,
+                     spring_rest=sp.rest[k].copy(), spring_ks=sp.ks[k].copy(),
+                     spring_kd=sp.kd[k].copy(), placed=int(self.placed[i]),
+                     anchors_used=int(self.anchors_used[i]))
+        return state
+
+    def set_state(self, i: int, state: dict[str, Any]) -> None:
+        """Restore copy ``i`` from :meth:`get_state`; ValueError for a malformed state."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
+        missing = set(self.SPRING_KEYS) - set(state)
+        if missing:
+            raise ValueError(f"state is missing {sorted(missing)}")
+        B = self.max_springs
+        values = {}
+        for key in self.SPRING_KEYS[:5]:
+            arr = np.asarray(state[key], dtype=float)
+            if arr.shape != (B,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+                raise ValueError(f"state[{key!r}] must be a finite array >= 0 of shape ({B},), "
+                                 f"got {arr!r}")
+            values[key] = arr
+        ends = np.stack([values["spring_i"], values["spring_j"]])
+        if np.any(ends != np.round(ends)) or np.any(ends >= self.n) \
+                or np.any(ends[0] == ends[1]):
+            raise ValueError("state['spring_i'], state['spring_j'] must be distinct particle "
+                             f"indices below {self.n}")
+        counts = {}
+        for key in ("placed", "anchors_used"):
+            c = state[key]
+            if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c <= B:
+                raise ValueError(f"state[{key!r}] must be an integer in [0, {B}], got {c!r}")
+            counts[key] = int(c)
+        super().set_state(i, state)
+        k = self._slots(np.array([i]))[0]
+        sp = self.springs
+        sp.i[k] = ends[0].astype(np.int64) + i * self.n
+        sp.j[k] = ends[1].astype(np.int64) + i * self.n
+        sp.rest[k], sp.ks[k], sp.kd[k] = (values["spring_rest"], values["spring_ks"],
+                                          values["spring_kd"])
+        self.placed[i], self.anchors_used[i] = counts["placed"], counts["anchors_used"]
+        self.placed_now[i] = False
+
+    # ------------------------------------------------------------------ measures
+    def observe(self) -> np.ndarray:
+        """Observations (num_envs, 4 nc + 1 + 7 max_springs) float32: the cloth's normalized
+        positions and velocities, the goal, and one row per spring slot (see the env docs)."""
+        N, nc, B = self.num_envs, self.cloth_n, self.max_springs
+        x = self.positions()
+        pos = self.to_normalized(x[:, :nc]).reshape(N, -1)
+        vel = (self.velocities()[:, :nc] / self.half).reshape(N, -1)
+        goal = (self.goal[:, None] - self.center[0]) / self.half[0]
+        sp = self.springs
+        on = (np.arange(B)[None, :] < self.placed[:, None]).reshape(-1)
+        flat = self.system.x
+        lo, hi = self.ks_range
+        rows = np.concatenate([on[:, None], self.to_normalized(flat[sp.i]),
+                               self.to_normalized(flat[sp.j]),
+                               self.stiffness_action(np.clip(sp.ks, lo, hi))[:, None],
+                               (sp.rest / self.half[0])[:, None]], axis=1)
+        rows *= on[:, None]
+        obs = np.concatenate([pos, vel, goal, rows.reshape(N, -1)], axis=1)
+        return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
+
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
+        ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
+        m = super().measure(None)
+        v = self.velocities()[:, :self.cloth_n]
+        m["speed"] = np.sqrt(np.mean(np.sum(v * v, axis=2), axis=1))
+        F = np.zeros_like(self.system.x)
+        self.wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
+        m["wall_force"] = np.sum(np.abs(F[:, 0]).reshape(self.num_envs, self.n), axis=1)
+        m["springs"] = self.placed.copy()
+        m["placed"] = self.placed_now.copy()
+        return track_success(self, m, stepped)
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``-distance - 0.1 speed - wall_penalty * wall_force / weight - spring_cost * placed
+        + 10 * is_success``."""
+        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
+                / self.weight - self.spring_cost * m["placed"] + SUCCESS_BONUS * m["is_success"])
+
+    def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
+        """Copy ``i`` with only its placed springs, the anchor region, the goal and a status."""
+        one, extra, status = super().drawing(i)
+        shown = copy.copy(one)
+        budget = one.forces[self._block]
+        on = np.arange(self.max_springs) < self.placed[i]
+        shown.forces = [f for f in one.forces if f is not budget]
+        if on.any():
+            shown.forces.append(DampedSpring(budget.i[on], budget.j[on], budget.rest[on],
+                                             budget.ks[on], budget.kd[on]))
+        box = np.array(self.anchor_region)
+        region = Shape("region", "anchor", box[None, :2], box[None, 2:])
+        status = f"{status}   springs {self.placed[i]}/{self.max_springs}"
+        return shown, [region, *extra], status
+
+
+class ClothPinEnv(ParticleEnv):
+    """
+    ## Description
+
+    The report's interaction as the action: drawing springs that stay. A spring-mass cloth hangs
+    from a horizontal wire (its top row slides on it, a Lagrange-multiplier constraint) and the
+    report's horizontal force pushes every top-row particle toward a wall on the right. Each
+    step the agent may draw one persistent damped spring, as in the viewer: each end snaps to
+    the nearest particle within ``snap_radius``, otherwise it becomes a new fixed anchor, which
+    is allowed only in the marked ``anchor_region`` (shaded, left of the cloth at the wire's
+    height); the rest length is the drawn length. Stop the cloth with its centre of mass at rest
+    at a goal short of the wall, with at most ``max_springs`` springs, each costing a little.
+    A spring drawn at rest length holds the cloth where its tension balances the push, so its
+    stiffness and the moment it is drawn set where the cloth stops.
+
+    ## Action Space
+
+    ``Box(-1, 1, (6,), float32)`` = ``(a_x, a_y, b_x, b_y, stiffness, draw)`` (only
+    ``action_mode="draw"``): the two ends of the spring in normalized scene coordinates (see
+    below), its stiffness ``ks = ks_lo (ks_hi / ks_lo)^((stiffness + 1) / 2)`` N/m (log-uniform
+    over ``ks_range``), damping ``spring_kd``, and a trigger: the spring is drawn when
+    ``draw > 0``. A drawing is refused (nothing happens, nothing is charged) when the budget is
+    spent, an end neither snaps to a particle nor lies in the anchor region, both ends are the
+    same particle, or neither end is a cloth particle. Springs cannot be removed.
+
+    Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
+
+    ## Observation Space
+
+    Normalized scene coordinates map the view box ``env.unwrapped.task.view`` = ``(xmin, ymin,
+    xmax, ymax)``, by default ``(-1.3, -1.0, 1.3, 0.3)`` m, onto [-1, 1]^2.
+
+    ``Box(-10, 10, (4 nc + 1 + 7 max_springs,), float32)`` with ``nc = columns * rows`` cloth
+    particles (173 floats by default), clipped to [-10, 10]. Cloth particle ``k`` is at row
+    ``k // columns`` (0 is the top row, on the wire), column ``k % columns``. Spring slot ``s``
+    (in the order placed) is all zeros until placed.
+
+    | Index                       | Observation                                  | Min | Max |
+    |-----------------------------|----------------------------------------------|-----|-----|
+    | 2k, 2k + 1                  | cloth particle k position x, y               | -10 | 10  |
+    | 2nc + 2k, 2nc + 2k + 1      | cloth particle k velocity x, y (1/s)         | -10 | 10  |
+    | 4nc                         | goal x (same scale as x)                     | -10 | 10  |
+    | 4nc + 1 + 7s                | spring s placed (1) or not (0)               | 0   | 1   |
+    | 4nc + 2 + 7s .. 4nc + 5 + 7s| spring s end positions a_x, a_y, b_x, b_y    | -10 | 10  |
+    | 4nc + 6 + 7s                | spring s stiffness, as the action's value    | -1  | 1   |
+    | 4nc + 7 + 7s                | spring s rest length / half view width       | 0   | 10  |
+
+    ## Rewards
+
+    Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) - spring_cost * placed + 10 *
+    success``, with ``d`` the distance (m) from the cloth's centre of mass to the goal, ``s`` the
+    RMS speed of the cloth particles (m/s), ``F_wall`` the wall's total contact force (N),
+    ``M g`` the cloth's weight (N), ``placed`` 1 on a step that places a spring, and ``success``
+    1 on the step that completes the success test (see Episode End).
+
+    ## Starting State
+
+    The cloth hangs at rest in static equilibrium, its centre at x0 ~ U(``start_range``), with
+    no springs and the push on; the goal is ~ U(``goal_range``), which lies at least
+    ``min_distance`` to the right of every start. All draws come from ``self.np_random``.
+
+    ## Episode End
+
+    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+       steps (success, ``info["is_success"]``).
+    2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
+    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned and ``info["diverged"]`` is True.
+
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|, m),
+    ``wall_force`` (N), ``springs`` (placed so far), ``placed`` (on this step), ``is_success``
+    and ``diverged``.
+
+    ## Arguments
+
+    ```python
+    >>> import gymnasium as gym
+    >>> import envs
+    >>> env = gym.make("ClothPin-v0", cloth_size=(5, 4), max_springs=2)
+    >>> obs, info = env.reset(seed=0)
+    >>> obs.shape, env.action_space.shape
+    ((95,), (6,))
+
+    ```
+
+    | Parameter        | Default                     | Description                               |
+    |------------------|-----------------------------|-------------------------------------------|
+    | `action_mode`    | `"draw"`                    | the only mode                             |
+    | `cloth_size`     | `(6, 6)`                    | particle columns and rows, each >= 2      |
+    | `spacing`        | `0.1`                       | rest distance between neighbours (m)      |
+    | `particle_mass`  | `0.02`                      | mass of each cloth particle (kg)          |
+    | `cloth_ks`       | `40.0`                      | structural springs (N/m; shear /2, bend /4) |
+    | `cloth_kd`       | `0.05`                      | cloth spring damping (N s/m)              |
+    | `drag`           | `0.05`                      | air drag per particle (N s/m)             |
+    | `push`           | `0.1`                       | the push on each top-row particle (N)     |
+    | `wall_x`         | `1.0`                       | the wall fills x > wall_x (m)             |
+    | `wall_penalty`   | `1.0`                       | weight of the wall term of the reward     |
+    | `max_springs`    | `4`                         | springs per episode                       |
+    | `spring_cost`    | `0.1`                       | reward cost of each placed spring         |
+    | `ks_range`       | `(0.2, 20.0)`               | stiffness range of drawn springs (N/m)    |
+    | `spring_kd`      | `0.02`                      | damping of drawn springs (N s/m)          |
+    | `snap_radius`    | `0.1`                       | an end within this of a particle snaps (m) |
+    | `anchor_region`  | `(-1.3, -0.25, -0.9, 0.25)` | anchors only in this box (m) (*)          |
+    | `start_range`    | `(-0.5, -0.2)`              | range of start positions (m)              |
+    | `goal_range`     | `(0.0, 0.5)`                | range of goal positions (m)               |
+    | `min_distance`   | `0.2`                       | least gap from starts to goals (m)        |
+    | `dt`             | `0.01`                      | physics step (s)                          |
+    | `substeps`       | `5`                         | physics steps per env step (0.05 s)       |
+    | `integrator`     | `"symplectic_euler"`        | a name in `constrained_particles.METHODS` |
+    | `goal_tolerance` | `0.05`                      | success distance (m)                      |
+    | `rest_speed`     | `0.05`                      | success RMS cloth particle speed (m/s)    |
+    | `hold_steps`     | `5`                         | env steps the success test must hold      |
+
+    (*) ``(xmin, ymin, xmax, ymax)``, ending at least ``snap_radius`` left of the cloth at its
+    leftmost start.
+
+    Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
+    ``set_state(state)`` save and restore the full simulation state, springs included.
+
+    ## Vectorized environment
+
+    ``gym.make_vec("ClothPin-v0", num_envs=N, vectorization_mode="vector_entry_point")`` runs
+    :class:`ClothPinVectorEnv`: the N cloths, their anchors and spring budgets are one particle
+    system. Autoreset is NEXT_STEP, and copy ``i`` reproduces a single env reset with
+    ``seed + i``.
+
+    ## Version History
+
+    * v0: Initial version.
+    """
+
+    task_class = ClothPin
+
+
+class ClothPinVectorEnv(ParticleVectorEnv):
+    """``num_envs`` ClothPin copies stepped as one particle system (see :class:`ClothPinEnv`).
+    Takes the single env's keyword arguments plus ``num_envs`` and ``max_episode_steps``
+    (default 200)."""
+
+    task_class = ClothPin
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+                 render_mode: str | None = None, **kwargs: Any) -> None:
+        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
