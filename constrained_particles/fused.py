@@ -663,37 +663,46 @@ if _kernels.ENABLED:
         if m:
             if not _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv):
                 return False
-            previous = math.inf
+            # Newton on C(x1) = 0, convergence decided per component (as the reference does)
+            ncomp = comp_ptr.shape[0] - 1
+            done = np.zeros(ncomp, np.bool_)
+            previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
                 _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
-                worst = 0.0
-                finite = True
-                for r in range(m):
-                    g = 0.0
-                    for k in range(nnz[r]):
-                        g += Jv[r, k] * Jv[r, k]
-                    dist = abs(C[r]) / math.sqrt(g)
-                    if not dist < math.inf:
-                        finite = False
-                    elif dist > worst:
-                        worst = dist
-                size = 0.0
-                for q in range(n):
-                    for d in range(2):
-                        if not abs(xs[q, d]) <= size:
-                            size = abs(xs[q, d])
-                if not (finite and size < math.inf):
-                    return False
-                if worst <= RATTLE_POSITION_TOL * size:
-                    break
-                if worst > 0.5 * previous and worst <= RATTLE_STALL_TOL * size:
+                remaining = 0
+                for k in range(ncomp):
+                    worst = 0.0
+                    size = 0.0
+                    for i in range(comp_ptr[k], comp_ptr[k + 1]):
+                        r = comp_rows[i]
+                        g = 0.0
+                        for kk in range(nnz[r]):
+                            c = cols[r, kk]
+                            g += Jv[r, kk] * Jv[r, kk]
+                            a = abs(xs[c // 2, c % 2])
+                            if not a <= size:
+                                size = a
+                        dist = abs(C[r]) / math.sqrt(g)
+                        if not dist <= worst:
+                            worst = dist
+                    if not (worst < math.inf and size < math.inf):
+                        return False  # non-finite or a vanishing gradient: the reference says
+                    if worst <= RATTLE_POSITION_TOL * size or (
+                            worst > 0.5 * previous[k] and worst <= RATTLE_STALL_TOL * size):
+                        done[k] = True
+                    if not done[k]:
+                        remaining += 1
+                    previous[k] = worst
+                if remaining == 0:
                     break
                 if iteration == RATTLE_MAX_ITERATIONS:
                     return False
-                previous = worst
-                for r in range(m):
-                    dl[r] = 0.0
-                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, C, dl, tol,
+                for k in range(ncomp):
+                    for i in range(comp_ptr[k], comp_ptr[k + 1]):
+                        r = comp_rows[i]
+                        b[r] = 0.0 if done[k] else C[r]
+                        dl[r] = 0.0
+                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
                                          work, A, tmp):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
