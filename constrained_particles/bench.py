@@ -11,12 +11,15 @@ Sections, in the order printed:
     with 10 solver iterations; each setting's error, and each integrator's, is measured after
     0.3 s of the 20 x 20 cloth against a fine rk4 reference (dt = 0.1 ms). The headline ratio
     is symplectic_euler against the cheapest pymunk setting whose error is at most twice ours.
+    Each timed call advances 10 steps (``step(1e-3, steps=10)`` for ours, ten ``space.step``
+    for pymunk), so our one-off cost per call (argument checks and entering compiled code,
+    about 8 us) is shared by ten steps as in the environments' substeps.
 (b) small envs. One env step of ClothSlide-v0 and SliderCrank-v0 (force and spring mode) as a
     multiple of one step of gymnasium's CartPole-v1, all made by ``gym.make`` with the default
     wrappers and driven by uniform random actions (resets included when an episode ends).
 (c) vector scaling. The native vector env at 1, 8, 64, 512 and 4096 copies: env-steps per
     second, and its cost per particle-step against stepping the bare tiled system
-    (``task.system``) the same number of substeps.
+    (``task.system``) the same number of substeps in one call.
 (d) the rest: particle-steps per second of every integrator against pymunk (10 iterations),
     cost per particle-step for 32 / 64 / 128 square cloths, peak memory of the 128 x 128 cloth,
     ClothSlide-v0 as single env, SyncVectorEnv(64), AsyncVectorEnv(2) and native vector env(64),
@@ -42,6 +45,9 @@ import numpy as np
 from . import METHODS, ParticleSystem, SimulationDiverged, scenes
 
 DT = 1e-3  #: physics step of the cloth comparison (s)
+#: Steps of DT each timed call advances in the cloth comparison: ``step(DT, steps=CALL_STEPS)``
+#: for ours, CALL_STEPS ``space.step(DT)`` calls for pymunk (same work, each engine's own API).
+CALL_STEPS = 10
 ACCURACY_N = 20  #: cloth size whose errors decide "equal accuracy"
 ACCURACY_SECONDS = 0.3  #: simulated time of the accuracy runs (s)
 REFERENCE_DT = 1e-4  #: rk4 step of the reference trajectory (s)
@@ -182,20 +188,26 @@ def cloth_errors(n: int = ACCURACY_N, seconds: float = ACCURACY_SECONDS,
 def bench_pymunk(sizes: list[int], methods: list[str], repeats: int, seconds: float,
                  progress: Progress | None = None) -> dict[str, Any]:
     """Particle-steps per second of each of our ``methods`` and of pymunk at each iteration
-    count, per cloth size, and our rate over pymunk's (None for a diverging integrator)."""
+    count, per cloth size, and our rate over pymunk's (None for a diverging integrator). Each
+    timed call advances :data:`CALL_STEPS` steps of :data:`DT`."""
     out: dict[str, Any] = {"ours": {}, "pymunk": {}, "ratio": {}}
     for n in sizes:
         calls: dict[str, Callable[[], Any]] = {}
         for iterations in PYMUNK_ITERATIONS:
             scene = pymunk_cloth(our_cloth(n), iterations)
-            calls[f"pymunk_{iterations}"] = lambda scene=scene: scene.step(DT)
+
+            def pymunk_call(scene: Any = scene) -> None:
+                for _ in range(CALL_STEPS):
+                    scene.step(DT)
+
+            calls[f"pymunk_{iterations}"] = pymunk_call
         for method in methods:
             system = our_cloth(n)
-            calls[method] = lambda s=system, m=method: s.step(DT, m)
+            calls[method] = lambda s=system, m=method: s.step(DT, m, steps=CALL_STEPS)
         if progress is not None:
             progress.section(f"pymunk {n}x{n}")
         times = alternate(calls, repeats, seconds, progress)
-        rate = {name: None if median(t) is None else n * n / median(t)
+        rate = {name: None if median(t) is None else n * n * CALL_STEPS / median(t)
                 for name, t in times.items()}
         out["pymunk"][n] = {k: rate[f"pymunk_{k}"] for k in PYMUNK_ITERATIONS}
         out["ours"][n] = {m: rate[m] for m in methods}
@@ -268,7 +280,8 @@ def bench_small_envs(repeats: int, seconds: float, progress: Progress | None = N
 def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: float,
                  progress: Progress | None = None) -> dict[str, Any]:
     """The native vector env of ``env_id`` at each number of copies: env-steps per second and
-    microseconds per particle-step, against the bare tiled system stepped ``substeps`` times."""
+    microseconds per particle-step, against the bare tiled system advanced ``substeps`` steps
+    in one call."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the ids)
@@ -284,8 +297,7 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
                                   .astype(np.float32))
 
         def bare_step(bare: ParticleSystem = bare, task: Any = task) -> None:
-            for _ in range(task.substeps):
-                bare.step(task.dt, task.integrator)
+            bare.step(task.dt, task.integrator, steps=task.substeps)
 
         if progress is not None:
             progress.section(f"{env_id} x{count}")
