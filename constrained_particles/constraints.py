@@ -21,6 +21,15 @@ class Constraint(Term):
 
     rows_per_element: ClassVar[int] = 1
 
+    def bind(self, system):
+        super().bind(system)
+        limit = system.divergence_limit
+        for name in self.element_fields:
+            arr = getattr(self, name)
+            if arr is not None and not np.all(np.abs(arr) < limit):
+                raise ValueError(f"{type(self).__name__}: {name} must be within the system's "
+                                 f"divergence_limit = {limit:g} (m), got {arr!r}")
+
     @property
     def n_rows(self) -> int:
         """Number of scalar constraint rows in this block."""

@@ -542,8 +542,7 @@ class MouseSpring(Force):
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "active" and value is not None:
-            value = np.asarray(value)
-            if value.dtype != bool:
+            if not (isinstance(value, np.ndarray) and value.dtype == bool):
                 raise ArgumentTypeError(f"active must be a boolean array, got {value!r}")
         super().__setattr__(name, value)
 
@@ -589,7 +588,10 @@ class MouseSpring(Force):
         new_anchor = None if anchors is None else as_param_array("anchors", anchors, k, width=2)
         new_active = None
         if active is not None:
-            flags = np.asarray(active)
+            try:
+                flags = np.asarray(active)
+            except ValueError:  # ragged nesting
+                flags = np.asarray(None)
             if flags.dtype != bool:
                 raise ArgumentTypeError(f"active must be booleans, got {active!r}")
             try:

@@ -142,6 +142,8 @@ class ConstraintSolver:
 
     def _solve(self, b: np.ndarray, w2: np.ndarray, x0: np.ndarray | None) -> np.ndarray:
         """Solve ``J W J^T y = b`` (least-norm if singular but consistent)."""
+        if not self.m:  # only empty constraint blocks
+            return np.zeros(0)
         d = self._diag(w2)
         if self.diagonal:
             return b / d

@@ -145,7 +145,10 @@ class ParticleSystem:
                       fixed: Any = False) -> np.ndarray:
         """Add k particles at once; ``positions`` (k, 2) m, ``velocities`` (k, 2) m/s (default 0),
         ``mass`` scalar or (k,) kg, ``fixed`` scalar or (k,) bool. Returns their indices."""
-        shape = np.shape(positions)
+        try:
+            shape = np.shape(positions)
+        except ValueError:  # ragged nesting
+            shape = ("ragged",)
         if len(shape) != 2 or shape[1] != 2:
             raise ValueError(f"positions must have shape (k, 2), got {shape}")
         k = shape[0]
@@ -161,7 +164,10 @@ class ParticleSystem:
         if not (np.all(np.isfinite(inv)) and np.all(inv > 0)):
             raise ValueError(f"mass must be a normal positive number of kg (1/mass finite and "
                              f"> 0), got {mass!r}")
-        flags = np.asarray(fixed)
+        try:
+            flags = np.asarray(fixed)
+        except ValueError:
+            flags = np.asarray(None)
         if flags.dtype != bool:
             raise ArgumentTypeError(f"fixed must be True/False or an array of bools, got {fixed!r}")
         try:
@@ -276,8 +282,10 @@ class ParticleSystem:
         A pure function of (t, x, v) apart from the solver's warm start.
         """
         Q = self.applied_forces(x, v)
-        if not np.isfinite(Q.sum()):  # a NaN or inf anywhere makes the sum non-finite
-            raise SimulationDiverged("applied forces became non-finite")
+        # a NaN or inf anywhere makes a sum non-finite; a stage state can be non-finite while
+        # the forces are not (gravity), and the constraint solve must not see it
+        if not np.isfinite(Q.sum() + x.sum() + v.sum()):
+            raise SimulationDiverged("a stage's state or applied forces became non-finite")
         if self.constraints:
             Q = Q + self.constraint_force(x, v, Q)
         Q[:, 0] *= self.inv_mass  # per column: an (n, 1) broadcast is several times slower

@@ -169,10 +169,16 @@ class Term:
         # Index arrays are read-only; replacing one is validated like the constructor's argument
         # and, once the block is bound, against the system's particle count, so that no later
         # evaluation (numpy or compiled) can read outside the state arrays.
-        if name in self.index_fields and value is not None:
-            value = as_index_array(name, value)
+        if name in self.index_fields:
             bound = self.__dict__.get("_bound_n")
-            if bound is not None:
+            old = self.__dict__.get(name)
+            if value is not None:
+                value = as_index_array(name, value)
+            if bound is not None and old is not None and (value is None
+                                                          or len(value) != len(old)):
+                raise ValueError(f"{name}: a block in a system keeps its {len(old)} elements; "
+                                 f"got {value!r} (remove the block and add a new one)")
+            if bound is not None and value is not None:
                 self._check_indices(name, value, bound)
         super().__setattr__(name, value)
 
