@@ -392,8 +392,8 @@ class ParticleTask:
         all copies) is split, so that no particle travels more than :attr:`step_travel` metres
         per piece: an int array with one entry per copy.
 
-        A particle's reach over the step is estimated from its speed plus what the actuator can
-        add in one step, ``(|v| + |F_act| dt / m) dt``. A copy that would need more than
+        A particle's reach over the step is estimated from its speed at mid-step if the actuator
+        alone accelerated it, ``(|v| + |F_act| dt / (2 m)) dt``. A copy that would need more than
         :data:`MAX_PIECES` is beyond help and gets 1: the divergence check catches it.
         """
         s = self.system if system is None else system
@@ -403,7 +403,7 @@ class ParticleTask:
         F = np.zeros_like(s.x)
         s.forces[-1].accumulate(s.x, s.v, s.mass, F)
         speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
-            s.inv_mass * self.dt)
+            s.inv_mass * (0.5 * self.dt))
         need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt / self.step_travel)
         return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
 
