@@ -17,8 +17,9 @@ target points all use that map; observed velocities use the same scale per secon
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -270,6 +271,9 @@ class ParticleTask:
         nothing changes): shapes, finiteness, ``t >= 0``, ``hold`` an integer >= 0, ``action``
         inside the action Box and positions on the constraints within ``residual_limit``.
         """
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) \
+                or not 0 <= i < self.num_envs:
+            raise ValueError(f"i must be a copy index in [0, {self.num_envs}), got {i!r}")
         values = self.check_state(state)
         rows = self._row_env == i
         sl = self.copy_slice(i)
@@ -411,23 +415,27 @@ class ParticleTask:
         """One physics step of ``dt`` for every copy of ``system``, each in its own number of
         :meth:`pieces`; on SimulationDiverged the system is back in its state from before.
 
-        Copies that need different counts are advanced in separate runs of the whole system
-        (each copy keeps the run with its own count), so a copy's trajectory never depends on
-        the others': copy ``i`` of a vector env still reproduces a single env.
+        Copies that need different counts are advanced in separate runs of the whole system,
+        each copy keeping the run with its own count, so a copy's trajectory never depends on
+        the others' (copy ``i`` of a vector env still reproduces a single env). In a run with
+        fewer pieces than a copy needs, that copy waits parked at rest without actuation, so it
+        cannot make the run diverge.
         """
         need = self.pieces(system)
         counts = np.unique(need)
+        solver = system.constraint_solver
+        x0, v0, t0, lam0 = system.x, system.v, system.t, solver.lam.copy()
         if len(counts) == 1 and counts[0] == 1:
             system.step(self.dt, self.integrator)
             return
-        solver = system.constraint_solver
-        x0, v0, t0, lam0 = system.x, system.v, system.t, solver.lam.copy()
         x, v, lam = x0.copy(), v0.copy(), lam0.copy()
         try:
             for k in counts:
-                system.x, system.v, system.t, solver.lam = x0, v0, t0, lam0.copy()
-                for _ in range(k):
-                    system.step(self.dt / k, self.integrator)
+                system.x, system.v, system.t, solver.lam = x0.copy(), v0.copy(), t0, lam0.copy()
+                slower = need > k
+                with self._parked(system, slower):
+                    for _ in range(k):
+                        system.step(self.dt / k, self.integrator)
                 rows = np.repeat(need == k, self.n)
                 x[rows], v[rows] = system.x[rows], system.v[rows]
                 mine = (need == k)[self._row_env] if system is self.system else slice(None)
@@ -436,6 +444,27 @@ class ParticleTask:
             system.x, system.v, system.t, solver.lam = x0, v0, t0, lam0
             raise
         system.x, system.v, system.t, solver.lam = x, v, t0 + self.dt, lam
+
+    @contextlib.contextmanager
+    def _parked(self, system: ParticleSystem, copies: np.ndarray) -> Iterator[None]:
+        """Within the block, the masked ``copies`` of the tiled ``system`` rest in the scene's
+        initial state without actuation; their actuation is restored afterwards."""
+        if not copies.any():
+            yield
+            return
+        act = self.actuator
+        saved = act.force.copy() if isinstance(act, ConstantForce) else act.active.copy()
+        rows = np.repeat(copies, self.n)
+        system.x[rows] = np.tile(self.park, (self.num_envs, 1))[rows]
+        system.v[rows] = 0.0
+        self._actuate(np.flatnonzero(copies), None)
+        try:
+            yield
+        finally:
+            if isinstance(act, ConstantForce):
+                act.force[:] = saved
+            else:
+                act.set(np.arange(len(saved)), active=saved)
 
     def simulate(self) -> np.ndarray:
         """Advance every copy by ``substeps`` physics steps; returns the (num_envs,) mask of copies

@@ -49,8 +49,8 @@ class SliderCrank(ParticleTask):
                              f"got {goal_range!r}")
         r, L = self.radius, self.rod
         # rk4 carries the crank's rotation to about 1 rad per step (13 m/s at the defaults) and
-        # then loses the wire: steps longer than half a radian of crank turn are split
-        self.step_travel = 0.5 * r
+        # then loses the wire: steps longer than 0.4 rad of crank turn are split
+        self.step_travel = 0.4 * r
         self.view = (-r - 0.15, -r - 0.15, L + r + 0.15, r + 0.15)
         self.goal_height = 0.0
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
