@@ -174,8 +174,11 @@ class Term:
             old = self.__dict__.get(name)
             if value is not None:
                 value = as_index_array(name, value)
-            if bound is not None and old is not None and (value is None
-                                                          or len(value) != len(old)):
+            # arrays that must stay aligned (i with j, particles with their parameters) keep
+            # their length; a lone particle list (Gravity, Drag, Wall) may grow or shrink
+            aligned = len(self.index_fields) > 1 or bool(self.element_fields)
+            if bound is not None and old is not None and (
+                    value is None or (aligned and len(value) != len(old))):
                 raise ValueError(f"{name}: a block in a system keeps its {len(old)} elements; "
                                  f"got {value!r} (remove the block and add a new one)")
             if bound is not None and value is not None:
