@@ -21,6 +21,15 @@ class Constraint(Term):
 
     rows_per_element: ClassVar[int] = 1
 
+    def bind(self, system):
+        super().bind(system)
+        limit = system.divergence_limit
+        for name in self.element_fields:
+            arr = getattr(self, name)
+            if arr is not None and not np.all(np.abs(arr) < limit):
+                raise ValueError(f"{type(self).__name__}: {name} must be within the system's "
+                                 f"divergence_limit = {limit:g} (m), got {arr!r}")
+
     @property
     def n_rows(self) -> int:
         """Number of scalar constraint rows in this block."""
@@ -34,6 +43,12 @@ class Constraint(Term):
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(C, Cdot, J values, Jdot values)`` at positions ``x`` (m), velocities ``v`` (m/s)."""
         raise NotImplementedError
+
+    def distance_error(self, x: np.ndarray) -> np.ndarray:
+        """Geometric residual (m) of each row at positions ``x``, shape (n_rows,): how far the
+        state is from satisfying it. This default is ``|C|``, right for constraints whose ``C``
+        is a length; blocks whose ``C`` is not (e.g. half a squared length) override it."""
+        return np.abs(self.evaluate(x, np.zeros_like(x))[0])
 
 
 def _xy_columns(idx: np.ndarray) -> np.ndarray:
@@ -86,6 +101,10 @@ class CircularWire(_OneParticle):
         vp = v[self.particles]
         C = 0.5 * (np.einsum("kd,kd->k", d, d) - self.radius**2)
         return C, np.einsum("kd,kd->k", d, vp), d.ravel(), vp.ravel()
+
+    def distance_error(self, x):
+        """``| |x - center| - radius |`` (m): the distance from the wire."""
+        return np.abs(np.linalg.norm(x[self.particles] - self.center, axis=1) - self.radius)
 
     def shapes(self, x, v):
         return [Shape("circle", "wire", self.center.copy(), None, self.radius.copy())]
@@ -141,6 +160,10 @@ class Rod(Constraint):
         return (C, np.einsum("kd,kd->k", d, dv), np.concatenate([d, -d], axis=1).ravel(),
                 np.concatenate([dv, -dv], axis=1).ravel())
 
+    def distance_error(self, x):
+        """``| |x_a - x_b| - length |`` (m): the error of each rod's length."""
+        return np.abs(np.linalg.norm(x[self.a] - x[self.b], axis=1) - self.length)
+
     def shapes(self, x, v):
         return [Shape("segment", "rod", x[self.a], x[self.b], np.zeros(len(self.a)))]
 
@@ -173,6 +196,10 @@ class LineWire(_OneParticle):
         C = nx * (xp[:, 0] - self.point[:, 0]) + ny * (xp[:, 1] - self.point[:, 1])
         Cdot = nx * vp[:, 0] + ny * vp[:, 1]
         return C, Cdot, self.normal.ravel(), np.zeros(2 * len(p))
+
+    def distance_error(self, x):
+        """``|C| = |n . (x - point)|`` (m): the distance from the wire."""
+        return np.abs(self.evaluate(x, x)[0])
 
     def shapes(self, x, v):
         direction = np.stack([self.normal[:, 1], -self.normal[:, 0]], axis=1)
@@ -223,6 +250,10 @@ class FixedPoint(Constraint):
         k = len(self.particles)
         return ((x[self.particles] - self.point).ravel(), v[self.particles].ravel(),
                 np.ones(2 * k), np.zeros(2 * k))
+
+    def distance_error(self, x):
+        """``|C|`` (m) per row: the x and y offsets of each particle from its point."""
+        return np.abs((x[self.particles] - self.point).ravel())
 
     def shapes(self, x, v):
         return [Shape("circle", "pin", self.point.copy(), None, np.zeros(len(self.particles)))]

@@ -13,7 +13,17 @@ from typing import Any, ClassVar
 import numpy as np
 
 from . import _kernels
-from .terms import Shape, Term, as_index_array, as_param_array, as_unit_vectors, scatter_add
+from .terms import (
+    ArgumentTypeError,
+    Shape,
+    Term,
+    as_index,
+    as_index_array,
+    as_param_array,
+    as_unit_vectors,
+    frozen,
+    scatter_add,
+)
 
 
 def _perp(p: np.ndarray) -> np.ndarray:
@@ -230,8 +240,22 @@ class DampedSpring(Force):
         f[:, 1] = -mag * u[:, 1]
         return np.take(x, self.i, axis=0), f
 
+    def _kernel_arguments_valid(self, x, v, F) -> bool:
+        """Whether the compiled kernel may run: it indexes without bounds checks, so every
+        array must have the shape and dtype it assumes and every index must be inside ``x``."""
+        i, j = self.i, self.j
+        k, n = len(i), len(x)
+        arrays_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (k,)
+                        for a in (self.ks, self.kd, self.rest))
+        states_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 2
+                        and a.shape == (n, 2) for a in (x, v, F))
+        if not (arrays_ok and states_ok and j.shape == (k,) and i.dtype == j.dtype == np.int64):
+            return False
+        return k == 0 or (min(i.min(), j.min()) >= 0 and max(i.max(), j.max()) < n)
+
     def accumulate(self, x, v, mass, F):
-        if _kernels.spring_forces is not None:  # the compiled element (see _kernels)
+        if _kernels.spring_forces is not None and self._kernel_arguments_valid(x, v, F):
+            # the compiled element (see _kernels)
             _kernels.spring_forces(x, v, self.i, self.j, self.ks, self.kd, self.rest, F)
             return
         # the numpy reference: the formula of element_forces, scattered onto both ends
@@ -510,37 +534,99 @@ class MouseSpring(Force):
         self.kd = as_param_array("kd", kd, k, nonnegative=True)
         self.active = np.full(k, attached)
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "active" and value is not None:
+            if not (isinstance(value, np.ndarray) and value.dtype == bool):
+                raise ArgumentTypeError(f"active must be a boolean array, got {value!r}")
+        super().__setattr__(name, value)
+
     def bind(self, system):
         # an unattached spring's particle index is a placeholder: check only attached ones
-        unknown = (self.particle < 0) | (self.active & (self.particle >= system.n))
+        unknown = self.active & (self.particle >= system.n)
         if np.any(unknown):
             raise ValueError(f"MouseSpring: particle holds unknown particle indices "
                              f"{self.particle[unknown].tolist()} (system has {system.n} particles)")
+        self._bound_n = system.n
 
-    def _element(self, element: int) -> int:
-        if not (int(element) == element and 0 <= element < len(self.particle)):
-            raise ValueError(f"element must be in [0, {len(self.particle)}), got {element!r}")
-        return int(element)
+    def _check_indices(self, name, idx, n):
+        unknown = idx >= n
+        if len(idx) == len(self.active):
+            unknown &= self.active
+        if np.any(unknown):
+            raise ValueError(f"MouseSpring: {name} holds unknown particle indices "
+                             f"{idx[unknown].tolist()[:10]} (system has {n} particles)")
+
+    def _elements(self, elements: Any) -> np.ndarray:
+        idx = as_index_array("elements", elements)
+        if np.any(idx >= len(self.particle)):
+            raise ValueError(f"elements must be in [0, {len(self.particle)}), got {elements!r}")
+        return idx
+
+    def set(self, elements: Any, particles: Any = None, anchors: Any = None,
+            active: Any = None) -> None:
+        """Set springs ``elements`` at once: their ``particles`` (indices), ``anchors`` (m,
+        (k, 2) or one point) and ``active`` flags (bools); ``None`` leaves a field as it is.
+
+        Everything is validated first (ValueError or TypeError naming the argument); on an error
+        nothing changes. A particle index is checked against the system's particle count.
+        """
+        idx = self._elements(elements)
+        k = len(idx)
+        new_particle = self.particle
+        if particles is not None:
+            p = as_index_array("particles", particles)
+            if len(p) not in (1, k):
+                raise ValueError(f"particles must hold 1 or {k} indices, got {len(p)}")
+            new_particle = self.particle.copy()
+            new_particle[idx] = p
+        new_anchor = None if anchors is None else as_param_array("anchors", anchors, k, width=2)
+        new_active = None
+        if active is not None:
+            try:
+                flags = np.asarray(active)
+            except ValueError:  # ragged nesting
+                flags = np.asarray(None)
+            if flags.dtype != bool:
+                raise ArgumentTypeError(f"active must be booleans, got {active!r}")
+            try:
+                new_active = np.broadcast_to(flags, (k,))
+            except ValueError:
+                raise ValueError(f"active must broadcast to shape ({k},), got shape "
+                                 f"{flags.shape}") from None
+        bound = self.__dict__.get("_bound_n")
+        if bound is not None and particles is not None:
+            on = self.active.copy()
+            if new_active is not None:
+                on[idx] = new_active
+            unknown = on & (new_particle >= bound)
+            if np.any(unknown):
+                raise ValueError(f"particles holds unknown particle indices "
+                                 f"{new_particle[unknown].tolist()[:10]} (system has {bound} "
+                                 "particles)")
+        if particles is not None:
+            self.__dict__["particle"] = frozen(new_particle)
+        if new_anchor is not None:
+            self.anchor[idx] = new_anchor
+        if new_active is not None:
+            self.active[idx] = new_active
 
     def grab(self, particle: int, anchor: Any, element: int = 0) -> None:
         """Attach spring ``element`` to ``particle`` with its anchor at ``anchor`` (m).
 
-        The index is checked against the system's particle count at the next evaluation.
+        Validated first (nothing changes on an error); the index is checked against the
+        system's particle count.
         """
-        element = self._element(element)
-        if int(particle) != particle or particle < 0:
-            raise ValueError(f"particle must be a particle index >= 0, got {particle!r}")
-        self.particle[element] = int(particle)
-        self.move(anchor, element)
-        self.active[element] = True
+        self.set([as_index("element", element)], [as_index("particle", particle)],
+                 as_param_array("anchor", anchor, 1, width=2), np.array([True]))
 
     def move(self, anchor: Any, element: int = 0) -> None:
         """Move the anchor of spring ``element`` to ``anchor`` (m)."""
-        self.anchor[self._element(element)] = as_param_array("anchor", anchor, 1, width=2)[0]
+        self.set([as_index("element", element)], anchors=as_param_array("anchor", anchor, 1,
+                                                                         width=2))
 
     def release(self, element: int = 0) -> None:
         """Detach spring ``element``."""
-        self.active[self._element(element)] = False
+        self.set([as_index("element", element)], active=np.array([False]))
 
     def element_forces(self, x, v, mass):
         p = self.particle

@@ -111,6 +111,7 @@ class Packed:
         self.zero_copy = True
         self.generation = Term.generation
         self.valid = self.supported = supported(system)
+        self._mouse_blocks: list[MouseSpring] = []
         if not self.supported:
             return
         by_type: dict[type, list] = {}
@@ -170,6 +171,8 @@ class Packed:
                          np.array([[scalar(w, "offset"), scalar(w, "kw"), scalar(w, "cw")]])))
         self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))))
         mouse = []
+        self._mouse_blocks = by_type.get(MouseSpring, [])
+        self._mouse_particle = [m.particle for m in self._mouse_blocks]
         for m in by_type.get(MouseSpring, []):
             active, same = _bool(m.active)
             self.zero_copy &= same
@@ -238,9 +241,24 @@ class Packed:
 
     def current(self, system: ParticleSystem) -> bool:
         """True if this pack still describes ``system``: the same blocks, and no attribute of
-        any term reassigned since it was built (in-place edits are seen through the arrays)."""
-        return (self.generation == Term.generation and self.zero_copy and system.n == self.n
-                and system.forces == self.forces and system.constraints == self.constraints)
+        any term reassigned since it was built (in-place edits are seen through the arrays).
+
+        A mouse spring's particle array is replaced (not edited) by ``MouseSpring.set`` at
+        every grab; a lone mouse block's new array is taken over here without a rebuild."""
+        if not (self.generation == Term.generation and self.zero_copy and system.n == self.n
+                and system.forces == self.forces and system.constraints == self.constraints):
+            return False
+        if self._mouse_blocks and self._mouse_blocks[0].particle is not self._mouse_particle[0]:
+            if len(self._mouse_blocks) > 1:
+                return False
+            raw = self._mouse_blocks[0].particle
+            particle, same = _i64(raw)
+            if not same:
+                return False
+            self._mouse_particle[0] = raw
+            self.mouse = (particle, *self.mouse[1:])
+            self.args = (*self.args[:6], self.mouse, *self.args[7:])
+        return True
 
 
 def pack(system: ParticleSystem) -> Packed:

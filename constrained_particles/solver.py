@@ -55,6 +55,32 @@ def row_components(rows: np.ndarray, cols: np.ndarray, m: int, width: int
     return comp_rows, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
 
+class InconsistentConstraints(ValueError):
+    """Constraint rows that cannot all hold at once (e.g. two wires at different heights through
+    one particle): ``J W J^T lam = b`` has no solution. The message names the blocks involved."""
+
+
+def check_consistent(solver: ConstraintSolver, A: spla.LinearOperator, y: np.ndarray,
+                     b: np.ndarray) -> None:
+    """Raise :class:`InconsistentConstraints` naming the blocks whose rows the least-squares
+    answer ``y`` of ``A y = b`` leaves unsatisfied (a consistent singular system, such as two
+    identical rods, is solved to the tolerance and passes)."""
+    r = A.matvec(y) - b
+    scale = np.linalg.norm(b)
+    if np.linalg.norm(r) <= 1e-6 * scale or not np.all(np.isfinite(r)):
+        return
+    rows = np.flatnonzero(np.abs(r) > 1e-3 * np.max(np.abs(r)))
+    blocks = []
+    for k, (c, span) in enumerate(zip(solver.constraints, solver.block_rows, strict=True)):
+        mine = rows[(rows >= span.start) & (rows < span.stop)]
+        if len(mine):
+            blocks.append(f"constraints[{k}] {type(c).__name__} (rows {mine.tolist()[:5]})")
+    raise InconsistentConstraints(
+        f"constraints cannot all hold at once: {', '.join(blocks)} contradict each other "
+        f"(J W J^T lam = b has no solution; residual {np.linalg.norm(r):.3g} of "
+        f"{scale:.3g}). Remove or correct one of them.")
+
+
 class ConstraintSolver:
     """Assembles ``J``, ``Jdot`` for fixed constraint blocks on ``n`` particles and solves for lam.
 
@@ -223,6 +249,8 @@ class ConstraintSolver:
 
     def _solve(self, b: np.ndarray, w2: np.ndarray, x0: np.ndarray | None) -> np.ndarray:
         """Solve ``J W J^T y = b`` (least-norm if singular but consistent)."""
+        if not self.m:  # only empty constraint blocks
+            return np.zeros(0)
         d = self._diag(w2)
         if self.diagonal:
             return b / d
@@ -243,9 +271,12 @@ class ConstraintSolver:
             y = self._solve_components(b, w2, d, x0)
             if y is not None:
                 return y
-        # singular (redundant constraints) or CG stalled: least-squares, least-norm answer
-        return spla.lsmr(A, b, atol=self.tol * 1e-2, btol=self.tol * 1e-2,
-                         maxiter=20 * self.m + 20)[0]
+        # singular (redundant constraints) or CG stalled: least-squares, least-norm answer, which
+        # must still solve the system (redundant but consistent rows) or the rows contradict
+        y = spla.lsmr(A, b, atol=self.tol * 1e-2, btol=self.tol * 1e-2,
+                      maxiter=20 * self.m + 20)[0]
+        check_consistent(self, A, y, b)
+        return y
 
     def multipliers(self, x: np.ndarray, v: np.ndarray, Q: np.ndarray, w2: np.ndarray,
                     ks: float, kd: float) -> np.ndarray:

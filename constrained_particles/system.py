@@ -14,24 +14,41 @@ from .constraints import Constraint
 from .forces import Force
 from .integrators import get_method
 from .solver import SOLVER_METHODS, ConstraintSolver
-from .terms import Shape, Term, as_param_array
+from .terms import MAX_INDEX, ArgumentTypeError, Shape, Term, as_param_array
 
 
 class SimulationDiverged(RuntimeError):
-    """A step would have produced a non-finite (or absurdly large) state.
+    """A step would have produced a non-finite or absurdly large state, or one that left its
+    constraints by more than ``residual_limit``.
 
     The system keeps the state it had before the step.
     """
 
+#: Shortest accepted time step (s): below it ``t + dt`` and ``1 / dt`` stop being meaningful.
+MIN_DT = 1e-9
 
-def _finite_vectors(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    try:
-        arr = np.broadcast_to(arr, shape).astype(float)
-    except ValueError:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}") from None
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+
+def _flag(name: str, value: Any) -> bool:
+    """``value`` as a bool, TypeError naming ``name`` for anything else (``"no"`` is not False)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ArgumentTypeError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def check_dt(dt: Any) -> float:
+    """``dt`` (s) as a float in [MIN_DT, inf), TypeError or ValueError naming it otherwise."""
+    if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, numbers.Real):
+        raise ArgumentTypeError(f"dt must be a number of seconds, got {dt!r}")
+    if not (np.isfinite(dt) and dt >= MIN_DT):
+        raise ValueError(f"dt must be a finite number >= {MIN_DT:g} s, got {dt!r}")
+    return float(dt)
+
+
+def _finite_vectors(name: str, value: Any, shape: tuple[int, ...], limit: float) -> np.ndarray:
+    arr = as_param_array(name, value, shape[0], width=2)
+    if np.any(np.abs(arr) >= limit):
+        raise ValueError(f"{name} must be within divergence_limit = {limit:g} in every "
+                         f"coordinate, got {value!r}")
     return arr
 
 
@@ -56,6 +73,10 @@ class ParticleSystem:
     compliance : ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
         unit of lam (m/N for line wires and fixed points); 0 is a hard constraint, and a small
         value regularises redundant constraints. See :mod:`constrained_particles.implicit`.
+    residual_limit : a step whose new state leaves any constraint row by more than this many
+        metres (its :meth:`~constrained_particles.Constraint.distance_error`: distance from the
+        wire, from the pinned point, error of a rod's length) raises :class:`SimulationDiverged`
+        and keeps the old state. Default ``inf`` (no check); the environments use 0.01 m.
 
     >>> from constrained_particles import ParticleSystem, Gravity, Rod
     >>> s = ParticleSystem()
@@ -70,14 +91,15 @@ class ParticleSystem:
 
     def __init__(self, *, solver: str = "cg", tol: float = 1e-10, ks: float = 100.0,
                  kd: float = 20.0, project: bool = False, divergence_limit: float = 1e6,
-                 drift_correction: float = 1.0, compliance: float = 0.0) -> None:
-        if solver not in SOLVER_METHODS:
+                 drift_correction: float = 1.0, compliance: float = 0.0,
+                 residual_limit: float = np.inf) -> None:
+        if not isinstance(solver, str) or solver not in SOLVER_METHODS:
             raise ValueError(f"solver must be one of {SOLVER_METHODS}, got {solver!r}")
         self.solver = solver
         self.tol = float(as_param_array("tol", tol, 1, positive=True)[0])
         self.ks = float(as_param_array("ks", ks, 1, nonnegative=True)[0])
         self.kd = float(as_param_array("kd", kd, 1, nonnegative=True)[0])
-        self.project_each_step = bool(project)
+        self.project_each_step = _flag("project", project)
         self.divergence_limit = float(as_param_array("divergence_limit", divergence_limit, 1,
                                                      positive=True)[0])
         self.drift_correction = float(as_param_array("drift_correction", drift_correction, 1,
@@ -85,6 +107,14 @@ class ParticleSystem:
         if self.drift_correction > 1:
             raise ValueError(f"drift_correction must be in [0, 1], got {drift_correction!r}")
         self.compliance = float(as_param_array("compliance", compliance, 1, nonnegative=True)[0])
+        if isinstance(residual_limit, (bool, np.bool_)) or not isinstance(residual_limit,
+                                                                          numbers.Real):
+            raise ArgumentTypeError(f"residual_limit must be a number of metres, "
+                                    f"got {residual_limit!r}")
+        if not residual_limit > 0:  # also False for NaN
+            raise ValueError(f"residual_limit must be > 0 m (inf: no check), "
+                             f"got {residual_limit!r}")
+        self.residual_limit = float(residual_limit)
         self.x = np.zeros((0, 2))
         self.v = np.zeros((0, 2))
         self.mass = np.zeros(0)
@@ -117,46 +147,86 @@ class ParticleSystem:
                       fixed: Any = False) -> np.ndarray:
         """Add k particles at once; ``positions`` (k, 2) m, ``velocities`` (k, 2) m/s (default 0),
         ``mass`` scalar or (k,) kg, ``fixed`` scalar or (k,) bool. Returns their indices."""
-        pos = np.asarray(positions, dtype=float)
-        if pos.ndim != 2 or pos.shape[1] != 2:
-            raise ValueError(f"positions must have shape (k, 2), got {pos.shape}")
-        k = len(pos)
-        pos = _finite_vectors("position", pos, (k, 2))
-        vel = np.zeros((k, 2)) if velocities is None else _finite_vectors("velocity", velocities,
-                                                                          (k, 2))
+        try:
+            shape = np.shape(positions)
+        except ValueError:  # ragged nesting
+            shape = ("ragged",)
+        if len(shape) != 2 or shape[1] != 2:
+            raise ValueError(f"positions must have shape (k, 2), got {shape}")
+        k = shape[0]
+        if self.n + k > MAX_INDEX:
+            raise ValueError(f"positions: {self.n + k} particles would exceed {MAX_INDEX}")
+        limit = self.divergence_limit
+        pos = _finite_vectors("position", positions, (k, 2), limit)
+        vel = (np.zeros((k, 2)) if velocities is None
+               else _finite_vectors("velocity", velocities, (k, 2), limit))
         m = as_param_array("mass", mass, k, positive=True)
-        fix = np.broadcast_to(np.asarray(fixed, dtype=bool), (k,))
+        with np.errstate(over="ignore", divide="ignore"):
+            inv = 1.0 / m
+        if not (np.all(np.isfinite(inv)) and np.all(inv > 0)):
+            raise ValueError(f"mass must be a normal positive number of kg (1/mass finite and "
+                             f"> 0), got {mass!r}")
+        try:
+            flags = np.asarray(fixed)
+        except ValueError:
+            flags = np.asarray(None)
+        if flags.dtype != bool:
+            raise ArgumentTypeError(f"fixed must be True/False or an array of bools, got {fixed!r}")
+        try:
+            fix = np.broadcast_to(flags, (k,))
+        except ValueError:
+            raise ValueError(f"fixed must broadcast to shape ({k},), got shape "
+                             f"{flags.shape}") from None
         vel[fix] = 0.0
         start = self.n
         self.x = np.concatenate([self.x, pos])
         self.v = np.concatenate([self.v, vel])
         self.mass = np.concatenate([self.mass, m])
-        self.inv_mass = np.concatenate([self.inv_mass, np.where(fix, 0.0, 1.0 / m)])
+        self.inv_mass = np.concatenate([self.inv_mass, np.where(fix, 0.0, inv)])
         self._solver = None
+        for term in [*self.forces, *self.constraints]:
+            term._bound_n = self.n
         return np.arange(start, start + k)
 
     def add(self, *terms: Term) -> None:
-        """Add force and constraint blocks; each is validated against this system first."""
-        for term in terms:
+        """Add force and constraint blocks; each is validated against this system first.
+
+        On an error (TypeError or ValueError) neither the system nor the blocks change.
+        """
+        present = {id(t) for t in [*self.forces, *self.constraints]}
+        for k, term in enumerate(terms):
             if not isinstance(term, (Force, Constraint)):
-                raise ValueError(f"terms must be Force or Constraint blocks, got {term!r}")
-            term.bind(self)
+                raise ArgumentTypeError(f"terms must be Force or Constraint blocks, got {term!r}")
+            if id(term) in present or any(term is other for other in terms[:k]):
+                raise ValueError(f"terms: {term!r} is already in this system (add it once)")
+        saved = [dict(term.__dict__) for term in terms]
+        try:
+            for term in terms:
+                term.bind(self)
+        except Exception:
+            for term, before in zip(terms, saved, strict=True):
+                term.__dict__.clear()
+                term.__dict__.update(before)
+            raise
         for term in terms:
             (self.forces if isinstance(term, Force) else self.constraints).append(term)
             if isinstance(term, Constraint):
                 self._solver = None
 
     def remove(self, *terms: Term) -> None:
-        """Remove previously added blocks."""
-        for term in terms:
+        """Remove previously added blocks; if any is not in this system (or is named twice),
+        ValueError and nothing is removed."""
+        for k, term in enumerate(terms):
             target = self.forces if isinstance(term, Force) else self.constraints
-            for k, existing in enumerate(target):
-                if existing is term:
-                    del target[k]
-                    break
-            else:
+            if not any(existing is term for existing in target):
                 raise ValueError(f"terms: {term!r} is not in this system")
-            if isinstance(term, Constraint):
+            if any(term is other for other in terms[:k]):
+                raise ValueError(f"terms: {term!r} is named twice")
+        for term in terms:
+            if isinstance(term, Force):
+                self.forces = [f for f in self.forces if f is not term]
+            else:
+                self.constraints = [c for c in self.constraints if c is not term]
                 self._solver = None
 
     @property
@@ -178,8 +248,12 @@ class ParticleSystem:
 
         Copy ``c`` owns particles ``c * n .. (c + 1) * n - 1``. Used for batched environments.
         """
-        if int(copies) < 1:
-            raise ValueError(f"copies must be >= 1, got {copies!r}")
+        if isinstance(copies, (bool, np.bool_)) or not isinstance(copies, numbers.Integral):
+            raise ArgumentTypeError(f"copies must be an integer, got {copies!r}")
+        if not 1 <= copies <= MAX_INDEX // max(self.n, 1):
+            raise ValueError(f"copies must be in [1, {MAX_INDEX // max(self.n, 1)}] "
+                             f"(at most {MAX_INDEX} particles in all), got {copies!r}")
+        copies = int(copies)
         out = copy.copy(self)
         out.x = np.tile(self.x, (copies, 1))
         out.v = np.tile(self.v, (copies, 1))
@@ -187,6 +261,8 @@ class ParticleSystem:
         out.inv_mass = np.tile(self.inv_mass, copies)
         out.forces = [f.tiled(copies, self.n) for f in self.forces]
         out.constraints = [c.tiled(copies, self.n) for c in self.constraints]
+        for term in [*out.forces, *out.constraints]:
+            term._bound_n = out.n
         out._solver = None
         out.__dict__.pop("_packed", None)
         return out
@@ -215,8 +291,10 @@ class ParticleSystem:
         A pure function of (t, x, v) apart from the solver's warm start.
         """
         Q = self.applied_forces(x, v)
-        if not np.isfinite(Q.sum()):  # a NaN or inf anywhere makes the sum non-finite
-            raise SimulationDiverged("applied forces became non-finite")
+        # a NaN or inf anywhere makes a sum non-finite; a stage state can be non-finite while
+        # the forces are not (gravity), and the constraint solve must not see it
+        if not np.isfinite(Q.sum() + x.sum() + v.sum()):
+            raise SimulationDiverged("a stage's state or applied forces became non-finite")
         if self.constraints:
             Q = Q + self.constraint_force(x, v, Q)
         Q[:, 0] *= self.inv_mass  # per column: an (n, 1) broadcast is several times slower
@@ -249,13 +327,14 @@ class ParticleSystem:
         ``symplectic_euler`` with the default ``"cg"`` solver; everything else, and
         ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
         """
-        if not (isinstance(dt, numbers.Real) and not isinstance(dt, bool) and np.isfinite(dt)
-                and dt > 0):
-            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
-            raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+        dt = check_dt(dt)
+        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+            raise ArgumentTypeError(f"steps must be an integer >= 1, got {steps!r}")
+        if not 1 <= steps <= 10**9:
+            raise ValueError(f"steps must be an integer in [1, 1e9], got {steps!r}")
         integrate = get_method(method)
-        project = self.project_each_step if project is None else project
+        project = self.project_each_step if project is None else _flag("project", project)
+        self.check_arrays()
         solver = self.constraint_solver
         lam = solver.lam.copy()
         h = float(dt)
@@ -263,23 +342,24 @@ class ParticleSystem:
         if (self.solver == "cg" and method in fused.METHOD_CODES and (steps == 1 or not project)
                 and "acceleration" not in self.__dict__
                 and type(self).acceleration is ParticleSystem.acceleration):
+            # with projection, the residual is judged after it (as on the reference path)
             status, x, v, failed = fused.run(self, h, method, int(steps), solver.lam,
-                                             getattr(self, "residual_limit", math.inf))
+                                             math.inf if project else self.residual_limit)
             if status == fused.OK:
                 try:
                     if project:
                         with np.errstate(all="ignore"):
                             x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
                         self._check(x, v)
-                except SimulationDiverged:
-                    solver.lam[:] = lam
+                except Exception:
+                    solver.lam = lam
                     raise
                 t = self.t
                 for _ in range(int(steps)):
                     t = t + h
                 self.x, self.v, self.t = x, v, t
                 return
-            solver.lam[:] = lam
+            solver.lam = lam
             if status == fused.DIVERGED:
                 t = self.t
                 for _ in range(failed):
@@ -293,17 +373,40 @@ class ParticleSystem:
             with np.errstate(all="ignore"):
                 for _ in range(int(steps)):
                     x, v = integrate(self, t, x, v, h)
-                    self._check(x, v)
+                    self._check(x, v, residual=not project)
                     if project:
                         x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
                         self._check(x, v)
                     t = t + h
-        except SimulationDiverged:
-            solver.lam[:] = lam
+        except Exception:
+            solver.lam = lam
             raise
         self.x, self.v, self.t = x, v, t
 
-    def _check(self, x: np.ndarray, v: np.ndarray) -> None:
+    def check_arrays(self) -> None:
+        """ValueError unless the state arrays are consistent: ``x``, ``v`` float64 (n, 2),
+        ``mass``, ``inv_mass`` float64 (n,), ``t`` a finite number. Run before every step, so a
+        replaced array cannot send the compiled kernels outside their memory."""
+        n = len(self.x) if isinstance(self.x, np.ndarray) else -1
+        for name, shape in (("x", (n, 2)), ("v", (n, 2)), ("mass", (n,)), ("inv_mass", (n,))):
+            arr = getattr(self, name)
+            if not (isinstance(arr, np.ndarray) and arr.dtype == np.float64
+                    and arr.shape == shape):
+                raise ValueError(f"{name} must be a float64 array of shape {shape} (x has "
+                                 f"{n} rows), got {type(arr).__name__} "
+                                 f"{getattr(arr, 'dtype', '')} {np.shape(arr)}")
+        if not (isinstance(self.t, numbers.Real) and np.isfinite(self.t)):
+            raise ValueError(f"t must be a finite number of seconds, got {self.t!r}")
+
+    def distance_errors(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Every constraint row's geometric residual (m) at positions ``x`` (default: the
+        current ones), in row order: see :meth:`Constraint.distance_error`."""
+        x = self.x if x is None else x
+        if not self.constraints:
+            return np.zeros(0)
+        return np.concatenate([c.distance_error(x) for c in self.constraints])
+
+    def _check(self, x: np.ndarray, v: np.ndarray, residual: bool = True) -> None:
         limit = self.divergence_limit
         # max/min propagate NaN, and NaN < limit is False: one pass per bound, no temporaries
         if not (x.max(initial=0.0) < limit and -x.min(initial=0.0) < limit
@@ -311,6 +414,14 @@ class ParticleSystem:
             raise SimulationDiverged(
                 f"step at t = {self.t:.6g} s produced a non-finite state or one beyond "
                 f"divergence_limit = {limit:g}; state kept as it was before the step")
+        if residual and self.constraints and self.residual_limit < np.inf:
+            for c in self.constraints:
+                err = c.distance_error(x)
+                if not (err.max(initial=0.0) <= self.residual_limit):
+                    raise SimulationDiverged(
+                        f"step at t = {self.t:.6g} s left the constraints of "
+                        f"{type(c).__name__} by {err.max():.3g} m > residual_limit = "
+                        f"{self.residual_limit:g} m; state kept as it was before the step")
 
     def project(self) -> None:
         """Project the current state onto ``C = 0`` and ``J v = 0`` in place."""

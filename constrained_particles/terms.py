@@ -10,6 +10,8 @@ disconnected systems (:meth:`Term.tiled`) and to draw it.
 from __future__ import annotations
 
 import copy
+import math
+import numbers
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
@@ -40,15 +42,62 @@ class Shape(NamedTuple):
     value: np.ndarray | None = None
 
 
+class ArgumentTypeError(TypeError, ValueError):
+    """An argument of the wrong type (a string for a number, a bool mask for indices, ...).
+
+    A TypeError, and also a ValueError so that code catching the library's documented
+    ValueError for bad arguments catches it too.
+    """
+
+
+#: Largest particle index (and count) accepted anywhere: beyond it arrays cannot be allocated.
+MAX_INDEX = 2**40
+
+
+def frozen(arr: np.ndarray) -> np.ndarray:
+    """A read-only view of a private read-only copy of ``arr``: writing to it raises ValueError,
+    and its WRITEABLE flag cannot be switched back on (its base is read-only too)."""
+    base = np.array(arr, copy=True)
+    base.flags.writeable = False
+    return base.view()
+
+
+def as_index(name: str, value: Any) -> int:
+    """``value`` as one particle index (an int >= 0), else TypeError or ValueError naming it."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral,
+                                                                        numbers.Real)):
+        raise ArgumentTypeError(f"{name} must be an integer particle index, got {value!r}")
+    if not (math.isfinite(value) and value == int(value) and 0 <= value < MAX_INDEX):
+        raise ValueError(f"{name} must be an integer particle index >= 0, got {value!r}")
+    return int(value)
+
+
 def as_index_array(name: str, value: Any) -> np.ndarray:
-    """Return ``value`` as a 1-D int64 array of particle indices or raise ValueError naming it."""
-    arr = np.atleast_1d(np.asarray(value))
+    """Return ``value`` as a read-only 1-D int64 array of particle indices.
+
+    Integral floats are accepted; booleans (a mask is not a list of indices), strings and other
+    types raise TypeError, and non-integral, negative or impossibly large values ValueError,
+    each naming ``name``.
+    """
+    try:
+        arr = np.atleast_1d(np.asarray(value))
+    except (TypeError, ValueError, OverflowError):
+        raise ArgumentTypeError(f"{name} must be particle indices, got {value!r}") from None
+    if arr.dtype.kind == "b":
+        raise ArgumentTypeError(f"{name} must hold integer particle indices, not booleans "
+                                f"(for a mask use np.flatnonzero(mask)), got {value!r}")
+    if arr.size and arr.dtype.kind not in "iuf":
+        raise ArgumentTypeError(f"{name} must hold integer particle indices, got {value!r}")
     if arr.ndim != 1:
         raise ValueError(f"{name} must be an index or a 1-D index array, got shape {arr.shape}")
-    if arr.size and not np.issubdtype(arr.dtype, np.integer):
-        if not np.all(np.equal(np.mod(arr, 1), 0)):
-            raise ValueError(f"{name} must hold integer particle indices, got {arr!r}")
-    return arr.astype(np.int64)
+    if arr.size:
+        with np.errstate(invalid="ignore"):
+            ok = np.all((arr >= 0) & (arr < MAX_INDEX))
+            if ok and arr.dtype.kind == "f":
+                ok = np.all(np.equal(np.mod(arr, 1), 0))
+        if not ok:
+            raise ValueError(f"{name} must hold integer particle indices >= 0, got {value!r}")
+    return frozen(arr.astype(np.int64))
 
 
 def as_param_array(name: str, value: Any, k: int, *, width: int | None = None,
@@ -58,7 +107,14 @@ def as_param_array(name: str, value: Any, k: int, *, width: int | None = None,
     Raises ValueError naming ``name`` for a wrong shape, a non-finite value or a sign
     violation.
     """
-    arr = np.asarray(value, dtype=float)
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind not in "iuf":  # booleans, strings, None, objects
+            raise TypeError
+        arr = raw.astype(float)
+    except (TypeError, ValueError, OverflowError):
+        raise ArgumentTypeError(f"{name} must be a number or an array of numbers, "
+                                f"got {value!r}") from None
     shape = (k,) if width is None else (k, width)
     try:
         arr = np.broadcast_to(arr, shape).copy()
@@ -76,10 +132,12 @@ def as_param_array(name: str, value: Any, k: int, *, width: int | None = None,
 def as_unit_vectors(name: str, value: Any, k: int) -> np.ndarray:
     """Broadcast direction(s) to (k, 2) unit vectors, raising ValueError for a zero vector."""
     arr = as_param_array(name, value, k, width=2)
-    norm = np.linalg.norm(arr, axis=1, keepdims=True)
-    if np.any(norm == 0):
+    # scale by the largest component first, so that |(1e200, 0)| does not overflow to inf
+    big = np.max(np.abs(arr), axis=1, keepdims=True)
+    if np.any(big == 0):
         raise ValueError(f"{name} must be a non-zero vector, got {value!r}")
-    return arr / norm
+    arr = arr / big
+    return arr / np.linalg.norm(arr, axis=1, keepdims=True)
 
 
 def scatter_add(F: np.ndarray, idx: np.ndarray, f: np.ndarray) -> None:
@@ -105,28 +163,57 @@ class Term:
     #: arrays need no bump: the packs hold the blocks' own arrays.
     generation: ClassVar[int] = 0
 
-    def __setattr__(self, name: str, value: Any) -> None:
-        object.__setattr__(self, name, value)
-        Term.generation += 1
-
     def __len__(self) -> int:
         """Number of elements (springs, wires, ...) in the block."""
         if not self.index_fields:
             return 0
         return len(getattr(self, self.index_fields[0]))
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        # Index arrays are read-only; replacing one is validated like the constructor's argument
+        # and, once the block is bound, against the system's particle count, so that no later
+        # evaluation (numpy or compiled) can read outside the state arrays.
+        if name in self.index_fields:
+            bound = self.__dict__.get("_bound_n")
+            old = self.__dict__.get(name)
+            if value is not None:
+                value = as_index_array(name, value)
+            # arrays that must stay aligned (i with j, particles with their parameters) keep
+            # their length; a lone particle list (Gravity, Drag, Wall) may grow or shrink
+            aligned = len(self.index_fields) > 1 or bool(self.element_fields)
+            if bound is not None and old is not None and (
+                    value is None or (aligned and len(value) != len(old))):
+                raise ValueError(f"{name}: a block in a system keeps its {len(old)} elements; "
+                                 f"got {value!r} (remove the block and add a new one)")
+            if bound is not None and value is not None:
+                self._check_indices(name, value, bound)
+        super().__setattr__(name, value)
+        Term.generation += 1
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # copies and unpickled blocks get read-only index arrays again
+        self.__dict__.update(state)
+        for name in self.index_fields:
+            if state.get(name) is not None:
+                self.__dict__[name] = frozen(state[name])
+
+    def _check_indices(self, name: str, idx: np.ndarray, n: int) -> None:
+        bad = (idx < 0) | (idx >= n)
+        if np.any(bad):
+            raise ValueError(
+                f"{type(self).__name__}: {name} holds unknown particle indices "
+                f"{idx[bad].tolist()[:10]} (system has {n} particles)")
+
     def bind(self, system: ParticleSystem) -> None:
-        """Validate indices against ``system`` and fill geometry defaults. Called by ``add``."""
-        n = system.n
+        """Validate indices against ``system`` and fill geometry defaults. Called by ``add``.
+
+        Afterwards a replaced index array is checked against ``system``'s particle count.
+        """
         for name in self.index_fields:
             idx = getattr(self, name)
-            if idx is None:
-                continue
-            bad = (idx < 0) | (idx >= n)
-            if np.any(bad):
-                raise ValueError(
-                    f"{type(self).__name__}: {name} holds unknown particle indices "
-                    f"{idx[bad].tolist()} (system has {n} particles)")
+            if idx is not None:
+                self._check_indices(name, idx, system.n)
+        self._bound_n = system.n
 
     def tiled(self, copies: int, stride: int) -> Term:
         """This block repeated for ``copies`` disconnected systems of ``stride`` particles each.
@@ -135,6 +222,7 @@ class Term:
         one system with a block-diagonal constraint Jacobian.
         """
         out = copy.deepcopy(self)
+        out.__dict__.pop("_bound_n", None)  # the copies' indices range over the larger system
         offsets = np.arange(copies, dtype=np.int64) * stride
         for name in self.index_fields:
             idx = getattr(self, name)

@@ -17,8 +17,9 @@ target points all use that map; observed velocities use the same scale per secon
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -31,6 +32,7 @@ from gymnasium.vector.utils import batch_space
 from constrained_particles import ConstantForce, MouseSpring, ParticleSystem, Shape
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
+from constrained_particles.terms import ArgumentTypeError
 
 #: Valid values of the ``action_mode`` argument.
 ACTION_MODES = ("force", "spring")
@@ -38,19 +40,31 @@ ACTION_MODES = ("force", "spring")
 OBS_LIMIT = 10.0
 #: Pixel size of rendered frames.
 FRAME_SIZE = (600, 400)
+#: Shortest physics step (s) an env accepts.
+MIN_DT = 1e-6
+#: Most pieces one physics step is split into when particles move fast (see
+#: :meth:`ParticleTask.pieces`); a copy that would need more is left to the divergence check.
+MAX_PIECES = 64
 
 
-def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: bool = False
-                   ) -> Any:
-    """``value`` as a finite number > 0 (>= 0 if ``allow_zero``; an int if ``integer``), else
-    ValueError naming ``name``."""
+def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: bool = False,
+                   minimum: float = 0.0, maximum: float = 1e6) -> Any:
+    """``value`` as a finite number > 0 (>= 0 if ``allow_zero``; an int if ``integer``), at least
+    ``minimum`` and at most ``maximum`` (default 1e6, the systems' divergence limit), else
+    ValueError naming ``name`` (ArgumentTypeError, also a ValueError, for a non-number).
+
+    The bounds keep derived quantities (1 / dt, r^2, frame rates, arrays) representable: an
+    overflowing or underflowing argument gets this ValueError, never an OverflowError.
+    """
     bound = ">= 0" if allow_zero else "> 0"
-    if isinstance(value, bool) or not isinstance(
+    if isinstance(value, (bool, np.bool_)) or not isinstance(
             value, (int, np.integer) if integer else (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be {'an integer' if integer else 'a number'} {bound}, "
-                         f"got {value!r}")
+        raise ArgumentTypeError(f"{name} must be {'an integer' if integer else 'a number'} "
+                                f"{bound}, got {value!r}")
     if not (math.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
         raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+    if value < minimum or value > maximum:
+        raise ValueError(f"{name} must be in [{minimum:g}, {maximum:g}], got {value!r}")
     return int(value) if integer else float(value)
 
 
@@ -101,25 +115,35 @@ class ParticleTask:
     ``max_force`` (N, the force of action 1), ``grab_radius`` (m), ``mouse_ks`` (N/m) and
     ``mouse_kd`` (N s/m) of the spring action, and the success test: within ``goal_tolerance``
     (m) of the goal with RMS particle speed below ``rest_speed`` (m/s) for ``hold_steps``
-    consecutive env steps.
+    consecutive env steps. ``residual_limit`` (m, default 0.01; ``inf`` switches the check off):
+    a physics step that leaves any constraint by more than this distance counts as diverged.
+
+    A physics step is split into equal pieces when a particle could travel more than
+    :attr:`step_travel` metres in it (see :meth:`pieces`), so fast motion, whatever the actions,
+    stays within what the integrator carries.
     """
 
     #: Number of force-action components (subclasses set it).
     force_dim: ClassVar[int] = 1
+    #: Farthest distance (m) a particle may travel in one integrator step before the physics step
+    #: is split into pieces (subclasses set it from the scene's smallest length).
+    step_travel: float = math.inf
 
     def __init__(self, num_envs: int, *, action_mode: str, dt: float, substeps: int,
                  integrator: str, max_force: float, grab_radius: float, mouse_ks: float,
                  mouse_kd: float, goal_tolerance: float, rest_speed: float,
-                 hold_steps: int) -> None:
-        self.num_envs = check_positive("num_envs", num_envs, integer=True)
-        if action_mode not in ACTION_MODES:
+                 hold_steps: int, residual_limit: float = 0.01) -> None:
+        self.num_envs = check_positive("num_envs", num_envs, integer=True, maximum=10**6)
+        if not isinstance(action_mode, str) or action_mode not in ACTION_MODES:
             raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
-        if integrator not in METHODS:
+        if not isinstance(integrator, str) or integrator not in METHODS:
             raise ValueError(f"integrator must be one of {sorted(METHODS)}, got {integrator!r}")
         self.action_mode = action_mode
         self.integrator = integrator
-        self.dt = check_positive("dt", dt)
-        self.substeps = check_positive("substeps", substeps, integer=True)
+        self.dt = check_positive("dt", dt, minimum=MIN_DT, maximum=10.0)
+        self.substeps = check_positive("substeps", substeps, integer=True, maximum=10**4)
+        self.residual_limit = (math.inf if residual_limit == math.inf else
+                               check_positive("residual_limit", residual_limit))
         self.max_force = check_positive("max_force", max_force)
         self.grab_radius = check_positive("grab_radius", grab_radius)
         self.mouse_ks = check_positive("mouse_ks", mouse_ks)
@@ -129,6 +153,7 @@ class ParticleTask:
         self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
 
         scene = self.build_scene()
+        scene.residual_limit = self.residual_limit
         n = self.n = scene.n
         if action_mode == "force":
             handles = self.force_handles(scene)
@@ -240,56 +265,95 @@ class ParticleTask:
                 "action": self.action[i].copy(), "lam": self._lam()[rows].copy()}
 
     def set_state(self, i: int, state: dict[str, Any]) -> None:
-        """Restore copy ``i`` from :meth:`get_state`; ValueError for a malformed state."""
-        if not isinstance(state, dict):
-            raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
-        missing = {"t", "x", "v", "goal", "hold", "action", "lam"} - set(state)
-        if missing:
-            raise ValueError(f"state is missing {sorted(missing)}")
+        """Restore copy ``i`` from :meth:`get_state`.
+
+        Every field is validated before anything is written (ValueError naming the field, and
+        nothing changes): shapes, finiteness, ``t >= 0``, ``hold`` an integer >= 0, ``action``
+        inside the action Box and positions on the constraints within ``residual_limit``.
+        """
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) \
+                or not 0 <= i < self.num_envs:
+            raise ValueError(f"i must be a copy index in [0, {self.num_envs}), got {i!r}")
+        values = self.check_state(state)
         rows = self._row_env == i
-        arrays = {"x": (self.n, 2), "v": (self.n, 2), "action": (self.action_dim,),
-                  "lam": (int(rows.sum()),), "t": (), "goal": (), "hold": ()}
-        values = {}
-        for key, shape in arrays.items():
-            arr = np.asarray(state[key], dtype=float)
-            if arr.shape != shape or not np.all(np.isfinite(arr)):
-                raise ValueError(f"state[{key!r}] must be a finite array of shape {shape}, "
-                                 f"got {arr!r}")
-            values[key] = arr
         sl = self.copy_slice(i)
         self.system.x[sl] = values["x"]
         self.system.v[sl] = values["v"]
         self.system.t = float(values["t"])
         self.goal[i] = float(values["goal"])
-        self.hold[i] = int(values["hold"])
+        self.hold[i] = values["hold"]
         self.action[i] = values["action"]
         self._actuate_rows(i, values["action"])
         lam = self._lam()
         lam[rows] = values["lam"]
 
+    def check_state(self, state: Any) -> dict[str, Any]:
+        """The validated fields of one copy's ``state`` (see :meth:`set_state`)."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
+        missing = {"t", "x", "v", "goal", "hold", "action", "lam"} - set(state)
+        if missing:
+            raise ValueError(f"state is missing {sorted(missing)}")
+        arrays = {"x": (self.n, 2), "v": (self.n, 2), "action": (self.action_dim,),
+                  "lam": (int(np.sum(self._row_env == 0)),), "t": (), "goal": ()}
+        values: dict[str, Any] = {}
+        for key, shape in arrays.items():
+            try:
+                raw = np.asarray(state[key])
+                if raw.dtype.kind not in "iuf":
+                    raise TypeError
+                arr = raw.astype(float)
+            except (TypeError, ValueError, OverflowError):
+                raise ValueError(f"state[{key!r}] must be numbers, got {state[key]!r}") from None
+            if arr.shape != shape or not np.all(np.isfinite(arr)):
+                raise ValueError(f"state[{key!r}] must be a finite array of shape {shape}, "
+                                 f"got {state[key]!r}")
+            values[key] = arr
+        hold = state["hold"]
+        if isinstance(hold, (bool, np.bool_)) or not isinstance(hold, (int, np.integer)) \
+                or not 0 <= hold <= 2**62:
+            raise ValueError(f"state['hold'] must be an integer >= 0, got {hold!r}")
+        values["hold"] = int(hold)
+        if values["t"] < 0:
+            raise ValueError(f"state['t'] must be >= 0 s, got {state['t']!r}")
+        if np.any(np.abs(values["action"]) > 1):
+            raise ValueError(f"state['action'] must lie in the action Box [-1, 1], "
+                             f"got {state['action']!r}")
+        limit = self.system.divergence_limit
+        if np.any(np.abs(values["x"]) >= limit) or np.any(np.abs(values["v"]) >= limit):
+            raise ValueError(f"state['x'] and state['v'] must be within divergence_limit = "
+                             f"{limit:g}")
+        error = self.single.distance_errors(values["x"]).max(initial=0.0)
+        if error > self.residual_limit:
+            raise ValueError(f"state['x'] leaves the constraints by {error:.3g} m > "
+                             f"residual_limit = {self.residual_limit:g} m")
+        return values
+
     def _lam(self) -> np.ndarray:
         return self.system.constraint_solver.lam
 
     # ------------------------------------------------------------------ actions and physics
-    def check_actions(self, actions: Any) -> np.ndarray:
+    def check_actions(self, actions: Any, single: bool = False) -> np.ndarray:
         """Validated, clipped actions (num_envs, action_dim) as float64.
 
-        ValueError for a wrong shape or a NaN/inf entry (nothing is changed then);
+        ``actions`` must have shape exactly ``(num_envs, action_dim)``, or ``(action_dim,)`` for
+        a ``single`` env: a batch of another shape is never reshaped, so no action reaches the
+        wrong copy. ValueError for a wrong shape or a NaN/inf entry (nothing is changed then);
         finite values outside [-1, 1] are clipped into the action Box.
         """
-        shape = (self.num_envs, self.action_dim)
+        shape = (self.action_dim,) if single else (self.num_envs, self.action_dim)
         try:
-            a = np.asarray(actions, dtype=np.float64)
-        except (TypeError, ValueError):
+            raw = np.asarray(actions)
+            if raw.dtype.kind not in "iuf":
+                raise TypeError
+            a = raw.astype(np.float64)
+        except (TypeError, ValueError, OverflowError):
             raise ValueError(f"action must be numeric, got {actions!r}") from None
         if a.shape != shape:
-            if a.size != self.num_envs * self.action_dim:
-                raise ValueError(f"action must have {self.action_dim} entries per env "
-                                 f"(shape {shape}), got shape {a.shape}")
-            a = a.reshape(shape)
+            raise ValueError(f"action must have shape {shape}, got shape {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action must be finite, got {actions!r}")
-        return np.clip(a, -1.0, 1.0)
+        return np.clip(a, -1.0, 1.0).reshape(self.num_envs, self.action_dim)
 
     def _actuate_rows(self, i: int, action: np.ndarray | None) -> None:
         """Write copy ``i``'s action into the tiled actuator (None: no actuation)."""
@@ -305,16 +369,15 @@ class ParticleTask:
             act.force[rows] = (0.0 if action is None else
                                self.force_vectors(action, self.positions()[envs]).reshape(-1, 2))
         elif action is None:
-            act.active[envs] = False
+            act.set(envs, active=np.zeros(len(envs), bool))
         else:
             # the spring action: the nearest particle within grab_radius of the grab point
             x = self.positions()[envs]
             grab = self.to_world(action[:, :2])
             d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
             nearest = np.argmin(d2, axis=1)
-            act.particle[envs] = envs * self.n + nearest
-            act.anchor[envs] = self.to_world(action[:, 2:])
-            act.active[envs] = d2[np.arange(len(envs)), nearest] <= self.grab_radius**2
+            act.set(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
+                    d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
 
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
@@ -328,9 +391,85 @@ class ParticleTask:
         if len(envs):
             self._actuate(envs, self.action[envs])
 
+    def pieces(self, system: ParticleSystem | None = None) -> np.ndarray:
+        """Into how many equal pieces the next physics step of each copy of ``system`` (default:
+        all copies) is split, so that no particle travels more than :attr:`step_travel` metres
+        per piece: an int array with one entry per copy.
+
+        A particle's reach over the step is estimated from its speed at mid-step if the actuator
+        alone accelerated it, ``(|v| + |F_act| dt / (2 m)) dt``. A copy that would need more than
+        :data:`MAX_PIECES` is beyond help and gets 1: the divergence check catches it.
+        """
+        s = self.system if system is None else system
+        copies = s.n // self.n
+        if self.step_travel == math.inf:
+            return np.ones(copies, np.int64)
+        F = np.zeros_like(s.x)
+        s.forces[-1].accumulate(s.x, s.v, s.mass, F)
+        speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
+            s.inv_mass * (0.5 * self.dt))
+        need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt / self.step_travel)
+        return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
+
+    def _physics_step(self, system: ParticleSystem) -> None:
+        """One physics step of ``dt`` for every copy of ``system``, each in its own number of
+        :meth:`pieces`; on SimulationDiverged the system is back in its state from before.
+
+        Copies that need different counts are advanced in separate runs of the whole system,
+        each copy keeping the run with its own count, so a copy's trajectory never depends on
+        the others' (copy ``i`` of a vector env still reproduces a single env). In a run with
+        fewer pieces than a copy needs, that copy waits parked at rest without actuation, so it
+        cannot make the run diverge.
+        """
+        need = self.pieces(system)
+        counts = np.unique(need)
+        solver = system.constraint_solver
+        x0, v0, t0, lam0 = system.x, system.v, system.t, solver.lam.copy()
+        if len(counts) == 1 and counts[0] == 1:
+            system.step(self.dt, self.integrator)
+            return
+        x, v, lam = x0.copy(), v0.copy(), lam0.copy()
+        try:
+            for k in counts:
+                system.x, system.v, system.t, solver.lam = x0.copy(), v0.copy(), t0, lam0.copy()
+                slower = need > k
+                with self._parked(system, slower):
+                    for _ in range(k):
+                        system.step(self.dt / k, self.integrator)
+                rows = np.repeat(need == k, self.n)
+                x[rows], v[rows] = system.x[rows], system.v[rows]
+                mine = (need == k)[self._row_env] if system is self.system else slice(None)
+                lam[mine] = solver.lam[mine]
+        except SimulationDiverged:
+            system.x, system.v, system.t, solver.lam = x0, v0, t0, lam0
+            raise
+        system.x, system.v, system.t, solver.lam = x, v, t0 + self.dt, lam
+
+    @contextlib.contextmanager
+    def _parked(self, system: ParticleSystem, copies: np.ndarray) -> Iterator[None]:
+        """Within the block, the masked ``copies`` of the tiled ``system`` rest in the scene's
+        initial state without actuation; their actuation is restored afterwards."""
+        if not copies.any():
+            yield
+            return
+        act = self.actuator
+        saved = act.force.copy() if isinstance(act, ConstantForce) else act.active.copy()
+        rows = np.repeat(copies, self.n)
+        system.x[rows] = np.tile(self.park, (self.num_envs, 1))[rows]
+        system.v[rows] = 0.0
+        self._actuate(np.flatnonzero(copies), None)
+        try:
+            yield
+        finally:
+            if isinstance(act, ConstantForce):
+                act.force[:] = saved
+            else:
+                act.set(np.arange(len(saved)), active=saved)
+
     def simulate(self) -> np.ndarray:
         """Advance every copy by ``substeps`` physics steps; returns the (num_envs,) mask of copies
-        whose simulation diverged.
+        whose simulation diverged (non-finite, beyond the divergence limit, or off a constraint
+        by more than ``residual_limit``).
 
         A diverged copy ends the step in its state from before this call. For the remaining
         physics steps it is parked in the scene's initial state, at rest and without actuation,
@@ -343,14 +482,14 @@ class ParticleTask:
         frozen = np.zeros(self.num_envs, bool)
         for _ in range(self.substeps):
             try:
-                s.step(self.dt, self.integrator)
+                self._physics_step(s)
             except SimulationDiverged:
                 bad = self._diverging()
                 frozen |= bad if bad.any() else True
                 self._put(frozen, park, rest)
                 if not frozen.all():
                     try:
-                        s.step(self.dt, self.integrator)
+                        self._physics_step(s)
                     except SimulationDiverged:
                         frozen[:] = True
             if frozen.all():
@@ -376,7 +515,7 @@ class ParticleTask:
         for i in range(self.num_envs):
             self.load_single(i)
             try:
-                self.single.step(self.dt, self.integrator)
+                self._physics_step(self.single)
             except SimulationDiverged:
                 bad[i] = True
         return bad
@@ -390,9 +529,7 @@ class ParticleTask:
         if isinstance(act, ConstantForce):
             mine.force[:] = act.force[i * self.rows_per_copy:(i + 1) * self.rows_per_copy]
         else:
-            mine.particle[0] = act.particle[i] - i * self.n
-            mine.anchor[0] = act.anchor[i]
-            mine.active[0] = act.active[i]
+            mine.set([0], [act.particle[i] - i * self.n], act.anchor[i], [act.active[i]])
         return one
 
     # ------------------------------------------------------------------ measures
@@ -407,7 +544,8 @@ class ParticleTask:
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
-        ``kinetic_energy`` (J), ``constraint_residual`` (max |C|) and ``is_success``.
+        ``kinetic_energy`` (J), ``constraint_residual`` (the largest distance, m, by which a
+        constraint is violated: see ``Constraint.distance_error``) and ``is_success``.
 
         ``stepped`` masks the copies that just took an env step: their count of consecutive
         steps at the goal and at rest advances (or restarts at 0).
@@ -418,8 +556,7 @@ class ParticleTask:
         mass = self.system.mass.reshape(N, n)
         residual = np.zeros(N)
         if self.system.constraints:
-            C, _ = self.system.constraint_residual()
-            np.maximum.at(residual, self._row_env, np.abs(C))
+            np.maximum.at(residual, self._row_env, self.system.distance_errors())
         distance = np.abs(self.tracked(self.positions()) - self.goal)
         speed = np.sqrt(np.mean(v2, axis=1))
         if stepped is not None:
@@ -508,7 +645,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` for one env step (``substeps`` physics steps)."""
-        a = self.task.check_actions(action)
+        a = self.task.check_actions(action, single=True)
         self.task.apply(a)
         diverged = self.task.simulate()
         obs, info = self._result(diverged, ~diverged)
@@ -530,7 +667,16 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         return state
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Restore a state from :meth:`get_state` (ValueError if it is malformed)."""
+        """Restore a state from :meth:`get_state`; ValueError naming the field if any field is
+        malformed, and then nothing changes (``np_random`` included)."""
+        if isinstance(state, dict) and "np_random" in state:
+            trial = type(self.np_random.bit_generator)()
+            try:
+                trial.state = state["np_random"]
+            except (TypeError, ValueError, KeyError, OverflowError):
+                raise ValueError(f"state['np_random'] must be the state of a "
+                                 f"{type(trial).__name__} from get_state(), got "
+                                 f"{state['np_random']!r}") from None
         self.task.set_state(0, state)
         if "np_random" in state:
             self.np_random.bit_generator.state = state["np_random"]

@@ -35,16 +35,18 @@ class ClothSlide(ParticleTask):
                  max_force: float = 1.0, goal_range: tuple[float, float] = (-0.6, 0.6),
                  min_distance: float = 0.3, goal_tolerance: float = 0.05,
                  rest_speed: float = 0.05, hold_steps: int = 5, grab_radius: float = 0.2,
-                 mouse_ks: float = 20.0, mouse_kd: float = 0.5) -> None:
+                 mouse_ks: float = 20.0, mouse_kd: float = 0.5,
+                 residual_limit: float = 0.01) -> None:
         try:
             nx, ny = (int(c) for c in cloth_size)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ValueError(f"cloth_size must be a (columns, rows) pair of ints, "
                              f"got {cloth_size!r}") from None
-        if nx < 2 or ny < 2 or (nx, ny) != tuple(cloth_size):
-            raise ValueError(f"cloth_size must be two integers >= 2, got {cloth_size!r}")
+        if nx < 2 or ny < 2 or (nx, ny) != tuple(cloth_size) or nx * ny > 10**5:
+            raise ValueError(f"cloth_size must be two integers >= 2 with at most 1e5 particles, "
+                             f"got {cloth_size!r}")
         self.nx, self.ny = nx, ny
-        self.spacing = check_positive("spacing", spacing)
+        self.spacing = check_positive("spacing", spacing, minimum=1e-3, maximum=1e3)
         self.particle_mass = check_positive("particle_mass", particle_mass)
         self.cloth_ks = check_positive("cloth_ks", cloth_ks)
         self.cloth_kd = check_positive("cloth_kd", cloth_kd, allow_zero=True)
@@ -68,7 +70,8 @@ class ClothSlide(ParticleTask):
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps)
+                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         residual_limit=residual_limit)
         self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
         self.weight = float(np.sum(self.single.mass) * scenes.G)
 

@@ -31,9 +31,9 @@ class SliderCrank(ParticleTask):
                  min_distance: float = 0.1, max_start_speed: float = 2.0,
                  goal_tolerance: float = 0.02, rest_speed: float = 0.05,
                  hold_steps: int = 5, grab_radius: float = 0.2, mouse_ks: float = 20.0,
-                 mouse_kd: float = 1.0) -> None:
-        self.radius = check_positive("radius", radius)
-        self.rod = check_positive("rod", rod)
+                 mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
+        self.radius = check_positive("radius", radius, minimum=1e-3, maximum=1e3)
+        self.rod = check_positive("rod", rod, minimum=1e-3, maximum=1e3)
         if self.rod <= self.radius:
             raise ValueError(f"rod must exceed radius so the slider can always reach the wire, "
                              f"got rod={rod}, radius={radius}")
@@ -48,12 +48,16 @@ class SliderCrank(ParticleTask):
                              f"({self.rod - self.radius:g}, {self.rod + self.radius:g}) m, "
                              f"got {goal_range!r}")
         r, L = self.radius, self.rod
+        # rk4 carries the crank's rotation to about 1 rad per step (13 m/s at the defaults) and
+        # then loses the wire: steps longer than 0.4 rad of crank turn are split
+        self.step_travel = 0.4 * r
         self.view = (-r - 0.15, -r - 0.15, L + r + 0.15, r + 0.15)
         self.goal_height = 0.0
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps)
+                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         residual_limit=residual_limit)
 
     def build_scene(self) -> ParticleSystem:
         """``scenes.wire_mixture`` (crank 0 on a circle about the origin, slider 1 on y = 0, a rod

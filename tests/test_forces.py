@@ -325,9 +325,11 @@ def test_mouse_spring_grab_move_release():
     assert not s.applied_forces(s.x, s.v).any() and s.potential_energy() == 0.0
     with pytest.raises(ValueError, match="particle"):
         mouse.grab(-1, (0.0, 0.0))
-    mouse.grab(4, (0.0, 0.0))  # checked against the system at the next evaluation
-    with pytest.raises(ValueError, match="particle holds unknown particle indices"):
-        s.applied_forces(s.x, s.v)
+    # a bound spring checks the index against its system at once, and changes nothing
+    with pytest.raises(ValueError, match="particles holds unknown particle indices"):
+        mouse.grab(4, (0.0, 0.0))
+    assert not mouse.active.any() and int(mouse.particle[0]) == 2
+    np.testing.assert_array_equal(mouse.anchor[0], (-1.0, 0.5))
 
 
 # ---------------------------------------------------------------- momentum conservation

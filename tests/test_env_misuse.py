@@ -1,0 +1,175 @@
+"""The environments under misuse and under hostile action sequences (issue 10).
+
+Every env case of the issue has a test: the slider-crank spring-mode explosion no longer happens
+and a step that leaves its constraints is flagged, bad ``gym.make`` arguments get a ValueError
+naming them, wrongly shaped action batches are rejected, and a rejected ``set_state`` changes
+nothing. Residuals are measured here from the positions and the wires' geometry, not taken from
+the env.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the ids)
+
+
+def crank_residual(env: gym.Env) -> float:
+    """Largest distance (m) by which the slider-crank leaves its circle, wire or rod."""
+    task = env.unwrapped.task
+    x = task.system.x.reshape(-1, 2, 2)
+    circle = np.abs(np.linalg.norm(x[:, 0], axis=1) - task.radius)
+    wire = np.abs(x[:, 1, 1])
+    rod = np.abs(np.linalg.norm(x[:, 0] - x[:, 1], axis=1) - task.rod)
+    return float(np.max([circle, wire, rod]))
+
+
+def test_issue_repro_spring_mode_no_longer_explodes():
+    """reset(seed=110), actions uniform(-1, 1, 4) from default_rng(110): exploded at step 99."""
+    env = gym.make("SliderCrank-v0", action_mode="spring")
+    env.reset(seed=110)
+    rng = np.random.default_rng(110)
+    for _ in range(150):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4))
+        assert not info["diverged"]
+        assert crank_residual(env) < 0.01 and np.isfinite(reward) and reward > -5
+        if terminated or truncated:
+            env.reset()
+
+
+def test_constant_full_force_spins_the_crank_without_diverging():
+    """Full tangential force on every step drives the crank to about 10 m/s (30 rad/s), where
+    25 ms rk4 steps used to lose the wire after ~130 env steps."""
+    env = gym.make("SliderCrank-v0", max_episode_steps=400)
+    env.reset(seed=1)
+    top = 0.0
+    for _ in range(300):
+        obs, reward, terminated, truncated, info = env.step(np.ones(1, np.float32))
+        assert not info["diverged"] and not truncated
+        assert crank_residual(env) < 0.01
+        top = max(top, float(np.abs(env.unwrapped.task.system.v).max()))
+    assert top > 8.0  # the fast regime was really reached
+
+
+def test_fast_copies_are_split_into_pieces_without_touching_the_slow_ones():
+    vec = gym.make_vec("SliderCrank-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    single = gym.make("SliderCrank-v0")
+    vec.reset(seed=4)
+    single.reset(seed=4)
+    task = vec.unwrapped.task
+    state = task.get_state(1)
+    state["v"] = state["v"] * 0.0
+    # copy 1 spun up to 30 m/s along its constraints (from the linkage's exact kinematics):
+    # more than 2 rad of crank turn per unsplit 25 ms step
+    x, v = task.linkage(0.4, 100.0)
+    state.update(x=x, v=v)
+    task.set_state(1, state)
+    assert task.pieces()[0] == 1 and task.pieces()[1] >= 6
+    for _ in range(5):
+        a = np.array([[0.3], [-0.2]], np.float32)
+        o_vec, _, _, truncated, info = vec.step(a)
+        o_single = single.step(a[0])[0]
+        np.testing.assert_allclose(o_vec[0], o_single, rtol=0, atol=1e-6)
+        assert not info["diverged"].any() and not truncated.any()
+    assert crank_residual(vec) < 0.01
+
+
+def test_leaving_the_constraints_is_flagged_and_the_state_kept():
+    env = gym.make("SliderCrank-v0", residual_limit=1e-12)
+    env.reset(seed=3)
+    before = env.unwrapped.get_state()
+    obs, reward, terminated, truncated, info = env.step(np.ones(1, np.float32))
+    assert info["diverged"] and truncated and not terminated
+    after = env.unwrapped.get_state()
+    assert after["x"].tobytes() == before["x"].tobytes()
+    assert np.all(np.isfinite(obs)) and np.isfinite(reward)
+
+
+@pytest.mark.parametrize(("env_id", "kwargs", "name"), [
+    ("SliderCrank-v0", {"dt": 1e-310}, "dt"),
+    ("ClothSlide-v0", {"dt": 1e-310}, "dt"),
+    ("SliderCrank-v0", {"dt": True}, "dt"),
+    ("SliderCrank-v0", {"radius": 1e300}, "radius"),
+    ("SliderCrank-v0", {"rod": 1e300}, "rod"),
+    ("SliderCrank-v0", {"max_start_speed": 1e300}, "max_start_speed"),
+    ("SliderCrank-v0", {"particle_mass": 1e-310}, "mass"),
+    ("SliderCrank-v0", {"substeps": 10**12}, "substeps"),
+    ("SliderCrank-v0", {"residual_limit": "1cm"}, "residual_limit"),
+    ("SliderCrank-v0", {"residual_limit": -0.01}, "residual_limit"),
+    ("ClothSlide-v0", {"cloth_size": (float("inf"), 3)}, "cloth_size"),
+    ("ClothSlide-v0", {"cloth_size": (10**6, 10**6)}, "cloth_size"),
+    ("ClothSlide-v0", {"spacing": 1e300}, "spacing"),
+    ("ClothSlide-v0", {"mouse_ks": float("nan")}, "mouse_ks"),
+    ("ClothSlide-v0", {"integrator": ["rk4"]}, "integrator"),
+])
+def test_extreme_make_arguments_get_a_value_error(env_id, kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        gym.make(env_id, **kwargs)
+
+
+@pytest.mark.parametrize("shape", [(2, 4), (8,), (1, 8), (4, 4, 1), (4,)])
+def test_vector_actions_must_have_exactly_the_batch_shape(shape):
+    vec = gym.make_vec("SliderCrank-v0", num_envs=4, vectorization_mode="vector_entry_point",
+                       action_mode="spring")
+    vec.reset(seed=0)
+    x = vec.unwrapped.task.system.x.copy()
+    with pytest.raises(ValueError, match=r"action must have shape \(4, 4\)"):
+        vec.step(np.zeros(shape, np.float32))
+    assert vec.unwrapped.task.system.x.tobytes() == x.tobytes()
+    vec.step(np.zeros((4, 4), np.float32))  # the right shape still works
+
+
+@pytest.mark.parametrize("action", [np.zeros((1, 1)), 0.5, np.zeros(2), ["a"], np.array([True])])
+def test_single_env_actions_must_have_the_action_shape(action):
+    env = gym.make("SliderCrank-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action"):
+        env.step(action)
+
+
+BAD_STATES = [
+    ("hold", 1e300), ("hold", -5), ("hold", 2.7), ("hold", True), ("t", -1.0),
+    ("t", float("nan")), ("goal", "far"), ("x", np.zeros((3, 2))), ("v", [[np.inf, 0.0]] * 2),
+    ("action", [5.0]), ("lam", np.zeros(7)), ("np_random", {"garbage": 1}),
+    ("np_random", np.random.MT19937(0).state), ("np_random", None),
+]
+
+
+@pytest.mark.parametrize(("key", "value"), BAD_STATES, ids=[k for k, _ in BAD_STATES])
+def test_rejected_set_state_changes_nothing(key, value):
+    env = gym.make("SliderCrank-v0").unwrapped
+    env.reset(seed=5)
+    env.step(np.ones(1, np.float32))
+    saved = env.get_state()
+    env.step(np.ones(1, np.float32))
+    before = env.get_state()
+    with pytest.raises(ValueError, match=key):
+        env.set_state({**saved, key: value})
+    after = env.get_state()
+    for k in ("x", "v", "action", "lam"):
+        assert after[k].tobytes() == before[k].tobytes()
+    assert (after["t"], after["goal"], after["hold"]) == (before["t"], before["goal"],
+                                                         before["hold"])
+    assert after["np_random"] == before["np_random"]
+
+
+def test_set_state_rejects_positions_off_the_constraints():
+    env = gym.make("SliderCrank-v0").unwrapped
+    env.reset(seed=5)
+    state = env.get_state()
+    with pytest.raises(ValueError, match="leaves the constraints"):
+        env.set_state({**state, "x": state["x"] + 0.05})
+    env.set_state(state)  # the original is fine
+
+
+def test_spring_actuator_cannot_be_written_around():
+    env = gym.make("SliderCrank-v0", action_mode="spring")
+    env.reset(seed=0)
+    mouse = env.unwrapped.task.actuator
+    with pytest.raises(ValueError):
+        mouse.particle[0] = 10**6
+    with pytest.raises(ValueError, match="unknown particle"):
+        mouse.set([0], particles=[10**6], active=[True])
+    env.step(np.zeros(4, np.float32))  # still fine
