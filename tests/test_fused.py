@@ -165,19 +165,29 @@ def test_in_place_edits_are_seen_and_replaced_arrays_repacked():
 
 
 def test_out_of_range_index_never_reaches_compiled_code():
-    """Whatever a user writes into a block, the kernel checks indices before reading."""
+    """Bad indices are refused at the door, block arrays cannot be edited behind the system's
+    back, and the kernel itself checks every index it reads before reading."""
     s = every_block(2)
-    mouse = s.forces[7]
-    mouse.particle = np.array([10**6])  # replaced attribute
-    with pytest.raises((ValueError, IndexError)):
-        s.step(1e-3, "rk4")
-    s2 = every_block(2)
-    status, *_ = fused.run(s2, 1e-3, "rk4", 1, s2.constraint_solver.lam.copy(), np.inf)
-    assert status == fused.OK
-    idx = np.array(s2.forces[2].i)  # a writable copy put in place, then corrupted in place
-    s2.forces[2].i = idx
+    with pytest.raises(ValueError, match="particle"):
+        s.forces[7].particle = np.array([10**6])  # replaced attribute: validated
+    idx = np.array(s.forces[2].i)
+    s.forces[2].i = idx  # the block keeps its own read-only copy
     idx[0] = 10**6
-    status, *_ = fused.run(s2, 1e-3, "rk4", 1, s2.constraint_solver.lam.copy(), np.inf)
+    with pytest.raises(ValueError):
+        s.forces[2].i[0] = 10**6
+    status, *_ = fused.run(s, 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), np.inf)
+    assert status == fused.OK
+    # the kernel's own guard: hand it a corrupted copy of the spring indices directly
+    p = fused.pack(s)
+    bad = p.spring[0].copy()
+    bad[0] = 10**6
+    bad.flags.writeable = False  # the same array type as the pack's: no new compilation
+    args = list(p.args)
+    args[2] = (bad, *p.spring[1:])
+    x, v = s.x.copy(), s.v.copy()
+    status, _ = fused._fused_steps(2, 1, 1e-3, x, v, s.mass, s.inv_mass,
+                                   s.constraint_solver.lam.copy(), np.empty_like(x),
+                                   np.empty_like(v), 100.0, 20.0, 1e-10, 1e6, np.inf, *args)
     assert status == fused.FALLBACK
 
 
