@@ -392,13 +392,16 @@ class ParticleTask:
             self._actuate(envs, self.action[envs])
 
     def pieces(self, system: ParticleSystem | None = None) -> np.ndarray:
-        """Into how many equal pieces the next physics step of each copy of ``system`` (default:
-        all copies) is split, so that no particle travels more than :attr:`step_travel` metres
-        per piece: an int array with one entry per copy.
+        """Into how many equal pieces each physics step of the next env step of each copy of
+        ``system`` (default: all copies) is split, so that no particle travels more than
+        :attr:`step_travel` metres per piece: an int array with one entry per copy, decided
+        once per env step from the copy's own state (so a copy of a vector env decides as a
+        single env would).
 
-        A particle's reach over the step is estimated from its speed at mid-step if the actuator
-        alone accelerated it, ``(|v| + |F_act| dt / (2 m)) dt``. A copy that would need more than
-        :data:`MAX_PIECES` is beyond help and gets 1: the divergence check catches it.
+        A particle's speed over the env step is bounded by its speed at the end of it if the
+        actuator alone accelerated it, ``|v| + |F_act| substeps dt / m``, and its reach per
+        physics step by that times dt. A copy that would need more than :data:`MAX_PIECES` is
+        beyond help and gets 1: the divergence check catches it.
         """
         s = self.system if system is None else system
         copies = s.n // self.n
@@ -407,13 +410,14 @@ class ParticleTask:
         F = np.zeros_like(s.x)
         s.forces[-1].accumulate(s.x, s.v, s.mass, F)
         speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
-            s.inv_mass * (0.5 * self.dt))
+            s.inv_mass * (self.substeps * self.dt))
         need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt / self.step_travel)
         return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
 
-    def _physics_step(self, system: ParticleSystem) -> None:
+    def _physics_step(self, system: ParticleSystem, need: np.ndarray | None = None) -> None:
         """One physics step of ``dt`` for every copy of ``system``, each in its own number of
-        :meth:`pieces`; on SimulationDiverged the system is back in its state from before.
+        pieces (``need``, default :meth:`pieces`); on SimulationDiverged the system is back in
+        its state from before.
 
         Copies that need different counts are advanced in separate runs of the whole system,
         each copy keeping the run with its own count, so a copy's trajectory never depends on
@@ -421,7 +425,7 @@ class ParticleTask:
         fewer pieces than a copy needs, that copy waits parked at rest without actuation, so it
         cannot make the run diverge.
         """
-        need = self.pieces(system)
+        need = self.pieces(system) if need is None else need
         counts = np.unique(need)
         solver = system.constraint_solver
         x0, v0, t0, lam0 = system.x, system.v, system.t, solver.lam.copy()
@@ -476,20 +480,30 @@ class ParticleTask:
         so that it cannot drag the other copies down; no NaN ever leaves this method.
         """
         s = self.system
+        need = self.pieces(s)
+        if need.max() == 1:
+            # the usual case: every substep of every copy in one compiled call (bit for bit the
+            # same as stepping them one by one); a divergence leaves the state as it was and
+            # the careful path below finds the copy and parks it
+            try:
+                s.step(self.dt, self.integrator, steps=self.substeps)
+                return np.zeros(self.num_envs, bool)
+            except SimulationDiverged:
+                pass
         x0, v0 = s.x.copy(), s.v.copy()
         park = np.tile(self.park, (self.num_envs, 1))
         rest = np.zeros_like(v0)
         frozen = np.zeros(self.num_envs, bool)
         for _ in range(self.substeps):
             try:
-                self._physics_step(s)
+                self._physics_step(s, need)
             except SimulationDiverged:
                 bad = self._diverging()
                 frozen |= bad if bad.any() else True
                 self._put(frozen, park, rest)
                 if not frozen.all():
                     try:
-                        self._physics_step(s)
+                        self._physics_step(s, need)
                     except SimulationDiverged:
                         frozen[:] = True
             if frozen.all():

@@ -235,7 +235,7 @@ class ClothPin(ParticleTask):
         ends = np.where(new, anchor[:, None], ends) + base[:, None]
         k = envs * self.max_springs + self.placed[envs]
         sp = self.springs
-        sp.i[k], sp.j[k] = ends[:, 0], ends[:, 1]
+        self._rewire(k, ends[:, 0], ends[:, 1])
         sp.rest[k] = np.linalg.norm(self.system.x[ends[:, 0]] - self.system.x[ends[:, 1]],
                                     axis=1)
         sp.ks[k] = self.stiffness(action[:, 4])
@@ -245,13 +245,21 @@ class ClothPin(ParticleTask):
         out[np.flatnonzero(ok)] = True
         return out
 
+    def _rewire(self, slots: np.ndarray, i: np.ndarray, j: np.ndarray) -> None:
+        """Point spring ``slots`` at particles ``i``, ``j``. A block's index arrays are read-only:
+        new arrays replace them, validated against the system by the block."""
+        sp = self.springs
+        new_i, new_j = sp.i.copy(), sp.j.copy()
+        new_i[slots], new_j[slots] = i, j
+        sp.i, sp.j = new_i, new_j
+
     def _clear_springs(self, envs: np.ndarray) -> None:
         """Every spring of copies ``envs`` back to unplaced (anchor k -> particle 0, ks = 0)."""
         k = self._slots(envs)
         base = envs[:, None] * self.n
         sp = self.springs
-        sp.i[k] = base + self.anchors[None, :]
-        sp.j[k] = base
+        self._rewire(k.ravel(), np.broadcast_to(base + self.anchors[None, :], k.shape).ravel(),
+                     np.broadcast_to(base, k.shape).ravel())
         sp.rest[k] = sp.ks[k] = sp.kd[k] = 0.0
         self.placed[envs] = 0
         self.anchors_used[envs] = 0
@@ -286,8 +294,10 @@ class ClothPin(ParticleTask):
         """Copy ``i``'s state, push and springs into :attr:`single`."""
         one = super().load_single(i)
         mine, k = one.forces[self._block], self._slots(np.array([i]))[0]
-        for name in ("i", "j"):
-            getattr(mine, name)[:] = getattr(self.springs, name)[k] - i * self.n
+        new_i = self.springs.i[k] - i * self.n
+        new_j = self.springs.j[k] - i * self.n
+        if not (np.array_equal(new_i, mine.i) and np.array_equal(new_j, mine.j)):
+            mine.i, mine.j = new_i, new_j  # read-only index arrays are replaced, not edited
         for name in ("rest", "ks", "kd"):
             getattr(mine, name)[:] = getattr(self.springs, name)[k]
         return one
@@ -337,8 +347,8 @@ class ClothPin(ParticleTask):
         super().set_state(i, state)
         k = self._slots(np.array([i]))[0]
         sp = self.springs
-        sp.i[k] = ends[0].astype(np.int64) + i * self.n
-        sp.j[k] = ends[1].astype(np.int64) + i * self.n
+        offset = i * self.n
+        self._rewire(k, ends[0].astype(np.int64) + offset, ends[1].astype(np.int64) + offset)
         sp.rest[k], sp.ks[k], sp.kd[k] = (values["spring_rest"], values["spring_ks"],
                                           values["spring_kd"])
         self.placed[i], self.anchors_used[i] = counts["placed"], counts["anchors_used"]
