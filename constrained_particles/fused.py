@@ -283,12 +283,12 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     p = pack(system)
     if not p.valid:  # unsupported blocks, or an index out of range
         return FALLBACK, system.x, system.v, 0
-    x = np.ascontiguousarray(system.x, dtype=np.float64)
-    v = np.ascontiguousarray(system.v, dtype=np.float64)
-    mass = np.ascontiguousarray(system.mass, dtype=np.float64)
-    inv_mass = np.ascontiguousarray(system.inv_mass, dtype=np.float64)
-    if (x.shape != (p.n, 2) or v.shape != (p.n, 2) or mass.shape != (p.n,)
-            or inv_mass.shape != (p.n,) or lam.shape != (p.m,) or lam.dtype != np.float64):
+    x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
+    for arr in (x, v, mass, inv_mass, lam):  # float64 shapes were checked by the caller
+        if not (type(arr) is np.ndarray and arr.flags.c_contiguous and arr.dtype == np.float64):
+            return FALLBACK, system.x, system.v, 0
+    if x.shape != (p.n, 2) or v.shape != (p.n, 2) or lam.shape != (p.m,) or len(mass) != p.n \
+            or len(inv_mass) != p.n:
         return FALLBACK, system.x, system.v, 0
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)

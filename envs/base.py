@@ -134,6 +134,8 @@ class ParticleTask:
                  mouse_kd: float, goal_tolerance: float, rest_speed: float,
                  hold_steps: int, residual_limit: float = 0.01) -> None:
         self.num_envs = check_positive("num_envs", num_envs, integer=True, maximum=10**6)
+        self._every = np.arange(self.num_envs)
+        self._one_piece = np.ones(self.num_envs, np.int64)
         if not isinstance(action_mode, str) or action_mode not in ACTION_MODES:
             raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
         if not isinstance(integrator, str) or integrator not in METHODS:
@@ -342,6 +344,12 @@ class ParticleTask:
         finite values outside [-1, 1] are clipped into the action Box.
         """
         shape = (self.action_dim,) if single else (self.num_envs, self.action_dim)
+        if (type(actions) is np.ndarray and actions.dtype.kind == "f"
+                and actions.shape == shape):  # the usual case, checked in a few operations
+            a = actions.astype(np.float64).reshape(self.num_envs, self.action_dim)
+            if not np.isfinite(a).all():
+                raise ValueError(f"action must be finite, got {actions!r}")
+            return np.clip(a, -1.0, 1.0, out=a)
         try:
             raw = np.asarray(actions)
             if raw.dtype.kind not in "iuf":
@@ -364,6 +372,10 @@ class ParticleTask:
         actuator; ``None`` switches their actuation off."""
         act = self.actuator
         if isinstance(act, ConstantForce):
+            if len(envs) == self.num_envs:  # every copy (envs is then arange): no gathers
+                act.force[:] = (0.0 if action is None else
+                                self.force_vectors(action, self.positions()).reshape(-1, 2))
+                return
             k = self.rows_per_copy
             rows = (envs[:, None] * k + np.arange(k)).ravel()
             act.force[rows] = (0.0 if action is None else
@@ -383,6 +395,9 @@ class ParticleTask:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
         actuation (their action is ignored)."""
         self.action[:] = actions
+        if idle is None or not idle.any():
+            self._actuate(self._every, self.action)
+            return
         envs = np.arange(self.num_envs)
         if idle is not None and idle.any():
             self.action[idle] = 0.0
@@ -480,8 +495,8 @@ class ParticleTask:
         so that it cannot drag the other copies down; no NaN ever leaves this method.
         """
         s = self.system
-        need = self.pieces(s)
-        if need.max() == 1:
+        need = self._one_piece if self.step_travel == math.inf else self.pieces(s)
+        if need is self._one_piece or need.max() == 1:
             # the usual case: every substep of every copy in one compiled call (bit for bit the
             # same as stepping them one by one); a divergence leaves the state as it was and
             # the careful path below finds the copy and parks it
@@ -548,13 +563,21 @@ class ParticleTask:
 
     # ------------------------------------------------------------------ measures
     def observe(self) -> np.ndarray:
-        """Observations (num_envs, 4 n + 1) float32: normalized positions, velocities, goal."""
-        N = self.num_envs
-        pos = self.to_normalized(self.positions()).reshape(N, -1)
-        vel = (self.velocities() / self.half).reshape(N, -1)
-        goal = (self.goal[:, None] - self.center[0]) / self.half[0]
-        obs = np.concatenate([pos, vel, goal], axis=1)
-        return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
+        """Observations (num_envs, 4 n + 1) float32: normalized positions, velocities, goal.
+
+        Written straight into one float32 array (a handful of whole-array operations, no
+        per-copy Python), then clipped to [-OBS_LIMIT, OBS_LIMIT] in place."""
+        N, n = self.num_envs, self.n
+        s = self.system
+        obs = np.empty((N, 4 * n + 1), np.float32)
+        inv_half = 1.0 / self.half
+        pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
+        np.multiply((s.x - self.center).reshape(N, n, 2), inv_half, out=pos, casting="same_kind")
+        vel = obs[:, 2 * n:4 * n].reshape(N, n, 2)
+        np.multiply(s.v.reshape(N, n, 2), inv_half, out=vel, casting="same_kind")
+        obs[:, -1] = (self.goal - self.center[0]) * inv_half[0]
+        np.clip(obs, -OBS_LIMIT, OBS_LIMIT, out=obs)
+        return obs
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -565,19 +588,21 @@ class ParticleTask:
         steps at the goal and at rest advances (or restarts at 0).
         """
         N, n = self.num_envs, self.n
-        v = self.velocities()
-        v2 = np.ascontiguousarray(np.sum(v * v, axis=2))
-        mass = self.system.mass.reshape(N, n)
+        s = self.system
+        v = s.v
+        v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
         residual = np.zeros(N)
-        if self.system.constraints:
-            np.maximum.at(residual, self._row_env, self.system.distance_errors())
+        for c in s.constraints:  # tiled blocks list their rows copy by copy
+            err = c.distance_error(s.x)
+            if err.size:
+                np.maximum(residual, err.reshape(N, -1).max(axis=1), out=residual)
         distance = np.abs(self.tracked(self.positions()) - self.goal)
-        speed = np.sqrt(np.mean(v2, axis=1))
+        speed = np.sqrt(v2.sum(axis=1) * (1.0 / n))
         if stepped is not None:
             settled = (distance < self.goal_tolerance) & (speed < self.rest_speed)
             self.hold[stepped] = np.where(settled[stepped], self.hold[stepped] + 1, 0)
         return {"distance": distance, "speed": speed,
-                "kinetic_energy": 0.5 * np.sum(mass * v2, axis=1),
+                "kinetic_energy": 0.5 * (s.mass.reshape(N, n) * v2).sum(axis=1),
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}
 
