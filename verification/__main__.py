@@ -4,6 +4,7 @@ The same subcommands run as ``python -m verification`` and as ``cparticles verif
 
     python -m verification orders [--quick] [--json]
     python -m verification pymunk [--quick] [--json]
+    python -m verification energy [--quick] [--json] [--steps N] [--plot PNG]
     python -m verification report --out DIR [--quick]
 """
 
@@ -25,6 +26,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--json", action="store_true",
                        help='print {"case": {"method": order, ...}, ...} instead of a table')
         p.add_argument("--progress", action="store_true", help="show a progress bar")
+    text = "long-run energy error of every integrator (bounded or drifting)"
+    p = sub.add_parser("energy", help=text, description=text)
+    p.add_argument("--quick", action="store_true", help="fewer steps")
+    p.add_argument("--steps", type=int, default=None, help="steps per run (default: 100000, "
+                                                             "quick: 3000)")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures per system and method as JSON instead of a table")
+    p.add_argument("--plot", default=None, help="also save the energy-error plot to this PNG")
+    p.add_argument("--progress", action="store_true", help="show a progress bar")
     p = sub.add_parser("report", help="write the Markdown/JSON/PNG verification report",
                        description="run every experiment and write report.md, report.json and "
                                    "PNG plots into --out")
@@ -52,6 +62,23 @@ def main(args: argparse.Namespace) -> int:
                               for n, r in results.items()}, indent=1))
         else:
             print(pymunk_table(results))
+    elif args.verify_command == "energy":
+        from .longrun import LONG_STEPS, QUICK_STEPS, long_run_table, long_runs, plot_long_runs
+        from .report import _jsonable
+
+        steps = args.steps or (QUICK_STEPS if args.quick else LONG_STEPS)
+        if steps < 3:
+            raise SystemExit(f"--steps must be >= 3, got {steps}")
+        results = long_runs(steps, progress=args.progress)
+        if args.plot:
+            plot_long_runs(results, args.plot)
+        if args.json:
+            keep = ("max_error", "trend", "oscillation", "trend_ratio", "max_constraint",
+                    "diverged_at", "cpu", "steps", "h")
+            print(json.dumps(_jsonable({name: {m: {k: r[k] for k in keep} for m, r in per.items()}
+                                        for name, per in results.items()}), indent=1))
+        else:
+            print(long_run_table(results))
     else:
         from .report import write_report
 
