@@ -42,7 +42,8 @@ restoring force goes through a force Jacobian keeps ``1/(1 + (w h)^2)`` of its e
   lose over 99.6 % of their energy in each step of 1/60 s, which is why it is stable there.
 
 Use it where stability at large steps matters more than energy (stiff cloth at 60 Hz); use
-``rk4`` or ``symplectic_euler`` for energy-accurate motion. Walls are linearized only once a
+``rattle`` for long energy-conserving runs with constraints and ``rk4`` for short accurate ones
+(see :mod:`constrained_particles.integrators`). Walls are linearized only once a
 particle is inside: a particle arriving at speed |v| can penetrate about |v| h before the wall
 acts, and that stored energy appears within a step.
 """
@@ -259,8 +260,10 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
     ``drift_correction`` (beta, dimensionless in [0, 1]: the fraction of the constraint error C
     removed per step) and ``compliance`` (c >= 0, in units of C per unit of lam, m/N for line
     wires and fixed points; 0 is a hard constraint). Raises :class:`ImplicitSolveError` if the
-    KKT system is singular (e.g. redundant constraints with zero compliance) or the solve is
-    inaccurate, ``NotImplementedError`` for a force block without Jacobians.
+    KKT system is singular or the solve is inaccurate (its message names linearly dependent
+    constraint rows, which need compliance > 0, when there are any), the explicit methods'
+    ``ValueError`` for a constraint row with a vanishing gradient (a rod whose ends coincide),
+    ``NotImplementedError`` for a force block without Jacobians.
     """
     asm = _assembly(system)
     solver = asm.solver
