@@ -416,11 +416,11 @@ def test_vanishing_gradient_is_the_explicit_methods_value_error():
     s.x[a] = s.x[o]
     x0 = s.x.copy()
     messages = []
-    for method in ("rk4", "implicit_euler"):
+    for method in ("rk4", "implicit_euler", "rattle"):
         with pytest.raises(ValueError, match="vanishing gradient") as err:
             s.step(1 / 60, method=method)
         messages.append(str(err.value))
-    assert messages[0] == messages[1]
+    assert messages[0] == messages[1] == messages[2]
     np.testing.assert_array_equal(s.x, x0)
 
 
