@@ -16,11 +16,13 @@ direction the constraint force of the step has. The matrix is ``J(x1) W J(x1)^T`
 the exact ``J(x1) W J(x0)^T``, so the iteration converges linearly, gaining a factor of about
 ``h |v| / L`` per iteration (L the constraint's length scale: radius, rod length); at
 h = 2 ms on the 1 m pendulum that is 3-5 iterations from the unconstrained prediction to
-roundoff. It stops once every row is within :data:`POSITION_TOL` times the system's size (the
-largest coordinate) of its constraint, as a distance ``|C_r| / |J_r|`` in metres, and raises
-:class:`RattleSolveError` naming the rows that are not if it does not get there in
-:data:`MAX_ITERATIONS` iterations (too large a step), or if a row's residual stops falling while
-still above :data:`STALL_TOL` times the system's size.
+roundoff. Each connected component of the constraint graph (rows sharing a coordinate) stops
+once every row of it is within :data:`POSITION_TOL` times the component's size (the largest
+coordinate of its particles, m) of its constraint, as a distance ``|C_r| / |J_r|`` in metres, or
+once its residual stops falling at most :data:`STALL_TOL` times its size (its roundoff floor);
+a component that stops takes no further corrections, so tiled copies iterate as they would
+alone. :class:`RattleSolveError` names the rows that do not get there in
+:data:`MAX_ITERATIONS` iterations (too large a step).
 
 Properties (measured in tests/test_rattle.py and the verification report):
 
@@ -42,22 +44,25 @@ Stiff springs limit the step as for any explicit method (``w h < 2`` for the fas
 
 from __future__ import annotations
 
+import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from .integrators import METHODS, ORDERS, State
+from .solver import ConstraintSolver
 from .system import SimulationDiverged
 
 if TYPE_CHECKING:
-    from .solver import ConstraintSolver
     from .system import ParticleSystem
 
-#: Convergence of the position solve: every row within this fraction of the system's size (its
-#: largest coordinate, m) of its constraint, as a distance |C_r| / |J_r|.
+#: Convergence of the position solve: every row within this fraction of its component's size
+#: (the largest coordinate of its particles, m) of its constraint, as a distance |C_r| / |J_r|.
 POSITION_TOL = 1e-13
-#: A position solve whose residual stops falling (less than halved by an iteration) is accepted
-#: at its roundoff floor if every row is within this fraction of the system's size.
+#: A component whose residual stops falling (less than halved by an iteration) is accepted at
+#: its roundoff floor if every row is within this fraction of the component's size.
 STALL_TOL = 1e-10
 #: Newton iterations allowed per step before :class:`RattleSolveError`.
 MAX_ITERATIONS = 50
@@ -116,44 +121,71 @@ def rattle(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarray, h: fl
     return x1, u - (w2 * solver.JT_times(nu)).reshape(u.shape)
 
 
+#: Constraint-graph components (rows sharing a coordinate) of each solver's pattern, by row.
+_COMPONENTS: weakref.WeakKeyDictionary[ConstraintSolver, np.ndarray] = (
+    weakref.WeakKeyDictionary())
+
+
+def _components(solver: ConstraintSolver) -> np.ndarray:
+    """The connected component of every constraint row (rows sharing a coordinate are
+    connected), computed once per solver: its pattern is fixed."""
+    labels = _COMPONENTS.get(solver)
+    if labels is None:
+        J = solver.J
+        S = sp.csr_matrix((np.ones(J.nnz), J.indices, J.indptr), shape=J.shape)
+        labels = _COMPONENTS[solver] = connected_components(S @ S.T, directed=False)[1]
+    return labels
+
+
 def _position_solve(solver: ConstraintSolver, w2: np.ndarray, x: np.ndarray, v: np.ndarray,
                     x1: np.ndarray, v_half: np.ndarray, h: float, t: float
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Newton iterations on ``C(x1) = 0`` along ``W J(x0)^T``; returns the new (x1, v_half)."""
+    """Newton iterations on ``C(x1) = 0`` along ``W J(x0)^T``; returns the new (x1, v_half).
+
+    Convergence is decided per connected component of the constraint graph, and a component
+    that has converged takes no further corrections, so the copies of a tiled system iterate as
+    they would alone (bit for bit where the solver solves components independently).
+    """
     solver.refill(x, v)
     solver._diag(w2)  # a row with a vanishing gradient: the explicit methods' ValueError
     J0 = solver.J.data.copy()
     cols = solver.J.indices
     rows = np.repeat(np.arange(solver.m), np.diff(solver.J.indptr))
+    labels = _components(solver)
+    count = int(labels.max()) + 1
     shape, n2 = x.shape, x.size
-    previous = np.inf
+    done = np.zeros(count, dtype=bool)
+    previous = np.full(count, np.inf)
     for iteration in range(MAX_ITERATIONS + 1):
         solver.refill(x1, v_half)
         grad = np.sqrt(np.bincount(rows, solver.J.data**2, minlength=solver.m))
         distance = np.abs(solver.C) / grad
-        worst = distance.max()
-        size = np.abs(x1).max()
-        if worst <= POSITION_TOL * size:  # False for NaN
-            return x1, v_half
-        if not (np.isfinite(worst) and np.isfinite(size)):
+        worst, size = np.zeros(count), np.zeros(count)
+        np.maximum.at(worst, labels, distance)  # NaN propagates
+        np.maximum.at(size, labels[rows], np.abs(x1.ravel()[cols]))
+        if not (np.all(np.isfinite(worst)) and np.all(np.isfinite(size))):
             bad = _rows_of_blocks(solver, np.flatnonzero(~(distance < np.inf)))
             raise RattleSolveError(
                 f"rattle: the position solve at t = {t:.6g} s met a non-finite state or a "
                 f"vanishing gradient in constraint {bad}; the state was kept")
-        if worst > 0.5 * previous and worst <= STALL_TOL * size:
-            return x1, v_half  # roundoff floor of this system's constraint evaluation
+        # converged, or stalled at the roundoff floor of this component's constraint evaluation
+        done |= (worst <= POSITION_TOL * size) | ((worst > 0.5 * previous)
+                                                  & (worst <= STALL_TOL * size))
+        if done.all():
+            return x1, v_half
         if iteration == MAX_ITERATIONS:
             break
         previous = worst
-        dlam = solver._solve(solver.C, w2, None)
+        dlam = solver._solve(np.where(done[labels], 0.0, solver.C), w2, None)
         dq = (w2 * np.bincount(cols, J0 * dlam[rows], minlength=n2)).reshape(shape)
         x1 = x1 - dq
         v_half = v_half - dq / h
-    far = np.flatnonzero(distance > POSITION_TOL * size)
+    far = np.flatnonzero(~done[labels] & (distance > POSITION_TOL * size[labels]))
     raise RattleSolveError(
         f"rattle: the position solve at t = {t:.6g} s did not converge in {MAX_ITERATIONS} "
-        f"iterations: constraint {_rows_of_blocks(solver, far)} are still up to {worst:.3g} m "
-        f"off (tolerance {POSITION_TOL * size:.3g} m); a smaller step helps. The state was kept")
+        f"iterations: constraint {_rows_of_blocks(solver, far)} are still up to "
+        f"{distance[far].max():.3g} m off (tolerance {POSITION_TOL:g} times the size of their "
+        "component); a smaller step helps. The state was kept")
 
 
 METHODS["rattle"] = rattle
