@@ -22,6 +22,7 @@ from .forces import (
 )
 from .implicit import ImplicitSolveError, force_jacobians
 from .integrators import METHODS, ORDERS
+from .rattle import RattleSolveError
 from .system import ParticleSystem, SimulationDiverged
 from .terms import Shape
 
@@ -30,6 +31,6 @@ __version__ = "0.1.0"
 __all__ = [
     "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
     "FixedPoint", "Force", "Gravity", "HorizontalWire", "ImplicitSolveError", "LineWire",
-    "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "Rod", "Shape", "SimulationDiverged",
-    "Wall", "force_jacobians", "scenes",
+    "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "RattleSolveError", "Rod", "Shape",
+    "SimulationDiverged", "Wall", "force_jacobians", "scenes",
 ]

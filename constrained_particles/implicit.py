@@ -42,7 +42,8 @@ restoring force goes through a force Jacobian keeps ``1/(1 + (w h)^2)`` of its e
   lose over 99.6 % of their energy in each step of 1/60 s, which is why it is stable there.
 
 Use it where stability at large steps matters more than energy (stiff cloth at 60 Hz); use
-``rk4`` or ``symplectic_euler`` for energy-accurate motion. Walls are linearized only once a
+``rattle`` for long energy-conserving runs with constraints and ``rk4`` for short accurate ones
+(see :mod:`constrained_particles.integrators`). Walls are linearized only once a
 particle is inside: a particle arriving at speed |v| can penetrate about |v| h before the wall
 acts, and that stored energy appears within a step.
 """
@@ -53,6 +54,7 @@ import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -65,6 +67,11 @@ if TYPE_CHECKING:
 
 #: Relative backward error above which a KKT solution is rejected.
 SOLVE_TOLERANCE = 1e-8
+#: Absolute residual (in the right-hand side's units, N s and m/s) below which a KKT solution is
+#: accepted whatever its relative error: far below anything physical, far above the subnormal
+#: range (under 2.2e-308) where a settled system's velocities end up and floats keep only a few
+#: significant digits, so that the relative test would reject a correct solution.
+SOLVE_FLOOR = 1e-280
 
 
 class ImplicitSolveError(SimulationDiverged):
@@ -193,8 +200,11 @@ _LU_OPTIONS = (dict(permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1,
                dict(permc_spec="COLAMD", diag_pivot_thresh=1.0))
 
 
-def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float) -> np.ndarray:
-    """Solve the KKT system by sparse LU, accepting only a small relative backward error."""
+def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float, J: sp.csr_matrix, free: np.ndarray
+           ) -> np.ndarray:
+    """Solve the KKT system by sparse LU, accepting only a small backward error: relative
+    (:data:`SOLVE_TOLERANCE`) or below the absolute :data:`SOLVE_FLOOR`. The constraint
+    Jacobian ``J`` and the mask ``free`` of free coordinates only serve to explain a failure."""
     scale_rhs = np.max(np.abs(rhs), initial=0.0)
     scale_A = np.max(np.abs(A.data), initial=0.0)
     problem = "it was not attempted"
@@ -206,12 +216,40 @@ def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float) -> np.ndarray:
             continue
         residual = np.max(np.abs(A @ sol - rhs), initial=0.0)
         scale = scale_A * np.max(np.abs(sol), initial=0.0) + scale_rhs
-        if np.all(np.isfinite(sol)) and residual <= SOLVE_TOLERANCE * scale:
+        if np.all(np.isfinite(sol)) and residual <= SOLVE_TOLERANCE * scale + SOLVE_FLOOR:
             return sol
         problem = f"the relative residual is {residual / scale if scale > 0 else np.inf:.3g}"
+    dependent = _dependent_rows(J[:, free])
+    if dependent is None:
+        cause = ("if some constraints are redundant, ParticleSystem(compliance > 0) solves them "
+                 "(too many rows to check here)")
+    elif len(dependent):
+        cause = (f"constraint rows {dependent[:10].tolist()} depend linearly on the others "
+                 "(redundant constraints): they need ParticleSystem(compliance > 0)")
+    else:
+        cause = ("the constraint rows are linearly independent, so the matrix is ill-conditioned "
+                 "(extreme stiffness, mass or step ratios)")
     raise ImplicitSolveError(
-        f"implicit_euler: the KKT solve at t = {t:.6g} s failed: {problem}. Redundant "
-        "constraints need ParticleSystem(compliance > 0); the state was kept")
+        f"implicit_euler: the KKT solve at t = {t:.6g} s failed: {problem}; {cause}. "
+        "The state was kept")
+
+
+#: Largest m x (free coordinates) for which a failed solve checks the rank of J densely.
+RANK_CHECK_SIZE = 4_000_000
+
+
+def _dependent_rows(J_free: sp.csr_matrix) -> np.ndarray | None:
+    """Rows of ``J_free`` that are linear combinations of the other rows (empty if J has full
+    row rank), by QR with column pivoting of J^T; None if J is too large to check densely."""
+    m, nf = J_free.shape
+    if m == 0:
+        return np.zeros(0, np.int64)
+    if m * nf > RANK_CHECK_SIZE:
+        return None
+    r, piv = scipy.linalg.qr(J_free.toarray().T, mode="r", pivoting=True)
+    diag = np.abs(np.diag(r))
+    rank = int(np.sum(diag > diag.max(initial=0.0) * max(m, nf) * np.finfo(float).eps))
+    return np.sort(piv[rank:])
 
 
 def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarray, h: float
@@ -222,8 +260,10 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
     ``drift_correction`` (beta, dimensionless in [0, 1]: the fraction of the constraint error C
     removed per step) and ``compliance`` (c >= 0, in units of C per unit of lam, m/N for line
     wires and fixed points; 0 is a hard constraint). Raises :class:`ImplicitSolveError` if the
-    KKT system is singular (e.g. redundant constraints with zero compliance) or the solve is
-    inaccurate, ``NotImplementedError`` for a force block without Jacobians.
+    KKT system is singular or the solve is inaccurate (its message names linearly dependent
+    constraint rows, which need compliance > 0, when there are any), the explicit methods'
+    ``ValueError`` for a constraint row with a vanishing gradient (a rod whose ends coincide),
+    ``NotImplementedError`` for a force block without Jacobians.
     """
     asm = _assembly(system)
     solver = asm.solver
@@ -235,11 +275,13 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
     qdot = v.ravel()
     Kv = np.bincount(asm.force_rows, weights=K * qdot[asm.force_cols], minlength=qdot.size)
     solver.refill(x, v)
+    if solver.m:  # a row with a vanishing gradient gets the explicit methods' ValueError
+        solver._diag(np.repeat(system.inv_mass, 2))
     A = asm.matrix(np.repeat(system.mass, 2), -h * D - h * h * K, solver.J.data,
                    -compliance / (h * h))
     rhs = np.concatenate([(h * (f0 + h * Kv))[asm.free],
                           -(beta / h) * solver.C - solver.J @ qdot])
-    sol = _solve(A, rhs, t)
+    sol = _solve(A, rhs, t, solver.J, asm.free)
     dv = np.zeros_like(qdot)
     dv[asm.free] = sol[:asm.nf]
     v1 = (qdot + dv).reshape(v.shape)

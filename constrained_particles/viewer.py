@@ -33,8 +33,8 @@ from .scenes import SCENES
 from .system import ParticleSystem, SimulationDiverged
 from .terms import Shape
 
-#: Integrators selected by keys 1-5 (a name missing from METHODS is reported, not selected).
-INTEGRATOR_KEYS = ("euler", "midpoint", "rk4", "symplectic_euler", "implicit_euler")
+#: Integrators selected by keys 1-6 (a name missing from METHODS is reported, not selected).
+INTEGRATOR_KEYS = ("euler", "midpoint", "rk4", "symplectic_euler", "implicit_euler", "rattle")
 
 #: Keyword arguments the viewer passes to a scene builder: the cloth gets the report's
 #: horizontal push (N per top-row particle) so that it slides into its wall (figs. 2-3).
@@ -55,7 +55,8 @@ CONTROLS: tuple[tuple[str, str], ...] = (
     ("left click", f"place a particle (unless one is within {SNAP_RADIUS:g} px)"),
     ("ctrl + click / drag", "the same, but new particles are fixed"),
     ("right drag, shift + drag", "pull the nearest particle with a mouse spring"),
-    ("1 2 3 4 5", "integrator: euler, midpoint, rk4, symplectic_euler, implicit_euler"),
+    (" ".join(str(k) for k in range(1, len(INTEGRATOR_KEYS) + 1)),
+     "integrator: " + ", ".join(INTEGRATOR_KEYS)),
     ("+ / -", "time step x2 / /2"),
     ("space", "pause / run"),
     (".", "single step (pauses)"),
@@ -282,8 +283,9 @@ class Viewer:
         return live or self._modifiers[name]
 
     def _key(self, pg: Any, key: int) -> None:
-        numbers = {getattr(pg, f"K_{k}"): k - 1 for k in range(1, 6)}
-        numbers.update({getattr(pg, f"K_KP{k}"): k - 1 for k in range(1, 6)})
+        keys = range(1, len(INTEGRATOR_KEYS) + 1)
+        numbers = {getattr(pg, f"K_{k}"): k - 1 for k in keys}
+        numbers.update({getattr(pg, f"K_KP{k}"): k - 1 for k in keys})
         actions: dict[int, Callable[[], None]] = {
             pg.K_SPACE: self.toggle_pause,
             pg.K_PERIOD: self.single_step,
@@ -394,7 +396,7 @@ class Viewer:
                 self.paused = True
                 self.message = (f"DIVERGED at t = {self.system.t:.4g} s with {self.method}, "
                                 f"dt = {self.dt:.3g} s: paused (- smaller dt, r reset, "
-                                f"1-5 integrator, space run on)")
+                                f"1-{len(INTEGRATOR_KEYS)} integrator, space run on)")
                 return k
         return steps
 

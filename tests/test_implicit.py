@@ -376,3 +376,83 @@ def test_yanked_stiff_cloth_never_gains_energy():
         energy.append(s.energy())
     assert np.diff(energy).max() <= 1e-9 * abs(energy[0])
     assert energy[-1] < 0.5 * energy[0]
+
+
+# ---------------------------------------------------------------------- issue 12's fixes
+def _settled_spring(ks, mass):
+    """A particle on a stiff spring to a fixed anchor, released 1 mm stretched, no gravity: the
+    motion decays by 1/(1 + (w h)^2) per step into subnormal velocities (below 1e-308 m/s)."""
+    s = ParticleSystem()
+    o = s.add_particle((0.0, 0.0), fixed=True)
+    a = s.add_particle((1.001, 0.0), mass=mass)
+    s.add(DampedSpring(o, a, rest=1.0, ks=ks))
+    return s
+
+
+@pytest.mark.parametrize(("ks", "mass"), [(1e4, 0.01), (1e12, 1.0)])
+def test_settled_stiff_spring_keeps_stepping(ks, mass):
+    s = _settled_spring(ks, mass)
+    for _ in range(400):
+        s.step(1 / 60, method="implicit_euler")
+    assert abs(s.x[1, 0] - 1.0) < 1e-12 and np.all(np.abs(s.v) < 1e-300)
+
+
+def test_the_absolute_floor_is_what_accepts_subnormal_solutions(monkeypatch):
+    import constrained_particles.implicit as implicit
+
+    monkeypatch.setattr(implicit, "SOLVE_FLOOR", 0.0)  # the relative test alone
+    s = _settled_spring(1e4, 0.01)
+    with pytest.raises(ImplicitSolveError, match="independent"):
+        for _ in range(400):
+            s.step(1 / 60, method="implicit_euler")
+    assert np.all(np.isfinite(s.v)) and 0 < np.abs(s.v).max() < 1e-300  # subnormal, kept
+
+
+def test_vanishing_gradient_is_the_explicit_methods_value_error():
+    s = ParticleSystem()
+    o = s.add_particle((0.0, 0.0), fixed=True)
+    a = s.add_particle((1.0, 0.0))
+    s.add(Gravity(), Rod(o, a))
+    s.x[a] = s.x[o]
+    x0 = s.x.copy()
+    messages = []
+    for method in ("rk4", "implicit_euler", "rattle"):
+        with pytest.raises(ValueError, match="vanishing gradient") as err:
+            s.step(1 / 60, method=method)
+        messages.append(str(err.value))
+    assert messages[0] == messages[1] == messages[2]
+    np.testing.assert_array_equal(s.x, x0)
+
+
+def test_independent_rows_get_no_advice_about_redundancy(monkeypatch):
+    import constrained_particles.implicit as implicit
+
+    # force a rejection (no tolerance at all) on a well-posed system with rounding residuals
+    monkeypatch.setattr(implicit, "SOLVE_TOLERANCE", 0.0)
+    monkeypatch.setattr(implicit, "SOLVE_FLOOR", 0.0)
+    s = scenes.wire_mixture()
+    with pytest.raises(ImplicitSolveError) as err:
+        for _ in range(20):
+            s.step(1 / 60, method="implicit_euler")
+    assert "redundant" not in str(err.value) and "compliance" not in str(err.value)
+    assert "independent" in str(err.value)
+
+
+def test_dependent_rows_are_found():
+    from constrained_particles.implicit import _dependent_rows
+
+    J = np.array([[1.0, 0.0, 2.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 1.0, 2.0, 0.0],
+                  [0.0, 0.0, 0.0, 3.0]])
+    dependent = _dependent_rows(sp.csr_matrix(J))
+    assert len(dependent) == 1 and dependent[0] in (0, 1, 2)
+    assert np.linalg.matrix_rank(np.delete(J, dependent, axis=0)) == 3
+    assert len(_dependent_rows(sp.csr_matrix(np.delete(J, 2, axis=0)))) == 0
+
+
+def test_redundant_rows_are_named():
+    s = ParticleSystem()
+    o = s.add_particle((0.0, 0.0), fixed=True)
+    a = s.add_particle((1.0, 0.0))
+    s.add(Gravity(), Rod(o, a), Rod(o, a))
+    with pytest.raises(ImplicitSolveError, match=r"rows \[[01]\] depend linearly"):
+        s.step(1 / 60, method="implicit_euler")

@@ -68,15 +68,20 @@ def test_cli_verify_orders_json(capsys):
 
 def test_report_writes_markdown_json_and_plots(tmp_path):
     data = R.collect(quick=True, progress=False, cases=["pendulum"],
-                     pymunk_scenes=["pendulum"], durations=(0.05, 0.02, 0.02))
+                     pymunk_scenes=["pendulum"], durations=(0.05, 0.02, 0.02),
+                     long_steps=30)
     R.write(data, tmp_path)
     text = (tmp_path / "report.md").read_text()
-    for heading in ("Convergence orders", "pymunk cross-check", "section V", "section VI.A"):
+    for heading in ("Convergence orders", "pymunk cross-check", "section V", "section VI.A",
+                    "Long-run energy"):
         assert heading in text
     saved = json.loads((tmp_path / "report.json").read_text())
     assert set(saved["orders"]["pendulum"]) == set(METHODS)
     assert len(saved["section_via"]) == 4
-    for name in ("convergence", "work_precision", "energy_drift", "constraint_drift", "cloth"):
+    for system in ("pendulum", "chain_of_rods", "spring_chain"):
+        assert set(saved["long_run"][system]) == set(METHODS)
+    for name in ("convergence", "work_precision", "energy_drift", "constraint_drift", "cloth",
+                 "long_run_energy"):
         png = (tmp_path / f"{name}.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 

@@ -128,7 +128,10 @@ def test_number_keys_select_integrators(viewer):
         assert viewer.method == "implicit_euler"
     else:
         assert viewer.method == "symplectic_euler" and "implicit_euler" in viewer.message
-    assert INTEGRATOR_KEYS[:4] == ("euler", "midpoint", "rk4", "symplectic_euler")
+    key(viewer, pg.K_6)
+    assert viewer.method == "rattle"
+    assert INTEGRATOR_KEYS == ("euler", "midpoint", "rk4", "symplectic_euler", "implicit_euler",
+                               "rattle")
 
 
 def test_keys_dt_pause_step_toggles(viewer):

@@ -4,6 +4,7 @@ The same subcommands run as ``python -m verification`` and as ``cparticles verif
 
     python -m verification orders [--quick] [--json] [--quiet]
     python -m verification pymunk [--quick] [--json] [--quiet]
+    python -m verification energy [--quick] [--json] [--steps N] [--plot PNG] [--quiet]
     python -m verification report --out DIR [--quick] [--quiet]
 
 Progress bars (tqdm, on stderr) show by default when stderr is a terminal.
@@ -16,11 +17,16 @@ import json
 import sys
 from collections.abc import Sequence
 
-from constrained_particles.cli import HelpFormatter, output_directory, progress_enabled
+from constrained_particles.cli import (
+    HelpFormatter,
+    output_directory,
+    output_file,
+    progress_enabled,
+)
 from constrained_particles.extras import MissingExtra, require
 
 #: modules each subcommand needs (all from the ``verify`` extra)
-NEEDS = {"orders": ("tqdm",), "pymunk": ("pymunk", "tqdm"),
+NEEDS = {"orders": ("tqdm",), "pymunk": ("pymunk", "tqdm"), "energy": ("tqdm", "matplotlib"),
          "report": ("pymunk", "tqdm", "matplotlib")}
 
 JSON_HELP = {
@@ -28,6 +34,17 @@ JSON_HELP = {
     "pymunk": 'print {"scene": {"order": observed order, "errors": {"dt": max position error '
               'in m, ...}}, ...} instead of a table',
 }
+
+
+def _steps(text: str) -> int:
+    """``--steps``: an integer in [3, 1e9] (argparse turns the ValueError into exit 2)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 3 <= value <= 10**9:
+        raise argparse.ArgumentTypeError(f"must be in [3, 1e9], got {value}")
+    return value
 
 
 def _progress_options(p: argparse.ArgumentParser) -> None:
@@ -45,6 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--quick", action="store_true", help="fewer steps, shorter runs")
         p.add_argument("--json", action="store_true", help=JSON_HELP[name])
         _progress_options(p)
+    text = "long-run energy error of every integrator (bounded or drifting)"
+    p = sub.add_parser("energy", help=text, description=text, formatter_class=HelpFormatter)
+    p.add_argument("--quick", action="store_true", help="fewer steps")
+    p.add_argument("--steps", type=_steps, default=None,
+                   help="steps per run (default: 100000, quick: 3000)")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures per system and method as JSON instead of a table")
+    p.add_argument("--plot", default=None, type=output_file(".png"),
+                   help="also save the energy-error plot to this PNG (checked before any work)")
+    _progress_options(p)
     p = sub.add_parser("report", help="write the Markdown/JSON/PNG verification report",
                        description="run every experiment and write report.md, report.json and "
                                    "PNG plots into --out", formatter_class=HelpFormatter)
@@ -75,6 +102,21 @@ def main(args: argparse.Namespace) -> int:
                               for n, r in results.items()}, indent=1))
         else:
             print(pymunk_table(results))
+    elif args.verify_command == "energy":
+        from .longrun import LONG_STEPS, QUICK_STEPS, long_run_table, long_runs, plot_long_runs
+        from .report import _jsonable
+
+        steps = args.steps or (QUICK_STEPS if args.quick else LONG_STEPS)
+        results = long_runs(steps, progress=progress)
+        if args.plot:
+            plot_long_runs(results, args.plot)
+        if args.json:
+            keep = ("max_error", "trend", "oscillation", "trend_ratio", "max_constraint",
+                    "diverged_at", "cpu", "steps", "h")
+            print(json.dumps(_jsonable({name: {m: {k: r[k] for k in keep} for m, r in per.items()}
+                                        for name, per in results.items()}), indent=1))
+        else:
+            print(long_run_table(results))
     else:
         from .report import write_report
 

@@ -95,6 +95,19 @@ def constraint_acceleration_residual(system: ParticleSystem, eps: float = 1e-2) 
     return float(np.max(residual) / scale) if scale > 0 else 0.0
 
 
+def constraint_distance(system: ParticleSystem) -> float:
+    """The largest constraint violation as a distance: ``max_r |C_r| / |J_r|`` in metres at the
+    current state (0 without constraints); for wires and rods, to first order, how far the
+    particles are off their constraint."""
+    if not system.constraints:
+        return 0.0
+    solver = system.constraint_solver
+    solver.refill(system.x, system.v)
+    rows = np.repeat(np.arange(solver.m), np.diff(solver.J.indptr))
+    grad = np.sqrt(np.bincount(rows, solver.J.data**2, minlength=solver.m))
+    return float(np.max(np.abs(solver.C) / grad))
+
+
 def constraint_power(system: ParticleSystem, min_speed: float = 1e-9) -> float:
     """Relative power of the constraint force at the current state: ``|lam^T J v|`` divided by
     ``|J^T lam| |v|``. Zero (to the solver's tolerance) when ``Cdot = J v = 0``: ideal

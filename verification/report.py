@@ -5,6 +5,11 @@ Experiments (all SI units; every integrator in :data:`constrained_particles.METH
 
 - **orders**: :func:`verification.orders.measure_orders` (convergence plot, table);
 - **pymunk**: :func:`verification.pymunk_check.compare_all` (table, work-precision plot);
+- **long-run energy**: :func:`verification.longrun.long_runs`, every integrator for
+  :data:`~verification.longrun.LONG_STEPS` steps (quick:
+  :data:`~verification.longrun.QUICK_STEPS`) on a pendulum on a circular wire, a chain of rods
+  and a spring chain: maximal energy error, secular trend against bounded oscillation, constraint
+  distance (table, plot);
 - **energy drift**: the slider-crank (undamped, conservative) for :data:`DRIFT_SECONDS` s at
   ``h = 5 ms``: ``|E(t) - E(0)|`` over time, relative to the largest kinetic energy of the
   accurate (rk4) run;
@@ -44,8 +49,9 @@ from constrained_particles import (
     scenes,
 )
 
+from . import longrun, pymunk_check
 from . import orders as orders_mod
-from . import pymunk_check
+from .properties import constraint_distance
 
 DRIFT_SECONDS = 10.0  #: duration (s) of the energy and constraint drift runs (quick: 2 s)
 DRIFT_H = 5e-3  #: step (s) of the drift runs
@@ -63,16 +69,6 @@ def _bar(total: int, desc: str, progress: bool) -> Any:
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit="run")
-
-
-def constraint_distance(system: ParticleSystem) -> float:
-    """The largest constraint violation as a distance: ``max_r |C_r| / |J_r|`` in metres."""
-    if not system.constraints:
-        return 0.0
-    solver = system.constraint_solver
-    solver.refill(system.x, system.v)
-    grad = np.sqrt(np.asarray(solver.J.multiply(solver.J).sum(axis=1)).ravel())
-    return float(np.max(np.abs(solver.C) / grad))
 
 
 def drift_runs(seconds: float, h: float = DRIFT_H, progress: bool = False) -> dict:
@@ -448,7 +444,9 @@ def markdown(data: dict) -> str:
                              f"diverged at {r['diverged_at']:.2f} s")
         lines.append(f"| {method} | {cells[0]} | {cells[1]} | {cells[2]} | {cells[3]} |")
     lines += ["", "![energy drift](energy_drift.png)", "",
-              "![constraint drift](constraint_drift.png)", "",
+              "![constraint drift](constraint_drift.png)", ""]
+    lines += long_run_markdown(data["long_run"])
+    lines += [
               "## The report's section V: does the cloth rise above the wire?", "",
               f"Default cloth (`scenes.cloth(push={PUSH})`: {_cloth_defaults()}), top row on "
               f"the wire and pushed right into the wall, h = {SECTION_V_H * 1e3:g} ms, "
@@ -486,6 +484,22 @@ def markdown(data: dict) -> str:
     return "\n".join(lines)
 
 
+def long_run_markdown(results: dict) -> list[str]:
+    """The long-run energy section: what was run, the table and the plot."""
+    first = next(iter(next(iter(results.values())).values()))
+    systems = "; ".join(f"**{name}**: {longrun.SYSTEMS[name][1]}" for name in results)
+    return ["## Long-run energy: bounded or drifting?", "",
+            f"Every integrator, {first['steps']} steps of h = {first['h'] * 1e3:g} ms on "
+            f"undamped, conservative systems ({systems}). After every step: the energy error "
+            "E(t) - E(0) and the constraint distance max |C_r| / |J_r|. Secular trend: the "
+            "slope of the least-squares line through E(t) - E(0) times the duration; "
+            "oscillation: the peak-to-peak of E(t) - E(0) about that line. A trend well under "
+            "the oscillation means a bounded energy error; a trend of the order of the "
+            "oscillation or above, a drift.", "",
+            longrun.long_run_table(results), "",
+            "![long-run energy](long_run_energy.png)", ""]
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items() if not k.startswith("_")}
@@ -502,10 +516,12 @@ def _jsonable(value: Any) -> Any:
 
 def collect(quick: bool = False, progress: bool = True, cases: list[str] | None = None,
             pymunk_scenes: list[str] | None = None,
-            durations: tuple[float, float, float] | None = None) -> dict:
+            durations: tuple[float, float, float] | None = None,
+            long_steps: int | None = None) -> dict:
     """Run every experiment; returns the report's data (raw result objects under keys that start
     with ``_``). ``cases`` and ``pymunk_scenes`` restrict the order and pymunk runs; ``durations``
-    overrides the seconds of (drift, section V, section VI.A)."""
+    overrides the seconds of (drift, section V, section VI.A), ``long_steps`` the steps of the
+    long-run energy runs."""
     start = time.perf_counter()
     if durations is None:
         durations = (2.0, 1.0, 1.0) if quick else (DRIFT_SECONDS, SECTION_V_SECONDS,
@@ -518,6 +534,9 @@ def collect(quick: bool = False, progress: bool = True, cases: list[str] | None 
     data["pymunk"] = {n: r.to_dict() for n, r in data["_pymunk"].items()}
     data["pymunk_reference_h"] = pymunk_check.reference_step(quick)
     data["drift_seconds"], data["section_v_seconds"], data["section_via_seconds"] = durations
+    if long_steps is None:
+        long_steps = longrun.QUICK_STEPS if quick else longrun.LONG_STEPS
+    data["long_run"] = longrun.long_runs(long_steps, progress=progress)
     data["drift"] = drift_runs(durations[0], progress=progress)
     data["section_v"] = section_v(durations[1], progress=progress)
     data["section_via"] = section_via(durations[2], progress=progress)
@@ -538,6 +557,7 @@ def write(data: dict, out: str | os.PathLike) -> None:
                f"Constraint drift, slider-crank, h = {DRIFT_H * 1e3:g} ms",
                out / "constraint_drift.png")
     plot_cloth(data["section_v"], data["section_via"], out / "cloth.png")
+    longrun.plot_long_runs(data["long_run"], out / "long_run_energy.png")
     (out / "report.md").write_text(markdown(data))
     (out / "report.json").write_text(json.dumps(_jsonable(data), indent=1))
 
