@@ -323,8 +323,8 @@ class ParticleSystem:
         ``divergence_limit``.
 
         Systems made of the standard blocks step through the fused compiled kernel
-        (:mod:`constrained_particles.fused`) for ``euler``, ``midpoint``, ``rk4`` and
-        ``symplectic_euler`` with the default ``"cg"`` solver; everything else, and
+        (:mod:`constrained_particles.fused`) for ``euler``, ``midpoint``, ``rk4``,
+        ``symplectic_euler`` and ``rattle`` with the default ``"cg"`` solver; everything else, and
         ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
         """
         dt = check_dt(dt)

@@ -240,3 +240,39 @@ def test_environment_variable_turns_the_compiled_path_off():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                          check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_rattle_constants_are_the_reference_ones():
+    from constrained_particles import rattle
+
+    assert (fused.RATTLE_POSITION_TOL, fused.RATTLE_STALL_TOL, fused.RATTLE_MAX_ITERATIONS) == (
+        rattle.POSITION_TOL, rattle.STALL_TOL, rattle.MAX_ITERATIONS)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fused_rattle_matches_the_reference(seed):
+    s = every_block(seed)
+    assert fused.run(s.copy(), 1e-3, "rattle", 1, s.constraint_solver.lam.copy(),
+                     np.inf)[0] == fused.OK  # compiled, not handed back
+    x_ref, v_ref = reference(s, "rattle", 1e-3, 30)
+    s.step(1e-3, "rattle", steps=30)
+    close(s.x, x_ref, rtol=1e-11)
+    close(s.v, v_ref, rtol=1e-10)
+    assert np.abs(s.constraint_residual()[0]).max() < 1e-12
+
+
+def test_fused_rattle_on_tiled_pendulums_and_slider_cranks_is_copy_exact():
+    single = scenes.wire_mixture(omega=4.0)
+    n = single.n
+    tiled = single.tile(3)
+    alone = [single.copy() for _ in range(3)]
+    for i, one in enumerate(alone):
+        one.v = one.v * (0.5 + i)
+        tiled.v[n * i:n * (i + 1)] = one.v
+    for _ in range(100):
+        tiled.step(2e-3, "rattle")
+        for one in alone:
+            one.step(2e-3, "rattle")
+    for i, one in enumerate(alone):
+        assert tiled.x[n * i:n * (i + 1)].tobytes() == one.x.tobytes()
+        assert tiled.v[n * i:n * (i + 1)].tobytes() == one.v.tobytes()
