@@ -6,19 +6,24 @@
 
 Without ``--address`` the script starts a local Ray instance with this machine's CPUs. Each of the
 K EnvRunner actors steps ``--num-envs-per-env-runner`` copies of the environment as one particle
-system (``envs.rllib.configure``); the PPO learner runs in the driver. Every node of a cluster
-needs this package and the ``ray`` extra installed (``pip install -e ".[ray]"``). Prints one line
-per iteration and, with ``--checkpoint DIR``, saves the trained algorithm there.
+system (``envs.rllib.configure``); the PPO learner runs in the driver. On a cluster the script
+ships its own copy of ``envs`` and ``constrained_particles`` to the workers (Ray's ``py_modules``),
+so the other nodes need only the dependencies (``pip install -e ".[ray]"`` of the same checkout
+is simplest). Prints one line per iteration and, with ``--checkpoint DIR``, saves the trained
+algorithm there.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import ray
 from ray.rllib.algorithms.ppo import PPOConfig
 
+import constrained_particles
+import envs
 import envs.rllib
 from envs import ENV_IDS
 
@@ -43,6 +48,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="PPO training iterations (default 20)")
     p.add_argument("--train-batch-size", type=positive_int, default=4000,
                    help="env steps sampled per iteration (default 4000)")
+    p.add_argument("--num-epochs", type=positive_int, default=10,
+                   help="passes over each batch (default 10)")
+    p.add_argument("--minibatch-size", type=positive_int, default=256)
     p.add_argument("--address", default=None,
                    help="an existing cluster: 'auto' (run on a cluster node) or "
                         "'ray://HOST:10001' (Ray Client); default: start Ray locally")
@@ -54,13 +62,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    ray.init(address=args.address)  # None starts a local instance
+    # On an existing cluster, ship this copy of the code to every worker (runtime_env
+    # py_modules), so that nodes need only the dependencies and all run the driver's version.
+    modules = [os.path.dirname(m.__file__) for m in (envs, constrained_particles)]
+    runtime_env = None if args.address is None else {"py_modules": modules}
+    ray.init(address=args.address, runtime_env=runtime_env)  # None starts a local instance
     try:
         config = (envs.rllib.configure(
                       PPOConfig(), args.env, num_env_runners=args.num_env_runners,
                       num_envs_per_env_runner=args.num_envs_per_env_runner,
                       env_config={"action_mode": args.action_mode})
-                  .training(train_batch_size_per_learner=args.train_batch_size)
+                  .training(train_batch_size_per_learner=args.train_batch_size,
+                            num_epochs=args.num_epochs, minibatch_size=args.minibatch_size)
                   .debugging(seed=args.seed))
         algo = config.build_algo()
         print(f"{args.env} ({args.action_mode}): PPO, {args.num_env_runners} EnvRunners x "
