@@ -13,12 +13,19 @@ thread, like one EnvRunner. SB3 steps ``envs.sb3.to_sb3`` of the native vector e
 is present, else a ``DummyVecEnv`` of ``gym.make`` envs (the JSON says which). The three
 measurements alternate ``--repeats`` times (the single runner alternates between the two actors),
 so machine drift affects all of them alike; medians are reported, with the load average.
+
+A control measures what the machine gives two processes at that moment: the same alternation
+runs a pure-Python busy loop in 1 and in 2 processes (``multiprocessing``) for ``--control-seconds``
+and reports the ratio of work done. On a quiet 2-core machine it is about 2; on a machine shared
+with other sessions it can be near 1 (Linux's autogroup scheduler gives each login session one
+share, however many processes it runs), and then no 2-runner ratio can exceed it.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import statistics
 import time
@@ -55,6 +62,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="EnvRunner vectorization: our native vector env (default) or "
                         "gymnasium's SyncVectorEnv of single envs")
     p.add_argument("--no-sb3", action="store_true", help="skip the SB3 measurement")
+    p.add_argument("--control-seconds", type=float, default=2.0,
+                   help="duration of each CPU control measurement; 0 skips it (default 2)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     return p.parse_args(argv)
 
@@ -62,6 +71,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def _count(runner: Any, steps: int) -> int:
     """Env steps in one ``sample`` of ``steps`` on ``runner`` (runs in the EnvRunner actor)."""
     return sum(len(episode) for episode in runner.sample(num_timesteps=steps))
+
+
+def _busy(seconds: float, out: Any) -> None:
+    """Count pure-Python work units for ``seconds`` of wall time; put the count on ``out``."""
+    end, n = time.perf_counter() + seconds, 0
+    while time.perf_counter() < end:
+        sum(range(1000))
+        n += 1
+    out.put(n)
+
+
+def cpu_control(processes: int, seconds: float) -> float:
+    """Work units per second done by ``processes`` busy-looping processes at once."""
+    ctx = multiprocessing.get_context("spawn")
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_busy, args=(seconds, out)) for _ in range(processes)]
+    for proc in procs:
+        proc.start()
+    total = sum(out.get() for _ in procs)
+    for proc in procs:
+        proc.join()
+    return total / seconds
 
 
 def rllib_sampler(args: argparse.Namespace) -> Any:
@@ -130,13 +161,18 @@ def sb3_sampler(args: argparse.Namespace) -> tuple[str, Any]:
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Alternate the three measurements ``args.repeats`` times; the figures as a dict."""
     envs.rllib.register()
-    ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=args.num_cpus, include_dashboard=False,
+             log_to_driver=False)
     try:
         algo, rllib = rllib_sampler(args)
         kind, sb3 = (None, None) if args.no_sb3 else sb3_sampler(args)
         load_before = os.getloadavg()
-        runs: dict[str, list[float]] = {"rllib_1": [], "rllib_2": [], "sb3": []}
+        runs: dict[str, list[float]] = {"rllib_1": [], "rllib_2": [], "sb3": [],
+                                        "control_1": [], "control_2": []}
         for rep in range(args.repeats):
+            if args.control_seconds > 0:
+                runs["control_1"].append(cpu_control(1, args.control_seconds))
+                runs["control_2"].append(cpu_control(2, args.control_seconds))
             runs["rllib_1"].append(rllib([1 + rep % 2]))
             runs["rllib_2"].append(rllib([1, 2]))
             if sb3 is not None:
@@ -147,11 +183,13 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         ray.shutdown()
     med = {k: statistics.median(v) for k, v in runs.items() if v}
     paired = [b / a for a, b in zip(runs["rllib_1"], runs["rllib_2"], strict=True)]
+    control = (med["control_2"] / med["control_1"]) if "control_1" in med else None
     return {"env": args.env, "num_envs": args.num_envs, "steps": args.steps,
             "repeats": args.repeats, "vectorize": args.vectorize, "num_cpus": args.num_cpus,
             "sb3_vec_env": kind, "loadavg_before": load_before, "loadavg_after": load_after,
             "runs": runs, "median": med, "ratio_2_over_1": med["rllib_2"] / med["rllib_1"],
-            "ratio_2_over_1_paired_median": statistics.median(paired)}
+            "ratio_2_over_1_paired_median": statistics.median(paired),
+            "control_ratio_2_over_1": control}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -168,6 +206,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"RLlib, 2 EnvRunners: {med['rllib_2']:8.0f} env-steps/s  "
           f"({result['ratio_2_over_1']:.2f}x; paired median "
           f"{result['ratio_2_over_1_paired_median']:.2f}x)")
+    if result["control_ratio_2_over_1"] is not None:
+        print(f"CPU control        : 2 busy processes do {result['control_ratio_2_over_1']:.2f}x "
+              f"the work of 1 (the most any 2-process ratio can reach here now)")
     if "sb3" in med:
         print(f"SB3 PPO rollouts   : {med['sb3']:8.0f} env-steps/s  ({result['sb3_vec_env']})")
 

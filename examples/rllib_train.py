@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> None:
     # py_modules), so that nodes need only the dependencies and all run the driver's version.
     modules = [os.path.dirname(m.__file__) for m in (envs, constrained_particles)]
     runtime_env = None if args.address is None else {"py_modules": modules}
-    ray.init(address=args.address, runtime_env=runtime_env)  # None starts a local instance
+    # "local" starts a new instance even if this machine is part of a cluster.
+    ray.init(address=args.address or "local", runtime_env=runtime_env)
     try:
         config = (envs.rllib.configure(
                       PPOConfig(), args.env, num_env_runners=args.num_env_runners,
