@@ -1,1 +1,5 @@
-"""Performance benchmarks (run as `cparticles bench`, never as tests)."""
+"""Benchmark scripts run from a checkout (never as tests, never installed).
+
+``cparticles bench`` itself lives in :mod:`constrained_particles.bench`, so it works from an
+installed wheel.
+"""

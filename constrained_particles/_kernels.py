@@ -1,43 +1,153 @@
-"""Optional compiled kernels for the hot path (Numba), behind the blocks' usual API.
+"""Compiled force and constraint *elements* (Numba), and the block kernels built on them.
 
-Numba is used when it is installed (the ``fast`` extra) unless the environment variable
-``CPARTICLES_NUMBA=0`` is set; otherwise every block runs its pure-numpy path. Both paths
-compute the same formulas and are compared in the tests (they differ only in the order in
-which forces are summed, at the level of rounding).
+Each formula of DESIGN.md ("Physics (corrected)") is written here once, as a small compiled
+function of one element (one spring, one wall contact, one constraint row). Two callers share
+them: the block kernels below, which the blocks' ``accumulate`` use, and the fused whole-step
+kernel in :mod:`constrained_particles.fused`. The readable numpy code in
+:mod:`~constrained_particles.forces` and :mod:`~constrained_particles.constraints` is the
+reference implementation; the tests tie the two together to 1e-12.
+
+Numba is a core dependency. Setting the environment variable ``CPARTICLES_NUMBA=0`` before the
+first import turns every compiled path off (``ENABLED`` is False and the block kernels are
+None); the numpy reference then runs everywhere.
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
 
-spring_forces = None  #: compiled DampedSpring force accumulation, or None
+ENABLED = False  #: True when the compiled paths are in use
+spring_forces = None  #: compiled DampedSpring block accumulation, or None
 
 if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
     try:
         import numba
-    except ImportError:  # the pure-numpy path serves
+    except ImportError:  # pragma: no cover - numba is a core dependency
         numba = None
     if numba is not None:
+        ENABLED = True
+        njit = numba.njit(cache=True)
 
-        @numba.njit(cache=True)
+        # ---------------------------------------------------------------- force elements
+        @njit
+        def spring_element(lx: float, ly: float, ux: float, uy: float, ks: float, kd: float,
+                           rest: float) -> tuple[float, float]:  # pragma: no cover - compiled
+            """Force (N) on end i of a damped spring with ``l = x_i - x_j`` (m) and
+            ``ldot = v_i - v_j`` (``ux, uy``, m/s): ``-[ks (|l| - r) + kd (ldot . l)/|l|] l/|l|``.
+            Zero for a zero-length spring."""
+            length = math.sqrt(lx * lx + ly * ly)
+            if length > 0.0:
+                inv = 1.0 / length
+                mag = (ks * (length - rest) + kd * (ux * lx + uy * ly) * inv) * inv
+                return -mag * lx, -mag * ly
+            return 0.0, 0.0
+
+        @njit
+        def angular_element(ux: float, uy: float, wx: float, wy: float, vax: float, vay: float,
+                            vbx: float, vby: float, vcx: float, vcy: float, k: float, kd: float,
+                            rest: float) -> tuple[float, float, float, float, float, float]:
+            # pragma: no cover - compiled
+            """Forces (N) on a, b, c of an angular spring with arms ``u = x_a - x_b``,
+            ``w = x_c - x_b``: ``-(k d + kd thetadot) dtheta/dx_p``, ``d = wrap(theta - rest)``."""
+            theta = math.atan2(ux * wy - uy * wx, ux * wx + uy * wy)
+            d = math.pi - ((math.pi - (theta - rest)) % (2.0 * math.pi))
+            uu = ux * ux + uy * uy
+            ww = wx * wx + wy * wy
+            gax = gay = gcx = gcy = 0.0
+            if uu > 0.0:  # dtheta/dx_a = -perp(u)/|u|^2, perp(p) = (-p_y, p_x)
+                gax = uy / uu
+                gay = -ux / uu
+            if ww > 0.0:  # dtheta/dx_c = perp(w)/|w|^2
+                gcx = -wy / ww
+                gcy = wx / ww
+            gbx = -(gax + gcx)
+            gby = -(gay + gcy)
+            thetadot = (gax * vax + gay * vay) + (gbx * vbx + gby * vby) + (gcx * vcx + gcy * vcy)
+            torque = -(k * d + kd * thetadot)
+            return (torque * gax, torque * gay, torque * gbx, torque * gby, torque * gcx,
+                    torque * gcy)
+
+        @njit
+        def wall_element(px: float, py: float, vx: float, vy: float, nx: float, ny: float,
+                         offset: float, kw: float, cw: float) -> tuple[float, float]:
+            # pragma: no cover - compiled
+            """Wall force (N): ``-max(kw p + cw (n . v), 0) n`` while ``p = n . x - offset > 0``."""
+            p = px * nx + py * ny - offset
+            if p > 0.0:
+                mag = max(kw * p + cw * (vx * nx + vy * ny), 0.0)
+                return -mag * nx, -mag * ny
+            return 0.0, 0.0
+
+        @njit
+        def mouse_element(px: float, py: float, vx: float, vy: float, ax: float, ay: float,
+                          ks: float, kd: float) -> tuple[float, float]:  # pragma: no cover
+            """Mouse spring force (N): ``-ks (x_p - anchor) - kd v_p``."""
+            return -ks * (px - ax) - kd * vx, -ks * (py - ay) - kd * vy
+
+        # ------------------------------------------------------------ constraint elements
+        @njit
+        def circle_row(dx: float, dy: float, vx: float, vy: float, radius: float
+                       ) -> tuple[float, float]:  # pragma: no cover - compiled
+            """Circular wire with ``d = x - center``: ``(C, Cdot) = (1/2 (|d|^2 - r^2), d . v)``;
+            ``J = d^T``, ``Jdot = v^T``."""
+            return 0.5 * ((dx * dx + dy * dy) - radius * radius), dx * vx + dy * vy
+
+        @njit
+        def rod_row(dx: float, dy: float, dvx: float, dvy: float, length: float
+                    ) -> tuple[float, float]:  # pragma: no cover - compiled
+            """Rod with ``d = x_a - x_b``: ``(C, Cdot) = (1/2 (|d|^2 - L^2), d . dv)``;
+            ``J = [d^T, -d^T]``, ``Jdot = [dv^T, -dv^T]``."""
+            return 0.5 * ((dx * dx + dy * dy) - length * length), dx * dvx + dy * dvy
+
+        @njit
+        def line_row(px: float, py: float, vx: float, vy: float, nx: float, ny: float,
+                     ox: float, oy: float) -> tuple[float, float]:  # pragma: no cover
+            """Line wire through ``o`` with normal ``n``: ``(C, Cdot) = (n . (x - o), n . v)``;
+            ``J = n^T``, ``Jdot = 0``."""
+            return nx * (px - ox) + ny * (py - oy), nx * vx + ny * vy
+
+        # ------------------------------------------------------------------ block kernels
+        @njit
         def _spring_forces(x: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray,
                            ks: np.ndarray, kd: np.ndarray, rest: np.ndarray,
                            F: np.ndarray) -> None:  # pragma: no cover - compiled
-            # DESIGN.md damped spring: f_i = -[ks (|l| - r) + kd (ldot . l)/|l|] l/|l|
+            n = x.shape[0]
             for s in range(i.shape[0]):
                 a, b = i[s], j[s]
-                lx = x[a, 0] - x[b, 0]
-                ly = x[a, 1] - x[b, 1]
-                length = np.sqrt(lx * lx + ly * ly)
-                if length > 0.0:
-                    inv = 1.0 / length
-                    ldot_l = (v[a, 0] - v[b, 0]) * lx + (v[a, 1] - v[b, 1]) * ly
-                    mag = (ks[s] * (length - rest[s]) + kd[s] * ldot_l * inv) * inv
-                    F[a, 0] -= mag * lx
-                    F[a, 1] -= mag * ly
-                    F[b, 0] += mag * lx
-                    F[b, 1] += mag * ly
+                if a < 0 or a >= n or b < 0 or b >= n:
+                    raise IndexError("DampedSpring: particle index out of range")
+                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
+                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], ks[s], kd[s],
+                                        rest[s])
+                F[a, 0] += fx
+                F[a, 1] += fy
+                F[b, 0] -= fx
+                F[b, 1] -= fy
 
-        spring_forces = _spring_forces
+        def spring_forces(x: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray,
+                          ks: np.ndarray, kd: np.ndarray, rest: np.ndarray,
+                          F: np.ndarray) -> None:
+            """Add the forces (N) of springs ``(i, j, ks, kd, rest)`` at ``(x, v)`` into ``F``.
+
+            Shapes and dtypes are checked here and indices inside the kernel, so no public
+            attribute a user edits can make it read or write outside its arrays (IndexError
+            or ValueError instead).
+            """
+            k = len(i)
+            n = len(x)
+            if not (x.shape == v.shape == F.shape == (n, 2) and len(j) == len(ks) == len(kd)
+                    == len(rest) == k):
+                raise ValueError("DampedSpring: inconsistent array shapes "
+                                 f"(x {x.shape}, v {v.shape}, F {F.shape}, i {np.shape(i)}, "
+                                 f"j {np.shape(j)}, ks {np.shape(ks)}, kd {np.shape(kd)}, "
+                                 f"rest {np.shape(rest)})")
+            _spring_forces(np.ascontiguousarray(x, dtype=np.float64),
+                           np.ascontiguousarray(v, dtype=np.float64),
+                           np.ascontiguousarray(i, dtype=np.int64),
+                           np.ascontiguousarray(j, dtype=np.int64),
+                           np.ascontiguousarray(ks, dtype=np.float64),
+                           np.ascontiguousarray(kd, dtype=np.float64),
+                           np.ascontiguousarray(rest, dtype=np.float64), F)

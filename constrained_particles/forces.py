@@ -231,22 +231,15 @@ class DampedSpring(Force):
         return np.take(x, self.i, axis=0), f
 
     def accumulate(self, x, v, mass, F):
-        if _kernels.spring_forces is not None:
+        if _kernels.spring_forces is not None:  # the compiled element (see _kernels)
             _kernels.spring_forces(x, v, self.i, self.j, self.ks, self.kd, self.rest, F)
             return
-        # The hot path of every cloth: the same formula as element_forces, on contiguous 1-D
-        # columns (gathers, arithmetic and bincount scatters are all unit-stride there).
-        i, j, n = self.i, self.j, len(x)
-        xt, vt = x.T.copy(), v.T.copy()
-        lx = xt[0].take(i) - xt[0].take(j)
-        ly = xt[1].take(i) - xt[1].take(j)
-        ldot_l = (vt[0].take(i) - vt[0].take(j)) * lx + (vt[1].take(i) - vt[1].take(j)) * ly
-        length = np.sqrt(lx * lx + ly * ly)
-        inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
-        mag = (self.ks * (length - self.rest) + self.kd * ldot_l * inv) * inv  # f_i = -mag l
-        for axis, l_axis in ((0, lx), (1, ly)):
-            f = mag * l_axis
-            F[:, axis] += np.bincount(j, f, minlength=n) - np.bincount(i, f, minlength=n)
+        # the numpy reference: the formula of element_forces, scattered onto both ends
+        _, f = self.element_forces(x, v, mass)
+        n = len(x)
+        for axis in (0, 1):
+            F[:, axis] += (np.bincount(self.i, f[:, axis], minlength=n)
+                           - np.bincount(self.j, f[:, axis], minlength=n))
 
     def potential(self, x, mass):
         length = np.linalg.norm(x[self.i] - x[self.j], axis=1)

@@ -38,8 +38,10 @@ def _pygame() -> Any:
     try:
         import pygame
     except ImportError as exc:  # pragma: no cover - depends on the installed extras
-        raise ImportError("rendering needs pygame-ce: pip install 'constrained-particles[render]'"
-                          ) from exc
+        from .extras import MissingExtra, install_hint
+
+        raise MissingExtra("rendering needs the 'render' extra (missing: pygame-ce); "
+                           f"install it with {install_hint('render')}") from exc
     return pygame
 
 

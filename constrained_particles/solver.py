@@ -24,6 +24,35 @@ import scipy.sparse.linalg as spla
 from .constraints import Constraint
 
 SOLVER_METHODS = ("cg", "direct")
+#: Connected components of the constraint graph with at most this many rows are solved
+#: directly (dense, batched over components); larger ones iteratively.
+DIRECT_MAX = 8
+
+
+def row_components(rows: np.ndarray, cols: np.ndarray, m: int, width: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of constraint rows that share a coordinate.
+
+    ``rows``, ``cols`` are the structural nonzeros of J (m x width). Returns ``(comp_rows,
+    comp_ptr)``: the rows grouped by component, components ordered by their first row and rows
+    ascending inside each, component k being ``comp_rows[comp_ptr[k]:comp_ptr[k + 1]]``. A
+    fixed particle's coordinates count as shared too: the partition is then independent of
+    the masses (coarser at worst, never wrong). Copies of a tiled scene never share one.
+    """
+    if m == 0:
+        return np.zeros(0, np.int64), np.zeros(1, np.int64)
+    from scipy.sparse.csgraph import connected_components
+
+    inc = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, max(width, 1)))
+    _, label = connected_components(inc @ inc.T, directed=False)
+    first = np.full(label.max() + 1, m, np.int64)
+    np.minimum.at(first, label, np.arange(m))
+    rank = np.empty_like(first)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    comp = rank[label]
+    comp_rows = np.lexsort((np.arange(m), comp)).astype(np.int64)
+    sizes = np.bincount(comp, minlength=len(first))
+    return comp_rows, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
 
 class ConstraintSolver:
@@ -71,9 +100,87 @@ class ConstraintSolver:
         # rows coupled through a shared coordinate make J W J^T non-diagonal
         structure = sp.csr_matrix((np.ones(len(rows)), self._cols, indptr), shape=shape)
         self.diagonal = (structure @ structure.T).nnz == self.m
+        self._plan_components()
         self.lam = np.zeros(self.m)
         self.C = np.zeros(self.m)
         self.Cdot = np.zeros(self.m)
+
+    def _plan_components(self) -> None:
+        """Group the rows into connected components, once per topology: each group of small
+        components of one size is solved as a batch of dense systems (the nonzero pairs that
+        meet in a column, and where their products land, are listed here), the rows of larger
+        components by conjugate gradients together."""
+        comp_rows, comp_ptr = row_components(self._rows, self._cols, self.m, 2 * self.n)
+        sizes = np.diff(comp_ptr)
+        # nonzeros sorted by column: every pair within a column meets in J W J^T
+        by_col = np.argsort(self._cols, kind="stable")
+        col_sorted = self._cols[by_col]
+        starts = np.flatnonzero(np.r_[True, col_sorted[1:] != col_sorted[:-1]])
+        counts = np.diff(np.r_[starts, len(col_sorted)])
+        e1, e2 = [], []
+        for t in np.unique(counts):
+            group = starts[counts == t]
+            a = (group[:, None] + np.arange(t)).repeat(t, axis=1).ravel()
+            b = np.tile(group[:, None] + np.arange(t), (1, t)).ravel()
+            e1.append(by_col[a])
+            e2.append(by_col[b])
+        e1 = np.concatenate(e1) if e1 else np.zeros(0, np.int64)
+        e2 = np.concatenate(e2) if e2 else np.zeros(0, np.int64)
+        comp_of = np.empty(self.m, np.int64)
+        pos_of = np.empty(self.m, np.int64)
+        comp_of[comp_rows] = np.repeat(np.arange(len(sizes)), sizes)
+        pos_of[comp_rows] = np.arange(self.m) - np.repeat(comp_ptr[:-1], sizes)
+        r1, r2 = self._rows[e1], self._rows[e2]
+        self._groups = []  # (size, rows (k, size), e1, e2, target index into (k, size, size))
+        for size in np.unique(sizes[(sizes > 1) & (sizes <= DIRECT_MAX)]):
+            comps = np.flatnonzero(sizes == size)
+            slot = np.full(len(sizes), -1, np.int64)
+            slot[comps] = np.arange(len(comps))
+            rows = comp_rows[comp_ptr[comps][:, None] + np.arange(size)]
+            pick = slot[comp_of[r1]] >= 0
+            target = (slot[comp_of[r1[pick]]] * size + pos_of[r1[pick]]) * size + pos_of[r2[pick]]
+            self._groups.append((int(size), rows, e1[pick], e2[pick], target))
+        single = comp_rows[comp_ptr[:-1][sizes == 1]]
+        self._single = single
+        large = sizes > DIRECT_MAX
+        self._large = (np.concatenate([comp_rows[comp_ptr[k]:comp_ptr[k + 1]]
+                                       for k in np.flatnonzero(large)])
+                       if large.any() else np.zeros(0, np.int64))
+
+    def _solve_components(self, b: np.ndarray, w2: np.ndarray, d: np.ndarray,
+                          x0: np.ndarray | None) -> np.ndarray | None:
+        """Component-wise solve of ``J W J^T y = b`` (None if a dense block is singular or CG on
+        the large components fails; the caller then takes the least-squares path)."""
+        y = np.zeros(self.m)
+        y[self._single] = b[self._single] / d[self._single]
+        wv = w2[self._cols] if len(self._groups) else None
+        for size, rows, e1, e2, target in self._groups:
+            k = len(rows)
+            vals = self.J.data[e1] * wv[e1] * self.J.data[e2]
+            A = np.bincount(target, vals, minlength=k * size * size).reshape(k, size, size)
+            try:
+                y[rows] = np.linalg.solve(A, b[rows][..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                return None
+            if not np.all(np.isfinite(y[rows])):
+                return None
+        large = self._large
+        if len(large):
+            mask = np.zeros(self.m)
+            mask[large] = 1.0
+
+            def matvec(r: np.ndarray) -> np.ndarray:
+                return mask * self.J_times(w2 * self.JT_times(mask * r))
+
+            A = spla.LinearOperator((self.m, self.m), matvec=matvec, rmatvec=matvec, dtype=float)
+            M = spla.LinearOperator((self.m, self.m), matvec=lambda r: mask * r / d, dtype=float)
+            start = None if x0 is None else mask * x0
+            sol, info = spla.cg(A, mask * b, x0=start, rtol=self.tol, atol=0.0,
+                                maxiter=10 * len(large) + 10, M=M)
+            if info != 0:
+                return None
+            y[large] = sol[large]
+        return y
 
     def refill(self, x: np.ndarray, v: np.ndarray) -> None:
         """Evaluate every block at (x, v): refill ``J``, ``Jdot`` values and ``C``, ``Cdot``."""
@@ -133,9 +240,8 @@ class ConstraintSolver:
             except (RuntimeError, spla.MatrixRankWarning):
                 pass
         else:
-            M = spla.LinearOperator((self.m, self.m), matvec=lambda r: r / d, dtype=float)
-            y, info = spla.cg(A, b, x0=x0, rtol=self.tol, atol=0.0, maxiter=10 * self.m + 10, M=M)
-            if info == 0:
+            y = self._solve_components(b, w2, d, x0)
+            if y is not None:
                 return y
         # singular (redundant constraints) or CG stalled: least-squares, least-norm answer
         return spla.lsmr(A, b, atol=self.tol * 1e-2, btol=self.tol * 1e-2,

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import copy
+import math
 import numbers
 from typing import Any
 
 import numpy as np
 
+from . import fused
 from .constraints import Constraint
 from .forces import Force
 from .integrators import get_method
@@ -186,7 +188,14 @@ class ParticleSystem:
         out.forces = [f.tiled(copies, self.n) for f in self.forces]
         out.constraints = [c.tiled(copies, self.n) for c in self.constraints]
         out._solver = None
+        out.__dict__.pop("_packed", None)
         return out
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the compiled pack holds views of the blocks' arrays: rebuilt, never copied
+        state = self.__dict__.copy()
+        state.pop("_packed", None)
+        return state
 
     def copy(self) -> ParticleSystem:
         """A deep copy (state, terms and solver warm start)."""
@@ -226,30 +235,73 @@ class ParticleSystem:
         lam = solver.multipliers(x, v, Q, w2, self.ks, self.kd)
         return solver.JT_times(lam).reshape(x.shape)
 
-    def step(self, dt: float, method: str = "rk4", project: bool | None = None) -> None:
-        """Advance ``x``, ``v`` and ``t`` by ``dt`` seconds with the integrator ``method``.
+    def step(self, dt: float, method: str = "rk4", project: bool | None = None, *,
+             steps: int = 1) -> None:
+        """Advance ``x``, ``v`` and ``t`` by ``steps`` steps of ``dt`` seconds with ``method``.
 
-        ``project`` (default: the system's setting) projects the result back onto the
-        constraints. Raises :class:`SimulationDiverged`, keeping the old state, if the new
-        state would be non-finite or beyond ``divergence_limit``.
+        ``project`` (default: the system's setting) projects the result of every step back
+        onto the constraints. Raises :class:`SimulationDiverged`, keeping the state from before
+        the call, if a step would produce a non-finite state or one beyond
+        ``divergence_limit``.
+
+        Systems made of the standard blocks step through the fused compiled kernel
+        (:mod:`constrained_particles.fused`) for ``euler``, ``midpoint``, ``rk4`` and
+        ``symplectic_euler`` with the default ``"cg"`` solver; everything else, and
+        ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
         """
-        if not (isinstance(dt, numbers.Real) and np.isfinite(dt) and dt > 0):
+        if not (isinstance(dt, numbers.Real) and not isinstance(dt, bool) and np.isfinite(dt)
+                and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
+            raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
         integrate = get_method(method)
         project = self.project_each_step if project is None else project
         solver = self.constraint_solver
         lam = solver.lam.copy()
+        h = float(dt)
+        project = bool(project and self.constraints)
+        if (self.solver == "cg" and method in fused.METHOD_CODES and (steps == 1 or not project)
+                and "acceleration" not in self.__dict__
+                and type(self).acceleration is ParticleSystem.acceleration):
+            status, x, v, failed = fused.run(self, h, method, int(steps), solver.lam,
+                                             getattr(self, "residual_limit", math.inf))
+            if status == fused.OK:
+                try:
+                    if project:
+                        with np.errstate(all="ignore"):
+                            x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
+                        self._check(x, v)
+                except SimulationDiverged:
+                    solver.lam[:] = lam
+                    raise
+                t = self.t
+                for _ in range(int(steps)):
+                    t = t + h
+                self.x, self.v, self.t = x, v, t
+                return
+            solver.lam[:] = lam
+            if status == fused.DIVERGED:
+                t = self.t
+                for _ in range(failed):
+                    t = t + h
+                raise SimulationDiverged(
+                    f"step at t = {t:.6g} s produced a non-finite state, one beyond "
+                    f"divergence_limit = {self.divergence_limit:g} or one off the constraints "
+                    "by more than residual_limit; state kept as it was before the step")
+        x, v, t = self.x, self.v, self.t
         try:
             with np.errstate(all="ignore"):
-                x, v = integrate(self, self.t, self.x, self.v, float(dt))
-                self._check(x, v)
-                if project and self.constraints:
-                    x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
+                for _ in range(int(steps)):
+                    x, v = integrate(self, t, x, v, h)
                     self._check(x, v)
+                    if project:
+                        x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
+                        self._check(x, v)
+                    t = t + h
         except SimulationDiverged:
-            solver.lam = lam
+            solver.lam[:] = lam
             raise
-        self.x, self.v, self.t = x, v, self.t + float(dt)
+        self.x, self.v, self.t = x, v, t
 
     def _check(self, x: np.ndarray, v: np.ndarray) -> None:
         limit = self.divergence_limit

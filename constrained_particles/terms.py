@@ -100,6 +100,14 @@ class Term:
 
     index_fields: ClassVar[tuple[str, ...]] = ()
     element_fields: ClassVar[tuple[str, ...]] = ()
+    #: Bumped whenever an attribute of any term is (re)assigned, so that compiled packs of a
+    #: system (:mod:`constrained_particles.fused`) know when to rebuild. In-place edits of
+    #: arrays need no bump: the packs hold the blocks' own arrays.
+    generation: ClassVar[int] = 0
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+        Term.generation += 1
 
     def __len__(self) -> int:
         """Number of elements (springs, wires, ...) in the block."""

@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
+from .extras import require
 from .forces import DampedSpring, Drag, Gravity, MouseSpring, Wall
 from .integrators import METHODS
 from .render import Renderer, _pygame
@@ -457,22 +459,40 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def display_problem() -> str | None:
+    """Why no window can be opened here, or None if one (probably) can.
+
+    ``SDL_VIDEODRIVER=dummy`` or ``offscreen`` opens no window; on Linux without
+    ``SDL_VIDEODRIVER`` a window needs ``DISPLAY`` (X11) or ``WAYLAND_DISPLAY``. Setting
+    ``SDL_VIDEODRIVER`` to a real driver (``x11``, ``wayland``, ``kmsdrm``) skips the check.
+    """
+    driver = os.environ.get("SDL_VIDEODRIVER", "").strip().lower()
+    if driver in ("dummy", "offscreen"):
+        return f"SDL_VIDEODRIVER={driver} opens no window"
+    if (not driver and sys.platform.startswith("linux")
+            and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
+        return "no display to open a window on (DISPLAY and WAYLAND_DISPLAY are unset)"
+    return None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles view``."""
+    from .cli import int_at_least, output_file, positive_float, time_step
+
     parser.add_argument("scene", nargs="?", default="cloth", choices=list(SCENES),
-                        help="scene to open (n / p cycle through the others); default cloth")
+                        help="scene to open (n / p cycle through the others)")
     parser.add_argument("--method", default="rk4", choices=sorted(METHODS), help="integrator")
-    parser.add_argument("--dt", type=float, default=None,
+    parser.add_argument("--dt", type=time_step, default=None,
                         help=f"time step in seconds (default {DEFAULT_DT:g}, or the scene's)")
     parser.add_argument("--size", type=_size, default=(960, 640), help="window size, WxH pixels")
-    parser.add_argument("--fps", type=float, default=60.0, help="frames per second")
+    parser.add_argument("--fps", type=positive_float, default=60.0, help="frames per second")
     parser.add_argument("--headless", action="store_true",
                         help="no window (SDL dummy driver); each frame advances 1/fps s")
-    parser.add_argument("--frames", type=int, default=None,
+    parser.add_argument("--frames", type=int_at_least(1), default=None,
                         help="stop after this many frames (default: 120 when headless)")
-    parser.add_argument("--screenshot", default=None, metavar="PATH",
-                        help="save the last frame as a PNG")
-    parser.add_argument("--record", default=None, metavar="PATH.gif",
+    parser.add_argument("--screenshot", type=output_file(".png"), default=None,
+                        metavar="PATH.png", help="save the last frame as a PNG")
+    parser.add_argument("--record", type=output_file(".gif"), default=None, metavar="PATH.gif",
                         help="record the session to an animated GIF (pillow, at most 25 "
                         "frames/s; frames stay in memory until the end, so keep it short)")
     parser.add_argument("--no-forces", action="store_true", help="start with force arrows off")
@@ -480,15 +500,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start with constraint-force arrows off")
 
 
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Before any work: the ``render`` extra is installed, and a window can be opened unless
+    ``--headless``."""
+    require("pygame", "PIL", command="cparticles view")
+    if args.dt is not None and not DT_RANGE[0] <= args.dt <= DT_RANGE[1]:
+        parser.error(f"argument --dt: must be in [{DT_RANGE[0]:g}, {DT_RANGE[1]:g}] s, "
+                     f"got {args.dt:g}")
+    problem = None if args.headless else display_problem()
+    if problem:
+        parser.error(f"{problem}; run with --headless (add --screenshot PATH.png or "
+                     "--record PATH.gif to keep what it shows)")
+
+
 def main(args: argparse.Namespace) -> int:
     """``cparticles view``: open the viewer (or run it headless) until quit or ``--frames``."""
-    if not args.fps > 0:
-        raise ValueError(f"--fps must be > 0, got {args.fps}")
     frames = args.frames if args.frames is not None else (120 if args.headless else None)
-    if frames is not None and frames < 1:
-        raise ValueError(f"--frames must be >= 1, got {frames}")
-    if args.record is not None and not args.record.lower().endswith(".gif"):
-        raise ValueError(f"--record must name a .gif file, got {args.record!r}")
     viewer = Viewer(args.scene, method=args.method, dt=args.dt, size=args.size,
                     forces=not args.no_forces, constraint_forces=not args.no_constraint_forces)
     if args.headless:

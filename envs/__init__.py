@@ -2,7 +2,8 @@
 
 Importing this package registers ``ClothSlide-v0`` and ``SliderCrank-v0`` (idempotently, so a
 second import or a subprocess re-import is silent). ``gym.make("envs:ClothSlide-v0")`` imports it
-for you.
+for you. Both entry points live in :mod:`envs.cparticles`, so ``gym.pprint_registry()`` lists
+the two ids together under ``cparticles``.
 """
 
 from gymnasium.envs.registration import register, registry
@@ -11,11 +12,11 @@ from gymnasium.envs.registration import register, registry
 ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0")
 
 _SPECS = {
-    "ClothSlide-v0": dict(entry_point="envs.cloth_slide:ClothSlideEnv",
-                          vector_entry_point="envs.cloth_slide:ClothSlideVectorEnv",
+    "ClothSlide-v0": dict(entry_point="envs.cparticles:ClothSlideEnv",
+                          vector_entry_point="envs.cparticles:ClothSlideVectorEnv",
                           max_episode_steps=200),
-    "SliderCrank-v0": dict(entry_point="envs.slider_crank:SliderCrankEnv",
-                           vector_entry_point="envs.slider_crank:SliderCrankVectorEnv",
+    "SliderCrank-v0": dict(entry_point="envs.cparticles:SliderCrankEnv",
+                           vector_entry_point="envs.cparticles:SliderCrankVectorEnv",
                            max_episode_steps=200),
 }
 

@@ -30,30 +30,52 @@ BATCH = 64
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
+    from constrained_particles.cli import int_at_least, output_file, time_step
+
     parser.add_argument("--env", default=ENV_IDS[0], choices=ENV_IDS, help="environment id")
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
-    parser.add_argument("--episodes", type=int, default=50, help="number of episodes")
-    parser.add_argument("--seed", type=int, default=0, help="seed of episode 0 (then +1 each)")
+    parser.add_argument("--episodes", type=int_at_least(1), default=50,
+                        help="number of episodes")
+    parser.add_argument("--seed", type=int_at_least(0), default=0,
+                        help="seed of episode 0 (then +1 each)")
     parser.add_argument("--action-mode", default="force", choices=ACTION_MODES,
                         help="force on handles, or spring placement")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    parser.add_argument("--save-gif", metavar="PATH", help="save episode 0 as an animated GIF")
+    parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
+                        help="save episode 0 as an animated GIF (needs the render extra)")
     parser.add_argument("--watch", action="store_true",
-                        help="show episode 0 in a pygame-ce window first")
+                        help="show episode 0 in a pygame-ce window first (needs a display)")
     parser.add_argument("--integrator", choices=sorted(METHODS),
                         help="physics integrator (default: the environment's)")
-    parser.add_argument("--dt", type=float, help="physics step in seconds")
-    parser.add_argument("--substeps", type=int, help="physics steps per env step")
+    parser.add_argument("--dt", type=time_step,
+                        help="physics step in seconds (default: the environment's)")
+    parser.add_argument("--substeps", type=int_at_least(1),
+                        help="physics steps per env step (default: the environment's)")
+
+
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Before any work: the render extra for ``--watch`` and ``--save-gif``, and a display for
+    ``--watch``."""
+    from constrained_particles.extras import require
+    from constrained_particles.viewer import display_problem
+
+    if args.watch or args.save_gif:
+        require("pygame", "PIL", command="cparticles demo --watch/--save-gif")
+    problem = display_problem() if args.watch else None
+    if problem:
+        parser.error(f"--watch: {problem}; use --save-gif PATH.gif to record episode 0 instead")
 
 
 def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
                  action_mode: str = "force", **env_kwargs: Any) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes (seeds ``seed .. seed + episodes - 1``) in native vector envs
-    made with ``env_kwargs``. Returns per-episode arrays ``return``, ``length`` and ``success``.
+    made with ``env_kwargs``. Returns per-episode arrays ``return``, ``length``, ``success`` and
+    ``diverged`` (the episode ended because its simulation diverged).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    out: dict[str, list[np.ndarray]] = {"return": [], "length": [], "success": []}
+    out: dict[str, list[np.ndarray]] = {"return": [], "length": [], "success": [],
+                                        "diverged": []}
     for start in range(0, episodes, BATCH):
         n = min(BATCH, episodes - start)
         env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
@@ -62,6 +84,7 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
         obs, _ = env.reset(seed=seed + start)
         ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
         success, done = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        diverged = np.zeros(n, dtype=bool)
         while not done.all():
             obs, reward, terminated, truncated, info = env.step(policy(obs))
             live = ~done
@@ -69,9 +92,11 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
             length[live] += 1
             ended = live & (terminated | truncated)
             success[ended] = info["is_success"][ended]
+            diverged[ended] = info["diverged"][ended]
             done |= ended
         env.close()
-        for key, value in (("return", ret), ("length", length), ("success", success)):
+        for key, value in (("return", ret), ("length", length), ("success", success),
+                           ("diverged", diverged)):
             out[key].append(value)
     return {key: np.concatenate(v) for key, v in out.items()}
 
@@ -119,7 +144,8 @@ def main(args: argparse.Namespace) -> int:
                **physics, "episodes": args.episodes, "seed": args.seed,
                "success_rate": float(res["success"].mean()),
                "mean_return": float(res["return"].mean()),
-               "mean_length": float(res["length"].mean()), "seconds": round(seconds, 2)}
+               "mean_length": float(res["length"].mean()),
+               "diverged_episodes": int(res["diverged"].sum()), "seconds": round(seconds, 2)}
     if args.save_gif:
         frames, info = record_episode(args.env, args.agent, args.seed, args.action_mode,
                                       **physics)
@@ -127,17 +153,20 @@ def main(args: argparse.Namespace) -> int:
         summary["gif"] = args.save_gif
     if args.json:
         summary.update(returns=res["return"].round(4).tolist(), lengths=res["length"].tolist(),
-                       successes=res["success"].tolist())
+                       successes=res["success"].tolist(), diverged=res["diverged"].tolist())
         print(json.dumps(summary, indent=2))
         return 0
     print(f"# {args.env}, {args.agent} agent, action_mode={args.action_mode}, "
           f"seeds {args.seed}..{args.seed + args.episodes - 1}")
-    print(f"{'episode':>7} {'seed':>6} {'return':>9} {'length':>6} {'success':>7}")
+    print(f"{'episode':>7} {'seed':>6} {'return':>9} {'length':>6} {'success':>7} "
+          f"{'diverged':>8}")
     for k in range(args.episodes):
         print(f"{k:7d} {args.seed + k:6d} {res['return'][k]:9.2f} {res['length'][k]:6d} "
-              f"{'yes' if res['success'][k] else 'no':>7}")
+              f"{'yes' if res['success'][k] else 'no':>7} "
+              f"{'yes' if res['diverged'][k] else 'no':>8}")
     print(f"success rate {summary['success_rate']:.0%}, mean return {summary['mean_return']:.2f}, "
-          f"mean length {summary['mean_length']:.1f} steps ({seconds:.1f} s)")
+          f"mean length {summary['mean_length']:.1f} steps, "
+          f"{summary['diverged_episodes']} diverged ({seconds:.1f} s)")
     if args.save_gif:
         print(f"saved {args.save_gif}")
     return 0

@@ -20,7 +20,7 @@ from constrained_particles import (
     Rod,
     scenes,
 )
-from constrained_particles.solver import SOLVER_METHODS, ConstraintSolver
+from constrained_particles.solver import DIRECT_MAX, SOLVER_METHODS, ConstraintSolver
 
 SOLVERS = ["cg", "direct"]
 
@@ -120,8 +120,10 @@ def test_warm_start_reuses_last_multipliers(monkeypatch):
         return out
 
     monkeypatch.setattr(spla, "cg", spy)
-    s = perturbed(scenes.angular_chain(), seed=3)
+    # 12 rods: one connected component larger than DIRECT_MAX, so it is solved by CG
+    s = perturbed(scenes.angular_chain(links=12), seed=3)
     assert s.solver == "cg" and not s.constraint_solver.diagonal
+    assert len(s.constraint_solver._large) == 12 > DIRECT_MAX
     s.acceleration(0.0, s.x, s.v)
     s.acceleration(0.0, s.x, s.v)
     (x0_first, lam_first, it_first), (x0_second, _, it_second) = calls

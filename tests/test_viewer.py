@@ -295,6 +295,39 @@ def test_record_gif(tmp_path, monkeypatch):
 
 
 def test_cli_rejects_bad_record_path(tmp_path, monkeypatch, capsys):
-    assert run_cli(monkeypatch, "view", "pendulum", "--headless", "--frames", "1",
-                   "--record", str(tmp_path / "x.mp4")) == 2
+    with pytest.raises(SystemExit) as exc:
+        run_cli(monkeypatch, "view", "pendulum", "--headless", "--frames", "1",
+                "--record", str(tmp_path / "x.mp4"))
+    assert exc.value.code == 2
     assert "--record" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("env", [{"SDL_VIDEODRIVER": "dummy"},
+                                 {"SDL_VIDEODRIVER": "", "DISPLAY": "", "WAYLAND_DISPLAY": ""}])
+@pytest.mark.parametrize("argv", [["view", "pendulum"], ["demo", "--watch", "--episodes", "1"]])
+def test_no_display_is_a_clear_usage_error(env, argv, monkeypatch, capsys):
+    """Without a display, view and demo --watch stop before any work and say what to use."""
+    if not sys.platform.startswith("linux") and env["SDL_VIDEODRIVER"] == "":
+        pytest.skip("the DISPLAY check applies on Linux only")
+    for name, value in env.items():
+        if value:
+            monkeypatch.setenv(name, value)
+        else:
+            monkeypatch.delenv(name, raising=False)
+    with pytest.raises(SystemExit) as exc:
+        run_cli(monkeypatch, *argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert ("--headless" in err and "--record" in err) if argv[0] == "view" else (
+        "--save-gif" in err)
+
+
+def test_display_problem_trusts_an_explicit_driver(monkeypatch):
+    from constrained_particles.viewer import display_problem
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "x11")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    assert display_problem() is None
+    monkeypatch.setenv("SDL_VIDEODRIVER", "offscreen")
+    assert "offscreen" in display_problem()

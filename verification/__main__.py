@@ -2,9 +2,11 @@
 
 The same subcommands run as ``python -m verification`` and as ``cparticles verify``::
 
-    python -m verification orders [--quick] [--json]
-    python -m verification pymunk [--quick] [--json]
-    python -m verification report --out DIR [--quick]
+    python -m verification orders [--quick] [--json] [--quiet]
+    python -m verification pymunk [--quick] [--json] [--quiet]
+    python -m verification report --out DIR [--quick] [--quiet]
+
+Progress bars (tqdm, on stderr) show by default when stderr is a terminal.
 """
 
 from __future__ import annotations
@@ -14,37 +16,58 @@ import json
 import sys
 from collections.abc import Sequence
 
+from constrained_particles.cli import HelpFormatter, output_directory, progress_enabled
+from constrained_particles.extras import MissingExtra, require
+
+#: modules each subcommand needs (all from the ``verify`` extra)
+NEEDS = {"orders": ("tqdm",), "pymunk": ("pymunk", "tqdm"),
+         "report": ("pymunk", "tqdm", "matplotlib")}
+
+JSON_HELP = {
+    "orders": 'print {"case": {"method": observed order, ...}, ...} instead of a table',
+    "pymunk": 'print {"scene": {"order": observed order, "errors": {"dt": max position error '
+              'in m, ...}}, ...} instead of a table',
+}
+
+
+def _progress_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", "--no-progress", action="store_true",
+                   help="no progress bars (they show by default when stderr is a terminal)")
+    p.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The subcommands ``orders``, ``pymunk`` and ``report``."""
     sub = parser.add_subparsers(dest="verify_command", required=True, metavar="SUBCOMMAND")
     for name, text in (("orders", "measured convergence order of every integrator"),
                        ("pymunk", "pymunk's convergence to our trajectories as its dt shrinks")):
-        p = sub.add_parser(name, help=text, description=text)
+        p = sub.add_parser(name, help=text, description=text, formatter_class=HelpFormatter)
         p.add_argument("--quick", action="store_true", help="fewer steps, shorter runs")
-        p.add_argument("--json", action="store_true",
-                       help='print {"case": {"method": order, ...}, ...} instead of a table')
-        p.add_argument("--progress", action="store_true", help="show a progress bar")
+        p.add_argument("--json", action="store_true", help=JSON_HELP[name])
+        _progress_options(p)
     p = sub.add_parser("report", help="write the Markdown/JSON/PNG verification report",
                        description="run every experiment and write report.md, report.json and "
-                                   "PNG plots into --out")
-    p.add_argument("--out", required=True, help="output directory (created if missing)")
+                                   "PNG plots into --out", formatter_class=HelpFormatter)
+    p.add_argument("--out", required=True, type=output_directory,
+                   help="output directory (created if missing; checked before any work)")
     p.add_argument("--quick", action="store_true", help="the short version (under a minute)")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    _progress_options(p)
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the chosen subcommand; returns the exit status."""
+    require(*NEEDS[args.verify_command], command=f"cparticles verify {args.verify_command}")
+    progress = progress_enabled(args)
     if args.verify_command == "orders":
         from .orders import measure_orders, orders_summary, orders_table
 
-        results = measure_orders(quick=args.quick, progress=args.progress)
+        results = measure_orders(quick=args.quick, progress=progress)
         print(json.dumps(orders_summary(results), indent=1) if args.json
               else orders_table(results))
     elif args.verify_command == "pymunk":
         from .pymunk_check import compare_all, pymunk_table
 
-        results = compare_all(quick=args.quick, progress=args.progress)
+        results = compare_all(quick=args.quick, progress=progress)
         if args.json:
             print(json.dumps({n: {"order": round(r.order, 3),
                                   "errors": {f"{dt:g}": e for dt, e in zip(r.dts, r.errors,
@@ -55,7 +78,7 @@ def main(args: argparse.Namespace) -> int:
     else:
         from .report import write_report
 
-        data = write_report(args.out, quick=args.quick, progress=not args.no_progress)
+        data = write_report(args.out, quick=args.quick, progress=progress)
         print(f"wrote {args.out}/report.md, report.json and plots in {data['seconds']:.1f} s")
     return 0
 
@@ -63,9 +86,18 @@ def main(args: argparse.Namespace) -> int:
 def run(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m verification``."""
     parser = argparse.ArgumentParser(prog="python -m verification",
-                                     description=__doc__.splitlines()[0])
+                                     description=__doc__.splitlines()[0],
+                                     formatter_class=HelpFormatter)
     add_arguments(parser)
-    return main(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    try:
+        return main(args)
+    except MissingExtra as exc:  # the message names the command already
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"python -m verification {args.verify_command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,0 +1,61 @@
+"""Optional dependencies ("extras") and the one-line message a command gives when one is missing.
+
+Commands check what they need before doing any work::
+
+    >>> require("numpy", command="cparticles run")   # installed: nothing happens
+    >>> install_hint("verify")
+    'pip install -e ".[verify]" in a checkout, or pip install "constrained-particles[verify]"'
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+#: importable module -> the extra that installs it
+EXTRA_OF: dict[str, str] = {
+    "pymunk": "verify",
+    "hypothesis": "verify",
+    "tqdm": "verify",
+    "matplotlib": "verify",
+    "pygame": "render",
+    "PIL": "render",
+}
+
+
+#: importable module -> the distribution a user installs, where the names differ
+DISTRIBUTION: dict[str, str] = {"pygame": "pygame-ce", "PIL": "pillow"}
+
+
+class MissingExtra(ImportError):
+    """A command needs an optional dependency that is not installed; the message is one line
+    naming the extra and how to install it."""
+
+
+def install_hint(extra: str) -> str:
+    """How to install ``extra`` from a source checkout and from a package index."""
+    return (f'pip install -e ".[{extra}]" in a checkout, '
+            f'or pip install "constrained-particles[{extra}]"')
+
+
+def missing(*modules: str) -> list[str]:
+    """The names in ``modules`` that cannot be imported (without importing them)."""
+    out = []
+    for name in modules:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            out.append(name)
+    return out
+
+
+def require(*modules: str, command: str) -> None:
+    """Raise :class:`MissingExtra` naming the extra to install if any of ``modules`` is
+    missing; ``command`` (e.g. ``"cparticles bench"``) starts the message."""
+    absent = missing(*modules)
+    if absent:
+        extra = EXTRA_OF.get(absent[0], "verify")
+        names = ", ".join(DISTRIBUTION.get(name, name) for name in absent)
+        raise MissingExtra(f"{command} needs the '{extra}' extra (missing: {names}); "
+                           f"install it with {install_hint(extra)}")

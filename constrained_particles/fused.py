@@ -1,0 +1,846 @@
+"""The fused compiled step: a whole explicit step of a standard system as one Numba call.
+
+A system built only from the standard blocks (:class:`~.Gravity`, :class:`~.ConstantForce`,
+:class:`~.DampedSpring`, :class:`~.AngularSpring`, :class:`~.Drag`, :class:`~.Wall`,
+:class:`~.MouseSpring`; :class:`~.CircularWire`, :class:`~.Rod`, :class:`~.LineWire` /
+:class:`~.HorizontalWire`, :class:`~.FixedPoint`) is *packed* into flat per-type arrays, and one
+compiled function then runs ``steps`` steps of ``euler``, ``midpoint``, ``rk4`` or
+``symplectic_euler``: force accumulation (the elements of :mod:`._kernels`), the constraint
+solve and the integrator update, with no Python between blocks. It follows the reference path
+(:meth:`ParticleSystem.acceleration` and :mod:`.integrators`) formula for formula; only the
+order in which blocks' forces are summed differs (by type here, by block there), at the level
+of rounding.
+
+**The constraint solve.** The rows of ``J W J^T lam = -Jdot qdot - J W Q - ks C - kd Cdot`` are
+split once per topology into connected components (rows that share a movable coordinate).
+Components of up to :data:`DIRECT_MAX` rows are solved directly (dense Cholesky per component);
+larger ones by Jacobi-preconditioned conjugate gradients per component, warm-started from the
+previous multipliers. Copies of a tiled scene are therefore solved independently, and copy ``i``
+of a batch reproduces the same scene stepped alone bit for bit.
+
+Anything the fused kernel cannot do exactly as the reference does (a singular or ill-posed
+solve, CG that does not converge, an index out of range, a user-defined block, a subclass) is
+handed back: the step then runs on the reference path, which raises the documented errors.
+Packed arrays are the blocks' own arrays where possible (zero copy, so in-place edits such as an
+environment writing its actions into ``ConstantForce.force`` are seen); the pack is rebuilt
+when a block's array attribute is replaced or a scalar parameter changes. Every particle index
+is checked against ``n`` inside the kernel before any array is read.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import _kernels
+from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
+from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
+from .solver import DIRECT_MAX, row_components
+from .terms import Term
+
+if TYPE_CHECKING:
+    from .system import ParticleSystem
+
+#: Integrators the fused kernel runs, with their codes.
+METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rattle": 4}
+#: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
+#: them): convergence and stall tolerances as fractions of the system's size, and iterations.
+RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
+#: Kernel status codes.
+OK, DIVERGED, FALLBACK = 0, 1, 2
+
+_FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring)
+_CONSTRAINT_TYPES = (CircularWire, Rod, LineWire, HorizontalWire, FixedPoint)
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    """A read-only view: index arrays reach the kernel as one Numba type whatever their origin."""
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
+_I0 = _ro(np.zeros(0, np.int64))
+_F0 = np.zeros(0)
+_F02 = np.zeros((0, 2))
+_B0 = np.zeros(0, bool)
+
+
+def supported(system: ParticleSystem) -> bool:
+    """True when every block of ``system`` is a standard type the fused kernel implements
+    (exact types: a subclass may override the formulas, so it takes the reference path)."""
+    return (_kernels.ENABLED
+            and all(type(f) in _FORCE_TYPES for f in system.forces)
+            and all(type(c) in _CONSTRAINT_TYPES for c in system.constraints))
+
+
+def _f64(a: Any, ndim: int) -> tuple[np.ndarray, bool]:
+    """``a`` as a C-contiguous float64 array of ``ndim`` dimensions; True if no copy was made."""
+    if (type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == ndim
+            and a.flags.c_contiguous and a.flags.writeable):
+        return a, True
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape((-1, 2)[-ndim:])), False
+
+
+def _i64(a: Any) -> tuple[np.ndarray, bool]:
+    if type(a) is np.ndarray and a.dtype == np.int64 and a.ndim == 1 and a.flags.c_contiguous:
+        return _ro(a), True
+    return _ro(np.ascontiguousarray(np.asarray(a).ravel().astype(np.int64))), False
+
+
+def _bool(a: Any) -> tuple[np.ndarray, bool]:
+    if (type(a) is np.ndarray and a.dtype == np.bool_ and a.ndim == 1 and a.flags.c_contiguous
+            and a.flags.writeable):
+        return a, True
+    return np.ascontiguousarray(np.asarray(a, dtype=bool).ravel()), False
+
+
+class Packed:
+    """A system's blocks as the fused kernel's flat per-type arrays (see the module docstring).
+
+    Built by :func:`pack`; :meth:`current` tells whether it still describes the system.
+    """
+
+    def __init__(self, system: ParticleSystem) -> None:
+        n = system.n
+        self.n = n
+        self.forces = list(system.forces)
+        self.constraints = list(system.constraints)
+        self.zero_copy = True
+        self.generation = Term.generation
+        self.valid = self.supported = supported(system)
+        if not self.supported:
+            return
+        by_type: dict[type, list] = {}
+        for f in self.forces:
+            by_type.setdefault(type(f), []).append(f)
+        every = _ro(np.arange(n, dtype=np.int64))
+
+        def idx_of(block: Any, name: str) -> np.ndarray:
+            raw = getattr(block, name)
+            if raw is None:
+                return every
+            arr, same = _i64(raw)
+            self.zero_copy &= same
+            return arr
+
+        def f64(block: Any, name: str, ndim: int) -> np.ndarray:
+            arr, same = _f64(getattr(block, name), ndim)
+            self.zero_copy &= same
+            return arr
+
+        def scalar(block: Any, name: str) -> float:
+            return float(getattr(block, name))
+
+        def join(parts: list[tuple], empty: tuple) -> tuple:
+            if not parts:
+                return empty
+            if len(parts) == 1:
+                return parts[0]
+            self.zero_copy = False  # concatenated copies: repack every call
+            cols = [np.ascontiguousarray(np.concatenate(col)) for col in zip(*parts, strict=True)]
+            return tuple(_ro(c) if c.dtype == np.int64 else c for c in cols)
+
+        grav = []
+        for k, g in enumerate(by_type.get(Gravity, [])):
+            idx = idx_of(g, "particles")
+            grav.append((idx, _ro(np.full(len(idx), k, np.int64)), f64(g, "g", 1).reshape(1, 2)))
+        self.grav = join(grav, (_I0, _I0, _F02))
+        self.const = join([(idx_of(c, "particles"), f64(c, "force", 2))
+                           for c in by_type.get(ConstantForce, [])], (_I0, _F02))
+        self.spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
+                             f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
+                           (_I0, _I0, _F0, _F0, _F0))
+        self.ang = join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"), f64(a, "rest", 1),
+                          f64(a, "k", 1), f64(a, "kd", 1))
+                         for a in by_type.get(AngularSpring, [])],
+                        (_I0, _I0, _I0, _F0, _F0, _F0))
+        drag = []
+        for d in by_type.get(Drag, []):
+            idx = idx_of(d, "particles")
+            drag.append((idx, np.full(len(idx), scalar(d, "kd"))))
+        self.drag = join(drag, (_I0, _F0))
+        wall = []
+        for k, w in enumerate(by_type.get(Wall, [])):
+            idx = idx_of(w, "particles")
+            wall.append((idx, _ro(np.full(len(idx), k, np.int64)),
+                         f64(w, "normal", 1).reshape(1, 2),
+                         np.array([[scalar(w, "offset"), scalar(w, "kw"), scalar(w, "cw")]])))
+        self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))))
+        mouse = []
+        for m in by_type.get(MouseSpring, []):
+            active, same = _bool(m.active)
+            self.zero_copy &= same
+            mouse.append((idx_of(m, "particle"), f64(m, "anchor", 2), active, f64(m, "ks", 1),
+                          f64(m, "kd", 1)))
+        self.mouse = join(mouse, (_I0, _F02, _B0, _F0, _F0))
+
+        # constraints: per type, with the global row of each element (system block order)
+        circ, rod, line, fixed = [], [], [], []
+        offset = 0
+        for c in self.constraints:
+            k = len(c)
+            rows = _ro(offset + np.arange(k, dtype=np.int64) * c.rows_per_element)
+            if type(c) is CircularWire:
+                circ.append((idx_of(c, "particles"), f64(c, "center", 2), f64(c, "radius", 1),
+                             rows))
+            elif type(c) is Rod:
+                rod.append((idx_of(c, "a"), idx_of(c, "b"), f64(c, "length", 1), rows))
+            elif type(c) in (LineWire, HorizontalWire):
+                line.append((idx_of(c, "particles"), f64(c, "normal", 2), f64(c, "point", 2),
+                             rows))
+            else:
+                fixed.append((idx_of(c, "particles"), f64(c, "point", 2), rows))
+            offset += c.n_rows
+        self.m = offset
+        self.circ = join(circ, (_I0, _F02, _F0, _I0))
+        self.rod = join(rod, (_I0, _I0, _F0, _I0))
+        self.line = join(line, (_I0, _F02, _F02, _I0))
+        self.fixed = join(fixed, (_I0, _F02, _I0))
+        self._build_rows(system)
+
+    def _build_rows(self, system: ParticleSystem) -> None:
+        """Per-row particle columns and the connected components of the row graph."""
+        m = self.m
+        cols = np.full((m, 4), -1, np.int64)
+        for p, _, _, rows in [self.circ, self.line]:
+            cols[rows, 0], cols[rows, 1] = 2 * p, 2 * p + 1
+        a, b, _, rows = self.rod
+        cols[rows, 0], cols[rows, 1], cols[rows, 2], cols[rows, 3] = 2 * a, 2 * a + 1, 2 * b, \
+            2 * b + 1
+        p, _, rows = self.fixed
+        cols[rows, 0], cols[rows + 1, 0] = 2 * p, 2 * p + 1
+        if m and (cols.max() >= 2 * self.n):
+            self.valid = False  # an index out of range: the reference path reports it
+            cols = np.minimum(cols, 2 * self.n - 1)
+        else:
+            self.valid = True
+        self.cols = cols
+        self.nnz = (cols >= 0).sum(axis=1).astype(np.int64)
+        r, k = np.nonzero(cols >= 0)
+        self.comp_rows, self.comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
+        sizes = np.diff(self.comp_ptr)
+        self.max_component = int(sizes.max()) if len(sizes) else 0
+
+    def current(self, system: ParticleSystem) -> bool:
+        """True if this pack still describes ``system``: the same blocks, and no attribute of
+        any term reassigned since it was built (in-place edits are seen through the arrays)."""
+        return (self.generation == Term.generation and self.zero_copy and system.n == self.n
+                and system.forces == self.forces and system.constraints == self.constraints)
+
+
+def pack(system: ParticleSystem) -> Packed:
+    """The system's current :class:`Packed` form (cached on the system while it is current)."""
+    cached = getattr(system, "_packed", None)
+    if cached is not None and cached.current(system):
+        return cached
+    packed = Packed(system)
+    system._packed = packed
+    return packed
+
+
+def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
+        residual_limit: float) -> tuple[int, np.ndarray, np.ndarray, int]:
+    """Run ``steps`` fused steps of ``method`` from the system's state.
+
+    Returns ``(status, x, v, failed_step)``: status :data:`OK` with the new state,
+    :data:`DIVERGED` (``failed_step`` is the step whose result was non-finite, beyond
+    ``divergence_limit`` or off the constraints by more than ``residual_limit`` m) or
+    :data:`FALLBACK` (use the reference path). ``lam`` (the warm start) is updated in place.
+    """
+    p = pack(system)
+    if not p.valid:  # unsupported blocks, or an index out of range
+        return FALLBACK, system.x, system.v, 0
+    x = np.ascontiguousarray(system.x, dtype=np.float64)
+    v = np.ascontiguousarray(system.v, dtype=np.float64)
+    mass = np.ascontiguousarray(system.mass, dtype=np.float64)
+    inv_mass = np.ascontiguousarray(system.inv_mass, dtype=np.float64)
+    if (x.shape != (p.n, 2) or v.shape != (p.n, 2) or mass.shape != (p.n,)
+            or inv_mass.shape != (p.n,) or lam.shape != (p.m,) or lam.dtype != np.float64):
+        return FALLBACK, system.x, system.v, 0
+    x_out = np.empty_like(x)
+    v_out = np.empty_like(v)
+    status, failed = _fused_steps(
+        METHOD_CODES[method], int(steps), float(dt), x, v, mass, inv_mass,
+        p.grav, p.const, p.spring, p.ang, p.drag, p.wall, p.mouse,
+        p.circ, p.rod, p.line, p.fixed, p.cols, p.nnz, p.comp_rows, p.comp_ptr,
+        float(system.ks), float(system.kd), float(system.tol), lam,
+        float(system.divergence_limit), float(residual_limit), x_out, v_out)
+    return int(status), x_out, v_out, int(failed)
+
+
+if _kernels.ENABLED:
+    import numba
+
+    from ._kernels import (
+        angular_element,
+        circle_row,
+        line_row,
+        mouse_element,
+        rod_row,
+        spring_element,
+        wall_element,
+    )
+
+    # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
+    njit = numba.njit(cache=True)
+
+    @njit
+    def _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, m,
+                      lam):  # pragma: no cover - compiled
+        """False if the per-element arrays of a block disagree in length. (Particle indices are
+        checked where they are read: every loop below tests each index against n first.)"""
+        if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
+                or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
+                or drag[1].shape[0] != drag[0].shape[0]):
+            return False
+        for e in range(grav[1].shape[0]):
+            if grav[1][e] < 0 or grav[1][e] >= grav[2].shape[0]:
+                return False
+        for e in range(wall[1].shape[0]):
+            if wall[1][e] < 0 or wall[1][e] >= wall[2].shape[0]:
+                return False
+        k = spring[0].shape[0]
+        if (spring[1].shape[0] != k or spring[2].shape[0] != k or spring[3].shape[0] != k
+                or spring[4].shape[0] != k):
+            return False
+        k = ang[0].shape[0]
+        if (ang[1].shape[0] != k or ang[2].shape[0] != k or ang[3].shape[0] != k
+                or ang[4].shape[0] != k or ang[5].shape[0] != k):
+            return False
+        k = mouse[0].shape[0]
+        if (mouse[1].shape[0] != k or mouse[2].shape[0] != k or mouse[3].shape[0] != k
+                or mouse[4].shape[0] != k):
+            return False
+        if (circ[1].shape[0] != circ[0].shape[0] or circ[2].shape[0] != circ[0].shape[0]
+                or circ[3].shape[0] != circ[0].shape[0] or rod[1].shape[0] != rod[0].shape[0]
+                or rod[2].shape[0] != rod[0].shape[0] or rod[3].shape[0] != rod[0].shape[0]
+                or line[1].shape[0] != line[0].shape[0] or line[2].shape[0] != line[0].shape[0]
+                or line[3].shape[0] != line[0].shape[0]
+                or fixed[1].shape[0] != fixed[0].shape[0]
+                or fixed[2].shape[0] != fixed[0].shape[0]):
+            return False
+        for rows in (circ[3], rod[3], line[3]):
+            for e in range(rows.shape[0]):
+                if rows[e] < 0 or rows[e] >= m:
+                    return False
+        for e in range(fixed[2].shape[0]):  # two rows per pin
+            if fixed[2][e] < 0 or fixed[2][e] + 1 >= m:
+                return False
+        return lam.shape[0] == m
+
+    @njit
+    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse):
+        # pragma: no cover - compiled
+        """Applied forces Q (N) into F (overwritten), summed by block type; False (and F
+        incomplete) if a particle index is out of range."""
+        n = x.shape[0]
+        F[:, :] = 0.0
+        gi, gblock, gg = grav
+        for e in range(gi.shape[0]):
+            q, k = gi[e], gblock[e]
+            if q < 0 or q >= n:
+                return False
+            F[q, 0] += mass[q] * gg[k, 0]
+            F[q, 1] += mass[q] * gg[k, 1]
+        ci, cf = const
+        for e in range(ci.shape[0]):
+            q = ci[e]
+            if q < 0 or q >= n:
+                return False
+            F[q, 0] += cf[e, 0]
+            F[q, 1] += cf[e, 1]
+        si, sj, srest, sks, skd = spring
+        for e in range(si.shape[0]):
+            a, b = si[e], sj[e]
+            if a < 0 or a >= n or b < 0 or b >= n:
+                return False
+            fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
+                                    v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
+            F[a, 0] += fx
+            F[a, 1] += fy
+            F[b, 0] -= fx
+            F[b, 1] -= fy
+        aa, ab, ac, arest, ak, akd = ang
+        for e in range(aa.shape[0]):
+            a, b, c = aa[e], ab[e], ac[e]
+            if a < 0 or a >= n or b < 0 or b >= n or c < 0 or c >= n:
+                return False
+            fax, fay, fbx, fby, fcx, fcy = angular_element(
+                x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
+                v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
+            F[a, 0] += fax
+            F[a, 1] += fay
+            F[b, 0] += fbx
+            F[b, 1] += fby
+            F[c, 0] += fcx
+            F[c, 1] += fcy
+        di, dkd = drag
+        for e in range(di.shape[0]):
+            q = di[e]
+            if q < 0 or q >= n:
+                return False
+            F[q, 0] -= dkd[e] * v[q, 0]
+            F[q, 1] -= dkd[e] * v[q, 1]
+        wi, wblock, wn, wpar = wall
+        for e in range(wi.shape[0]):
+            q, k = wi[e], wblock[e]
+            if q < 0 or q >= n:
+                return False
+            fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
+                                  wpar[k, 0], wpar[k, 1], wpar[k, 2])
+            F[q, 0] += fx
+            F[q, 1] += fy
+        mi, manchor, mact, mks, mkd = mouse
+        for e in range(mi.shape[0]):
+            if mact[e]:
+                q = mi[e]
+                if q < 0 or q >= n:
+                    return False
+                fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
+                                       manchor[e, 1], mks[e], mkd[e])
+                F[q, 0] += fx
+                F[q, 1] += fy
+        return True
+
+    @njit
+    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):  # pragma: no cover
+        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row; False if a particle
+        index is out of range."""
+        n = x.shape[0]
+        cp, cc, cr, crow = circ
+        for e in range(cp.shape[0]):
+            q, r = cp[e], crow[e]
+            if q < 0 or q >= n:
+                return False
+            dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
+            C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
+            Jv[r, 0], Jv[r, 1] = dx, dy
+            Jdv[r, 0], Jdv[r, 1] = v[q, 0], v[q, 1]
+        ra, rb, rl, rrow = rod
+        for e in range(ra.shape[0]):
+            a, b, r = ra[e], rb[e], rrow[e]
+            if a < 0 or a >= n or b < 0 or b >= n:
+                return False
+            dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
+            dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
+            C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
+            Jv[r, 0], Jv[r, 1], Jv[r, 2], Jv[r, 3] = dx, dy, -dx, -dy
+            Jdv[r, 0], Jdv[r, 1], Jdv[r, 2], Jdv[r, 3] = dvx, dvy, -dvx, -dvy
+        lp, ln, lpt, lrow = line
+        for e in range(lp.shape[0]):
+            q, r = lp[e], lrow[e]
+            if q < 0 or q >= n:
+                return False
+            C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
+                                     lpt[e, 0], lpt[e, 1])
+            Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
+            Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
+        fp, fpt, frow = fixed
+        for e in range(fp.shape[0]):
+            q, r = fp[e], frow[e]
+            if q < 0 or q >= n:
+                return False
+            for axis in range(2):
+                C[r + axis] = x[q, axis] - fpt[e, axis]
+                Cdot[r + axis] = v[q, axis]
+                Jv[r + axis, 0] = 1.0
+                Jdv[r + axis, 0] = 0.0
+        return True
+
+    @njit
+    def _distance_error(x, circ, rod, line, fixed):  # pragma: no cover - compiled
+        """Largest geometric constraint residual (m): how far any particle is off its wire,
+        any rod from its length, any pin from its point."""
+        worst = 0.0
+        cp, cc, cr, _ = circ
+        for e in range(cp.shape[0]):
+            q = cp[e]
+            d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
+            if not d <= worst:
+                worst = d
+        ra, rb, rl, _ = rod
+        for e in range(ra.shape[0]):
+            a, b = ra[e], rb[e]
+            d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
+            if not d <= worst:
+                worst = d
+        lp, ln, lpt, _ = line
+        for e in range(lp.shape[0]):
+            q = lp[e]
+            d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
+            if not d <= worst:
+                worst = d
+        fp, fpt, _ = fixed
+        for e in range(fp.shape[0]):
+            q = fp[e]
+            for axis in range(2):
+                d = abs(x[q, axis] - fpt[e, axis])
+                if not d <= worst:
+                    worst = d
+        return worst
+
+    @njit
+    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp):
+        # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` component by component; False if any solve is singular,
+        ill-posed or does not converge (the caller then uses the reference solver)."""
+        ncomp = comp_ptr.shape[0] - 1
+        for k in range(ncomp):
+            start, stop = comp_ptr[k], comp_ptr[k + 1]
+            s = stop - start
+            if s <= DIRECT_MAX:
+                # dense J W J^T of this component
+                for i in range(s):
+                    ri = comp_rows[start + i]
+                    for j in range(i + 1):
+                        rj = comp_rows[start + j]
+                        acc = 0.0
+                        for ki in range(nnz[ri]):
+                            ci = cols[ri, ki]
+                            for kj in range(nnz[rj]):
+                                if cols[rj, kj] == ci:
+                                    acc += Jv[ri, ki] * w2[ci] * Jv[rj, kj]
+                        A[i, j] = acc
+                # Cholesky in place (lower triangle)
+                for j in range(s):
+                    d = A[j, j]
+                    for q in range(j):
+                        d -= A[j, q] * A[j, q]
+                    if not d > 1e-12 * A[j, j] or not d > 0.0:
+                        return False
+                    d = math.sqrt(d)
+                    A[j, j] = d
+                    for i in range(j + 1, s):
+                        acc = A[i, j]
+                        for q in range(j):
+                            acc -= A[i, q] * A[j, q]
+                        A[i, j] = acc / d
+                for i in range(s):  # forward: L y = b
+                    acc = b[comp_rows[start + i]]
+                    for q in range(i):
+                        acc -= A[i, q] * work[q]
+                    work[i] = acc / A[i, i]
+                for i in range(s - 1, -1, -1):  # back: L^T lam = y
+                    acc = work[i]
+                    for q in range(i + 1, s):
+                        acc -= A[q, i] * work[q]
+                    work[i] = acc / A[i, i]
+                for i in range(s):
+                    lam[comp_rows[start + i]] = work[i]
+            else:
+                if not _cg_component(cols, nnz, comp_rows[start:stop], w2, Jv, b, lam, tol,
+                                     tmp):
+                    return False
+        return True
+
+    @njit
+    def _matvec(cols, nnz, rows, w2, Jv, p, out, tmp):  # pragma: no cover - compiled
+        """out = J W J^T p on the rows of one component (tmp is a zeroed (2n,) buffer)."""
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            for k in range(nnz[r]):
+                tmp[cols[r, k]] += Jv[r, k] * p[i]
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            acc = 0.0
+            for k in range(nnz[r]):
+                acc += Jv[r, k] * w2[cols[r, k]] * tmp[cols[r, k]]
+            out[i] = acc
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            for k in range(nnz[r]):
+                tmp[cols[r, k]] = 0.0
+
+    @njit
+    def _cg_component(cols, nnz, rows, w2, Jv, b, lam, tol, tmp):  # pragma: no cover
+        """Jacobi-preconditioned CG on one component, warm-started from ``lam``."""
+        s = rows.shape[0]
+        d = np.empty(s)
+        y = np.empty(s)
+        rhs = np.empty(s)
+        for i in range(s):
+            r = rows[i]
+            acc = 0.0
+            for k in range(nnz[r]):
+                acc += Jv[r, k] * Jv[r, k] * w2[cols[r, k]]
+            if not acc > 0.0:
+                return False
+            d[i] = acc
+            y[i] = lam[r]
+            rhs[i] = b[r]
+        bnorm = math.sqrt(np.sum(rhs * rhs))
+        Ap = np.empty(s)
+        _matvec(cols, nnz, rows, w2, Jv, y, Ap, tmp)
+        res = rhs - Ap
+        if bnorm == 0.0:
+            for i in range(s):
+                lam[rows[i]] = 0.0
+            return True
+        z = res / d
+        p = z.copy()
+        rz = np.sum(res * z)
+        for _ in range(10 * s + 10):
+            if math.sqrt(np.sum(res * res)) <= tol * bnorm:
+                for i in range(s):
+                    lam[rows[i]] = y[i]
+                return True
+            _matvec(cols, nnz, rows, w2, Jv, p, Ap, tmp)
+            pAp = np.sum(p * Ap)
+            if not pAp > 0.0:
+                return False
+            alpha = rz / pAp
+            y += alpha * p
+            res -= alpha * Ap
+            z = res / d
+            rz_new = np.sum(res * z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        if math.sqrt(np.sum(res * res)) <= tol * bnorm:
+            for i in range(s):
+                lam[rows[i]] = y[i]
+            return True
+        return False
+
+    @njit
+    def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
+               rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
+               C, Cdot, Jv, Jdv, b, work, A, tmp):  # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out``; False if an index was out of range
+        or the solve failed."""
+        if not _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse):
+            return False
+        m = C.shape[0]
+        if m:
+            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):
+                return False
+            for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
+                acc = 0.0
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    q, axis = c // 2, c % 2
+                    acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
+                b[r] = -acc - ks * C[r] - kd * Cdot[r]
+            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
+                                     A, tmp):
+                return False
+            for r in range(m):  # Q += J^T lam
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    out[c // 2, c % 2] += Jv[r, k] * lam[r]
+        for q in range(x.shape[0]):
+            out[q, 0] *= inv_mass[q]
+            out[q, 1] *= inv_mass[q]
+        return True
+
+    @njit
+    def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
+                wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
+                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
+        """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
+        rattle` does it; False where the reference must take over (it raises the errors)."""
+        n = x.shape[0]
+        m = C.shape[0]
+        half = 0.5 * h
+        if not _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse):
+            return False
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
+                xs[q, d] = x[q, d] + h * vs[q, d]
+        if m:
+            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv):
+                return False
+            previous = math.inf
+            for iteration in range(RATTLE_MAX_ITERATIONS + 1):
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
+                worst = 0.0
+                finite = True
+                for r in range(m):
+                    g = 0.0
+                    for k in range(nnz[r]):
+                        g += Jv[r, k] * Jv[r, k]
+                    dist = abs(C[r]) / math.sqrt(g)
+                    if not dist < math.inf:
+                        finite = False
+                    elif dist > worst:
+                        worst = dist
+                size = 0.0
+                for q in range(n):
+                    for d in range(2):
+                        if not abs(xs[q, d]) <= size:
+                            size = abs(xs[q, d])
+                if not (finite and size < math.inf):
+                    return False
+                if worst <= RATTLE_POSITION_TOL * size:
+                    break
+                if worst > 0.5 * previous and worst <= RATTLE_STALL_TOL * size:
+                    break
+                if iteration == RATTLE_MAX_ITERATIONS:
+                    return False
+                previous = worst
+                for r in range(m):
+                    dl[r] = 0.0
+                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, C, dl, tol,
+                                         work, A, tmp):
+                    return False
+                for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
+                    for k in range(nnz[r]):
+                        tmp[cols[r, k]] += J0[r, k] * dl[r]
+                for q in range(n):
+                    for d in range(2):
+                        dq = w2[2 * q + d] * tmp[2 * q + d]
+                        tmp[2 * q + d] = 0.0
+                        xs[q, d] -= dq
+                        vs[q, d] -= dq / h
+        # velocity-dependent forces see the predicted v1 = 2 v_half - v0
+        for q in range(n):
+            for d in range(2):
+                f1[q, d] = 2.0 * vs[q, d] - v[q, d]
+        if not _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse):
+            return False
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
+        if m:  # J(x1) is current; mu such that J(x1) v1 = 0
+            for r in range(m):
+                acc = 0.0
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    acc += Jv[r, k] * vs[c // 2, c % 2]
+                b[r] = acc
+                dl[r] = 0.0
+            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
+                                     A, tmp):
+                return False
+            for r in range(m):
+                for k in range(nnz[r]):
+                    tmp[cols[r, k]] += Jv[r, k] * dl[r]
+            for q in range(n):
+                for d in range(2):
+                    vs[q, d] = vs[q, d] - w2[2 * q + d] * tmp[2 * q + d]
+                    tmp[2 * q + d] = 0.0
+        return True
+
+    @njit
+    def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, grav, const, spring, ang, drag,
+                     wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd,
+                     tol, lam, limit, residual_limit, x_out, v_out):  # pragma: no cover
+        n = x0.shape[0]
+        m = lam.shape[0]
+        if not _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             m, lam):
+            return FALLBACK, 0
+        w2 = np.empty(2 * n)
+        for q in range(n):
+            w2[2 * q] = inv_mass[q]
+            w2[2 * q + 1] = inv_mass[q]
+        C = np.empty(m)
+        Cdot = np.empty(m)
+        Jv = np.zeros((m, 4))
+        Jdv = np.zeros((m, 4))
+        b = np.empty(m)
+        work = np.empty(DIRECT_MAX)
+        A = np.empty((DIRECT_MAX, DIRECT_MAX))
+        tmp = np.zeros(2 * n)
+        x = x0.copy()
+        v = v0.copy()
+        a1 = np.empty_like(x)
+        a2 = np.empty_like(x)
+        a3 = np.empty_like(x)
+        a4 = np.empty_like(x)
+        xs = np.empty_like(x)
+        vs = np.empty_like(x)
+        vs2 = np.empty_like(x)
+        vs3 = np.empty_like(x)
+        half = 0.5 * h
+        J0 = np.zeros((m, 4))
+        dl = np.zeros(m)
+        for step in range(steps):
+            if method == 4:
+                if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
+                               ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
+                               comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
+                               tmp):
+                    return FALLBACK, step
+            elif method == 0 or method == 3:  # euler / symplectic_euler
+                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        if method == 0:
+                            xs[q, d] = x[q, d] + h * v[q, d]
+                            vs[q, d] = v[q, d] + h * a1[q, d]
+                        else:
+                            vs[q, d] = v[q, d] + h * a1[q, d]
+                            xs[q, d] = x[q, d] + h * vs[q, d]
+            elif method == 1:  # explicit midpoint
+                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        xs[q, d] = x[q, d] + half * v[q, d]
+                        vs2[q, d] = v[q, d] + half * a1[q, d]
+                if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        xs[q, d] = x[q, d] + h * vs2[q, d]
+                        vs[q, d] = v[q, d] + h * a2[q, d]
+            else:  # rk4, every stage from the step's initial state
+                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
+                        xs[q, d] = x[q, d] + half * v[q, d]
+                if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
+                        xs[q, d] = x[q, d] + half * vs2[q, d]
+                if not _accel(xs, vs3, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                for q in range(n):
+                    for d in range(2):
+                        vs[q, d] = v[q, d] + h * a3[q, d]  # k4x
+                        xs[q, d] = x[q, d] + h * vs3[q, d]
+                if not _accel(xs, vs, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
+                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
+                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                    return FALLBACK, step
+                sixth = h / 6.0
+                for q in range(n):
+                    for d in range(2):
+                        k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
+                        xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
+                        vs[q, d] = v[q, d] + sixth * (((a1[q, d] + 2.0 * a2[q, d])
+                                                       + 2.0 * a3[q, d]) + a4[q, d])
+            # divergence: non-finite, beyond the limit, or off the constraints
+            for q in range(n):
+                for d in range(2):
+                    if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
+                        return DIVERGED, step
+            if residual_limit < math.inf and m:
+                if not _distance_error(xs, circ, rod, line, fixed) <= residual_limit:
+                    return DIVERGED, step
+            x, xs = xs, x  # the new state becomes current; the old buffers are reused
+            v, vs = vs, v
+        x_out[:, :] = x
+        v_out[:, :] = v
+        return OK, steps

@@ -1,0 +1,69 @@
+"""The benchmark harness: its pieces on tiny inputs (the timings themselves are not tested)."""
+
+import json
+
+import numpy as np
+
+from constrained_particles import SimulationDiverged
+from constrained_particles import bench as B
+
+
+def test_alternate_times_every_entry_and_drops_a_diverging_one():
+    calls = {"a": lambda: None, "bad": lambda: (_ for _ in ()).throw(SimulationDiverged("x"))}
+    order = []
+    calls["b"] = lambda: order.append("b")
+    out = B.alternate(calls, repeats=5, seconds=0.0, warmup=1)
+    assert len(out["a"]) == 5 and len(out["b"]) == 5 and out["bad"] is None
+    assert all(t >= 0 for t in out["a"])
+
+
+def test_median_ratio_pairs_rounds():
+    assert B.median_ratio([2.0, 4.0, 100.0], [1.0, 2.0, 50.0]) == 2.0
+    assert B.median_ratio(None, [1.0]) is None
+
+
+def test_equal_accuracy_picks_the_cheapest_pymunk_setting_as_accurate_as_ours():
+    rates = {"pymunk": {20: {1: 4.0, 10: 1.0}},
+             "ratio": {20: {B.OURS: {1: 0.5, 10: 2.0}}}}
+    # 1 iteration is within 2x of our error: compare with it, not with the slower 10
+    eq = B.equal_accuracy({B.OURS: 1e-4, "pymunk_1": 1.5e-4, "pymunk_10": 1e-4}, rates)
+    assert eq["pymunk_iterations"] == 1 and eq["ratio"] == {20: 0.5}
+    # 1 iteration is 3x worse: the 10-iteration setting is the fair one
+    eq = B.equal_accuracy({B.OURS: 1e-4, "pymunk_1": 3e-4, "pymunk_10": 1.1e-4}, rates)
+    assert eq["pymunk_iterations"] == 10 and eq["ratio"] == {20: 2.0}
+    # neither is as accurate: the most accurate one, and the rule says so
+    eq = B.equal_accuracy({B.OURS: 1e-6, "pymunk_1": 3e-4, "pymunk_10": 1e-4}, rates)
+    assert eq["pymunk_iterations"] == 10 and "no pymunk setting" in eq["rule"]
+
+
+def test_cloth_errors_are_small_and_ordered():
+    """On a 4x4 cloth over 0.05 s: rk4 at 1 ms is far closer to the reference than the first
+    order methods, and pymunk's error is of the first-order kind."""
+    errors = B.cloth_errors(n=4, seconds=0.05)
+    assert set(errors) == {B.OURS, "midpoint", "rk4", "pymunk_1", "pymunk_10"}
+    assert all(e is not None and np.isfinite(e) for e in errors.values())
+    assert errors["rk4"] < 1e-2 * errors[B.OURS]
+    assert errors["pymunk_1"] > 10 * errors["rk4"]
+
+
+def test_json_carries_the_headline_keys(monkeypatch):
+    """A tiny full run (0.02 s accuracy runs; the subprocess memory probe, the 2-process async
+    env, scaling and the equal-time sweep stubbed out): the keys ``cparticles bench --json``
+    promises are there and positive."""
+    monkeypatch.setattr(B, "peak_memory_mb", lambda: 1.0)
+    monkeypatch.setattr(B, "bench_env_modes", lambda *a, **k: {"vector_speedup": 1.0})
+    monkeypatch.setattr(B, "bench_accuracy_at_equal_time", lambda progress=None: {})
+    monkeypatch.setattr(B, "bench_scaling", lambda *a, **k: {"scaling_ratio": 1.0})
+    out = json.loads(json.dumps(B.run(repeats=1, sizes=[4], copies=(1, 2), seconds=0.0,
+                                      accuracy_n=4, accuracy_seconds=0.02)))
+    assert out["pymunk_ratio_equal_accuracy"]["4"] > 0
+    assert set(out["pymunk_ratio"]) == {"1", "10"}
+    assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.SMALL_ENVS}
+    assert set(out["vector_scaling"]) == set(B.VECTOR_ENVS)
+    assert all(set(rows) == {"1", "2"} for rows in out["vector_scaling"].values())
+    assert set(out["cloth_errors"]) == {B.OURS, "midpoint", "rk4", "pymunk_1", "pymunk_10"}
+    assert all(r > 0 for r in out["env_step_vs_cartpole"].values())
+    for rows in out["vector_scaling"].values():
+        for row in rows.values():
+            assert row["env_steps_per_s"] > 0 and row["env_over_bare"] > 0
+            assert row["us_per_particle_step"] > 0 and row["bare_us_per_particle_step"] > 0

@@ -1,0 +1,232 @@
+"""The fused compiled step against the readable reference path (issue 11).
+
+The reference is the Python path: ``integrators.METHODS[name](system, t, x, v, h)``, which calls
+``system.acceleration`` and the numpy blocks. The fused kernel must agree with it to rounding
+(1e-12 relative) on every block and constraint type and every explicit integrator, keep copies
+of a tiled scene exactly independent, hand back to the reference whatever it cannot do, and
+never read outside its arrays.
+"""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from constrained_particles import (
+    AngularSpring,
+    CircularWire,
+    ConstantForce,
+    DampedSpring,
+    Drag,
+    FixedPoint,
+    Gravity,
+    HorizontalWire,
+    LineWire,
+    MouseSpring,
+    ParticleSystem,
+    Rod,
+    SimulationDiverged,
+    Wall,
+    _kernels,
+    fused,
+    scenes,
+)
+from constrained_particles.integrators import METHODS
+
+pytestmark = pytest.mark.skipif(not _kernels.ENABLED, reason="compiled path disabled "
+                                "(CPARTICLES_NUMBA=0): nothing to compare")
+EXPLICIT = ["euler", "midpoint", "rk4", "symplectic_euler"]
+
+
+def every_block(seed: int, copies_of_gravity: int = 1) -> ParticleSystem:
+    """Nine movable particles and one fixed, with every standard force and constraint type."""
+    rng = np.random.default_rng(seed)
+    s = ParticleSystem()
+    s.add_particles(rng.uniform(-1, 1, (9, 2)), rng.normal(0, 0.5, (9, 2)),
+                    mass=rng.uniform(0.2, 2.0, 9))
+    anchor = s.add_particle((0.0, 1.5), fixed=True)
+    for _ in range(copies_of_gravity):
+        s.add(Gravity((rng.normal(), -9.81)))
+    s.add(ConstantForce([1, 2], rng.normal(size=(2, 2))),
+          DampedSpring([0, 2, 3, 6, 7], [1, 5, 6, 8, anchor], ks=rng.uniform(5, 50, 5),
+                       kd=rng.uniform(0, 1, 5)),
+          AngularSpring([3, 5], [6, 7], [8, 2], k=rng.uniform(0.1, 2, 2), kd=0.05,
+                        rest=rng.uniform(-3, 3, 2)),
+          Drag(0.2, particles=[0, 3, 4]),
+          Wall((1.0, 0.2), 0.3, kw=800.0, cw=2.0),
+          Wall((0.0, -1.0), 0.5, kw=500.0, cw=0.0, particles=[0, 1, 2, 3, 4]),
+          MouseSpring(4, anchor=(0.2, 0.3), ks=30.0, kd=0.5),
+          CircularWire(0, center=s.x[0] + (0.3, 0.1)),
+          Rod(1, 2),
+          LineWire(3, direction=(1.0, 0.4)),
+          HorizontalWire(5),
+          FixedPoint(8),
+          Rod(7, anchor))
+    return s
+
+
+def reference(s: ParticleSystem, method: str, h: float, steps: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    ref = s.copy()
+    x, v, t = ref.x, ref.v, ref.t
+    for _ in range(steps):
+        x, v = METHODS[method](ref, t, x, v, h)
+        t += h
+    return x, v
+
+
+def close(a: np.ndarray, b: np.ndarray, rtol: float = 1e-12) -> None:
+    scale = max(np.abs(b).max(), 1.0)
+    assert np.abs(a - b).max() <= rtol * scale, np.abs(a - b).max() / scale
+
+
+@pytest.mark.parametrize("method", EXPLICIT)
+@pytest.mark.parametrize("seed", range(3))
+def test_fused_step_matches_the_reference_on_every_block(method, seed):
+    s = every_block(seed)
+    assert fused.pack(s).supported
+    x_ref, v_ref = reference(s, method, 1e-3, 40)
+    s.step(1e-3, method, steps=40)
+    close(s.x, x_ref)
+    close(s.v, v_ref)
+    assert s.t == pytest.approx(0.04)
+
+
+def test_several_blocks_of_one_type_are_summed():
+    s = every_block(7, copies_of_gravity=3)
+    x_ref, v_ref = reference(s, "rk4", 2e-3, 20)
+    for _ in range(20):
+        s.step(2e-3, "rk4")
+    close(s.x, x_ref)
+    close(s.v, v_ref)
+
+
+def test_steps_in_one_call_equal_single_steps_bit_for_bit():
+    a = scenes.cloth(nx=5, ny=4, push=0.2)
+    b = a.copy()
+    a.step(1e-3, "symplectic_euler", steps=7)
+    for _ in range(7):
+        b.step(1e-3, "symplectic_euler")
+    assert a.x.tobytes() == b.x.tobytes() and a.v.tobytes() == b.v.tobytes()
+    assert a.t == b.t
+
+
+def test_copies_of_a_tiled_scene_are_exactly_independent():
+    """Per-component direct solves: copy i of a batch is the scene stepped alone, bit for bit."""
+    single = scenes.wire_mixture(omega=3.0)
+    n = single.n
+    tiled = single.tile(5)
+    rng = np.random.default_rng(0)
+    alone = []
+    for i in range(5):
+        one = single.copy()
+        one.v = one.v * rng.uniform(0.2, 2.0)  # consistent with the constraints: J v scales
+        tiled.v[n * i:n * (i + 1)] = one.v
+        alone.append(one)
+    for _ in range(200):
+        tiled.step(2e-3, "rk4")
+        for one in alone:
+            one.step(2e-3, "rk4")
+    for i, one in enumerate(alone):
+        assert tiled.x[n * i:n * (i + 1)].tobytes() == one.x.tobytes()
+        assert tiled.v[n * i:n * (i + 1)].tobytes() == one.v.tobytes()
+
+
+def test_large_components_use_warm_started_cg_like_the_reference():
+    s = scenes.angular_chain(links=14)  # 14 rods in one component: CG
+    assert fused.pack(s).max_component == 14
+    x_ref, v_ref = reference(s, "rk4", 1e-3, 50)
+    s.step(1e-3, "rk4", steps=50)
+    close(s.x, x_ref, rtol=1e-8)  # two CG solves, each to tol 1e-10
+    close(s.v, v_ref, rtol=1e-7)
+    assert np.abs(s.constraint_residual()[0]).max() < 1e-9
+
+
+def test_in_place_edits_are_seen_and_replaced_arrays_repacked():
+    s = every_block(1)
+    ref = s.copy()
+    push = s.forces[1]
+    for k in range(5):
+        push.force[:] = k * 0.3  # written in place, as the environments do
+        ref.forces[1].force[:] = k * 0.3
+        s.step(1e-3, "midpoint")
+        x, v = METHODS["midpoint"](ref, ref.t, ref.x, ref.v, 1e-3)
+        ref.x, ref.v = x, v
+    close(s.x, ref.x)
+    s.forces[2].ks = s.forces[2].ks * 3.0  # a new array: the pack is rebuilt
+    ref.forces[2].ks = ref.forces[2].ks * 3.0
+    s.forces[4].kd = 0.9  # a scalar
+    ref.forces[4].kd = 0.9
+    s.step(1e-3, "midpoint")
+    x, _ = METHODS["midpoint"](ref, ref.t, ref.x, ref.v, 1e-3)
+    close(s.x, x)
+
+
+def test_out_of_range_index_never_reaches_compiled_code():
+    """Whatever a user writes into a block, the kernel checks indices before reading."""
+    s = every_block(2)
+    mouse = s.forces[7]
+    mouse.particle = np.array([10**6])  # replaced attribute
+    with pytest.raises((ValueError, IndexError)):
+        s.step(1e-3, "rk4")
+    s2 = every_block(2)
+    status, *_ = fused.run(s2, 1e-3, "rk4", 1, s2.constraint_solver.lam.copy(), np.inf)
+    assert status == fused.OK
+    idx = np.array(s2.forces[2].i)  # a writable copy put in place, then corrupted in place
+    s2.forces[2].i = idx
+    idx[0] = 10**6
+    status, *_ = fused.run(s2, 1e-3, "rk4", 1, s2.constraint_solver.lam.copy(), np.inf)
+    assert status == fused.FALLBACK
+
+
+def test_divergence_keeps_the_state_from_before_the_call():
+    s = scenes.spring_pair(ks=1e7)
+    x0, v0 = s.x.copy(), s.v.copy()
+    with pytest.raises(SimulationDiverged):
+        s.step(0.05, "euler", steps=50)
+    assert s.x.tobytes() == x0.tobytes() and s.v.tobytes() == v0.tobytes() and s.t == 0.0
+
+
+def test_residual_limit_flags_a_step_that_leaves_the_constraints():
+    s = scenes.pendulum(angle=2.0)
+    s.residual_limit = 1e-9  # a large step of euler drifts off the circle by more than this
+    x0 = s.x.copy()
+    with pytest.raises(SimulationDiverged):
+        s.step(0.05, "euler", steps=10)
+    assert s.x.tobytes() == x0.tobytes()
+    s.residual_limit = 0.5  # the same steps stay well within half a metre
+    s.step(0.05, "euler", steps=10)
+
+
+def test_singular_solves_fall_back_to_the_reference_least_norm_answer():
+    s = ParticleSystem()
+    o = s.add_particle((0.0, 0.0), fixed=True)
+    a = s.add_particle((1.0, 0.0))
+    s.add(Gravity(), Rod(o, a), Rod(o, a))  # the same rod twice: J W J^T singular
+    ref = s.copy()
+    s.step(1e-3, "rk4")
+    x, v = METHODS["rk4"](ref, 0.0, ref.x, ref.v, 1e-3)
+    close(s.x, x, rtol=1e-9)
+    assert abs(np.linalg.norm(s.x[a]) - 1.0) < 1e-9
+
+
+def test_subclassed_blocks_take_the_reference_path():
+    class Softer(DampedSpring):
+        def accumulate(self, x, v, mass, F):
+            super().accumulate(x, v, mass, 0.5 * F)
+
+    s = scenes.spring_pair()
+    s.forces[0].__class__ = Softer
+    assert not fused.supported(s)
+    s.step(1e-3, "rk4")  # runs, on the Python path
+
+
+def test_environment_variable_turns_the_compiled_path_off():
+    code = ("from constrained_particles import _kernels, fused, scenes; s = scenes.cloth(); "
+            "s.step(1e-3); print(_kernels.ENABLED, fused.supported(s))")
+    env = {**os.environ, "CPARTICLES_NUMBA": "0"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         check=True)
+    assert out.stdout.split() == ["False", "False"]

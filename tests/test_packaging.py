@@ -1,0 +1,86 @@
+"""What a new user installs and reads: pictures, links, license, typing marker, registry."""
+
+import re
+import subprocess
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+
+import constrained_particles
+import envs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tracked_files() -> set[str]:
+    """Paths git tracks in this checkout (the files a fresh clone has)."""
+    out = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True)
+    if out.returncode != 0:
+        pytest.fail(f"git ls-files failed (the packaging tests need a git checkout): {out.stderr}")
+    return set(out.stdout.splitlines())
+
+
+def local_links(markdown: str, images: bool) -> list[str]:
+    """Relative link targets in ``markdown``: images ``![..](x)`` or other links ``[..](x)``."""
+    pattern = r"!\[[^\]]*\]\(([^)\s]+)\)" if images else r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)"
+    return [t.split("#")[0] for t in re.findall(pattern, markdown)
+            if not re.match(r"[a-z]+://|#|mailto:", t)]
+
+
+def test_every_readme_image_is_a_tracked_file():
+    readme = (ROOT / "README.md").read_text()
+    images = local_links(readme, images=True)
+    assert len(images) >= 4
+    missing = sorted(set(images) - tracked_files())
+    assert not missing, f"README shows images git does not track: {missing}"
+
+
+def test_every_readme_link_stays_inside_the_repository():
+    readme = (ROOT / "README.md").read_text()
+    links = local_links(readme, images=False)
+    assert "docs/physics.md" in links
+    missing = sorted(set(links) - tracked_files())
+    assert not missing, f"README links to files git does not track: {missing}"
+    assert "shared/" not in readme and "DESIGN.md" not in readme
+
+
+def test_license_changelog_and_typing_markers_are_tracked():
+    files = tracked_files()
+    assert {"LICENSE", "CHANGELOG.md", "docs/physics.md", "constrained_particles/py.typed",
+            "envs/py.typed", "verification/py.typed"} <= files
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+    assert constrained_particles.__version__ in (ROOT / "CHANGELOG.md").read_text()
+
+
+def test_pyproject_metadata():
+    text = (ROOT / "pyproject.toml").read_text()
+    assert re.search(r'^license = "MIT"$', text, re.M)  # the SPDX form, not a table
+    version = re.search(r'^version = "([^"]+)"$', text, re.M).group(1)
+    assert version == constrained_particles.__version__
+    include = re.search(r"^include = \[(.*)\]$", text, re.M).group(1)
+    assert "benchmarks" not in include and "tests" not in include
+    deps = text[text.index("dependencies = ["):text.index("]", text.index("dependencies = ["))]
+    assert '"numba>=0.59"' in deps
+
+
+def test_wheel_packages_are_the_three_top_level_ones():
+    """setuptools' package discovery with the project's include patterns."""
+    from setuptools import find_packages
+
+    text = (ROOT / "pyproject.toml").read_text()
+    include = re.findall(r'"([^"]+)"', re.search(r"^include = \[(.*)\]$", text, re.M).group(1))
+    top = {p.split(".")[0] for p in find_packages(str(ROOT), include=include)}
+    assert top == {"constrained_particles", "envs", "verification"}
+    assert "constrained_particles.bench" not in find_packages(str(ROOT), include=include)
+    assert (ROOT / "constrained_particles" / "bench.py").is_file()  # a module, shipped
+
+
+def test_pprint_registry_lists_the_envs_together():
+    listing = gym.pprint_registry(disable_print=True)
+    blocks = listing.split("=====")
+    together = [b for b in blocks if all(i in b for i in envs.ENV_IDS)]
+    assert len(together) == 1
+    assert "===== cparticles =====" in listing
+    for env_id in envs.ENV_IDS:
+        assert gym.spec(env_id).id == env_id  # ids unchanged, no namespace
