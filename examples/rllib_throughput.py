@@ -52,8 +52,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--env", choices=ENV_IDS, default="ClothSlide-v0")
     p.add_argument("--num-envs", type=positive_int, default=16,
                    help="env copies per EnvRunner and for SB3 (default 16)")
-    p.add_argument("--steps", type=positive_int, default=8000,
-                   help="env steps per runner per timed sample (default 8000)")
+    p.add_argument("--steps", type=positive_int, default=6000,
+                   help="env steps per runner per timed sample (default 6000)")
     p.add_argument("--repeats", type=positive_int, default=5)
     p.add_argument("--num-cpus", type=positive_int, default=2,
                    help="CPUs of the local Ray instance (default 2)")

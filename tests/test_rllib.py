@@ -47,6 +47,7 @@ def test_one_ppo_iteration_samples_from_both_env_runners(local_ray):
     config = (envs.rllib.configure(PPOConfig(), "ClothSlide-v0", num_env_runners=2,
                                    num_envs_per_env_runner=4)
               .training(train_batch_size_per_learner=256, minibatch_size=128, num_epochs=1)
+              .env_runners(sample_timeout_s=600)  # a loaded CI machine must not drop a runner
               .callbacks(on_sample_end=count_steps)
               .debugging(seed=0))
     algo = config.build_algo()
