@@ -75,6 +75,9 @@ def main(argv: list[str] | None = None) -> None:
                       env_config={"action_mode": args.action_mode})
                   .training(train_batch_size_per_learner=args.train_batch_size,
                             num_epochs=args.num_epochs, minibatch_size=args.minibatch_size)
+                  # a worker's first step may compile the Numba kernels (minutes on a slow
+                  # machine); RLlib's default of 60 s would discard that first sample
+                  .env_runners(sample_timeout_s=600)
                   .debugging(seed=args.seed))
         algo = config.build_algo()
         print(f"{args.env} ({args.action_mode}): PPO, {args.num_env_runners} EnvRunners x "

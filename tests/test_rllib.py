@@ -1,7 +1,8 @@
 """RLlib: one PPO iteration on a local Ray instance, sampled by two EnvRunners on the native env.
 
 Needs the ``ray`` extra (part of ``test``). Starting Ray and two EnvRunner actors dominates the
-run time (about a minute on a loaded 2-core machine); the training itself is a few seconds.
+run time (30-50 s on a loaded 2-core machine, 2.5 min if the Numba kernels are not cached yet);
+the training itself is a few seconds.
 """
 
 from __future__ import annotations
@@ -47,7 +48,9 @@ def test_one_ppo_iteration_samples_from_both_env_runners(local_ray):
     config = (envs.rllib.configure(PPOConfig(), "ClothSlide-v0", num_env_runners=2,
                                    num_envs_per_env_runner=4)
               .training(train_batch_size_per_learner=256, minibatch_size=128, num_epochs=1)
-              .env_runners(sample_timeout_s=600)  # a loaded CI machine must not drop a runner
+              # RLlib drops samples that take over 60 s; a runner's first step compiles the
+              # Numba kernels when they are not cached yet (2 min on a loaded 2-core machine)
+              .env_runners(sample_timeout_s=600)
               .callbacks(on_sample_end=count_steps)
               .debugging(seed=0))
     algo = config.build_algo()
