@@ -1,0 +1,116 @@
+"""Ray RLlib on the native vector envs: every EnvRunner steps its copies as one particle system.
+
+RLlib's current API stack (``SingleAgentEnvRunner``) builds each EnvRunner's environment with
+``gymnasium.make_vec``. For a name registered with :func:`ray.tune.registry.register_env` and
+``gym_env_vectorize_mode="vector_entry_point"``, it calls the registered creator once per
+EnvRunner with ``env_config | {"num_envs": N}`` and uses the ``gymnasium.vector.VectorEnv`` it
+returns as is. :func:`register` registers :func:`make_env` that way under the Gymnasium ids
+(``ClothSlide-v0``, ...), so each EnvRunner gets our native vector env (N copies, one derivative
+evaluation per physics step) rather than N single envs in a ``SyncVectorEnv``. Ray stores the
+creator by reference to this module, so every worker process that builds an env imports
+``envs.rllib`` and thereby ``envs`` (which registers the Gymnasium ids there); on a cluster every
+node therefore needs this package installed, like any other dependency. Our vector envs use
+Gymnasium's next-step autoreset, which is what RLlib's EnvRunner expects.
+
+:func:`configure` applies the environment and its vectorization to any ``AlgorithmConfig``:
+
+>>> from ray.rllib.algorithms.ppo import PPOConfig
+>>> import envs.rllib
+>>> config = envs.rllib.configure(PPOConfig(), "ClothSlide-v0", num_env_runners=2,
+...                               num_envs_per_env_runner=8, env_config={"action_mode": "spring"})
+>>> config.env, config.num_env_runners, config.num_envs_per_env_runner
+('ClothSlide-v0', 2, 8)
+>>> algo = config.build_algo()  # starts Ray if needed; then algo.train()  # doctest: +SKIP
+
+Without Ray, :func:`make_env` is an ordinary factory (what each EnvRunner calls):
+
+>>> venv = envs.rllib.make_env("ClothSlide-v0", {"num_envs": 4})
+>>> type(venv.unwrapped).__name__, venv.num_envs
+('ClothSlideVectorEnv', 4)
+
+Requires the ``ray`` extra (``pip install "constrained-particles[ray]"``: ``ray[rllib]`` and torch)
+for :func:`register` and :func:`configure`; importing this module does not import Ray.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import gymnasium as gym
+
+from . import ENV_IDS
+
+__all__ = ["configure", "make_env", "register"]
+
+#: RLlib's name for our vectorization: each EnvRunner calls the env's vector entry point.
+VECTORIZE_MODE = "vector_entry_point"
+
+
+def _check_id(env_id: Any) -> str:
+    if not isinstance(env_id, str):
+        raise TypeError(f"env_id must be a string, got {type(env_id).__name__}")
+    if env_id not in ENV_IDS:
+        raise ValueError(f"env_id must be one of {ENV_IDS}, got {env_id!r}")
+    return env_id
+
+
+def make_env(env_id: str, config: Mapping[str, Any] | None = None
+             ) -> gym.Env | gym.vector.VectorEnv:
+    """RLlib env creator: the native vector env if ``config`` has ``num_envs``, else one env.
+
+    ``config`` is RLlib's ``env_config`` (an ``EnvContext``, a dict): every key other than
+    ``num_envs`` is a keyword argument of the environment (``action_mode``, ``cloth_size``, ...).
+    With ``num_envs`` (what RLlib adds in ``vector_entry_point`` mode) the result is
+    ``gym.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", **kwargs)``: one
+    particle system holding ``num_envs`` copies, 200-step episodes, next-step autoreset.
+    """
+    _check_id(env_id)
+    kwargs = dict(config or {})
+    num_envs = kwargs.pop("num_envs", None)
+    if num_envs is None:
+        return gym.make(env_id, **kwargs)
+    return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=VECTORIZE_MODE, **kwargs)
+
+
+def register(env_ids: Iterable[str] = ENV_IDS) -> tuple[str, ...]:
+    """Register ``env_ids`` with Ray's env registry (under the same names); returns the names.
+
+    Call it in the driver before building the algorithm; Ray makes the registration visible to
+    every worker process of the cluster (the one it is connected to, or the next one started).
+    Registering again replaces the entry with an identical one.
+    """
+    from ray.tune.registry import register_env
+
+    ids = tuple(_check_id(i) for i in env_ids)
+    for env_id in ids:
+        register_env(env_id, functools.partial(make_env, env_id))
+    return ids
+
+
+def configure(config: Any, env_id: str, *, num_env_runners: int = 2,
+              num_envs_per_env_runner: int = 8, env_config: Mapping[str, Any] | None = None
+              ) -> Any:
+    """``config`` (an RLlib ``AlgorithmConfig``) set to sample ``env_id`` on the native vector env.
+
+    Registers ``env_id`` (:func:`register`), then sets ``config.environment(env_id, env_config)``
+    and ``config.env_runners(num_env_runners, num_envs_per_env_runner,
+    gym_env_vectorize_mode="vector_entry_point")``: ``num_env_runners`` EnvRunner actors (0
+    samples in the driver), each stepping ``num_envs_per_env_runner`` copies as one particle
+    system. Returns ``config`` (modified in place, as RLlib's own setters do).
+    """
+    for name, value in (("num_env_runners", num_env_runners),
+                        ("num_envs_per_env_runner", num_envs_per_env_runner)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if num_env_runners < 0:
+        raise ValueError(f"num_env_runners must be >= 0, got {num_env_runners}")
+    if num_envs_per_env_runner < 1:
+        raise ValueError(f"num_envs_per_env_runner must be >= 1, got {num_envs_per_env_runner}")
+    register([env_id])
+    return (config
+            .environment(env_id, env_config=dict(env_config or {}))
+            .env_runners(num_env_runners=num_env_runners,
+                         num_envs_per_env_runner=num_envs_per_env_runner,
+                         gym_env_vectorize_mode=VECTORIZE_MODE))
