@@ -45,7 +45,8 @@ def test_numpy_path_matches_the_per_element_formula(seed):
     np.testing.assert_allclose(F, expected, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.skipif(_kernels.spring_forces is None, reason="compiled kernels off (CPARTICLES_NUMBA=0): the numpy path is what runs")
+@pytest.mark.skipif(_kernels.spring_forces is None,
+                    reason="compiled kernels off (CPARTICLES_NUMBA=0): nothing to compare")
 @pytest.mark.parametrize("seed", range(5))
 def test_numba_kernel_matches_numpy_path(seed):
     s, spring = random_springs(seed)
