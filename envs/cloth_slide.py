@@ -17,12 +17,17 @@ from .base import (
     check_positive,
     uniform_away,
 )
+from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 
-#: Reward on the step that reaches the goal at rest.
-SUCCESS_BONUS = 10.0
+__all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSlideEnv",
+           "ClothSlideVectorEnv"]
+
+#: Weight of the squeeze penalty: ``SQUEEZE_COST * q^2`` per step for the squeeze component
+#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, |q| <= 1).
+SQUEEZE_COST = 0.2
 
 
-class ClothSlide(ParticleTask):
+class ClothSlide(ShapedTask, ParticleTask):
     """The ClothSlide physics and task for ``num_envs`` copies (see :class:`ClothSlideEnv`)."""
 
     force_dim = 2
@@ -78,6 +83,11 @@ class ClothSlide(ParticleTask):
                          ks=self.cloth_ks, kd=self.cloth_kd, wire_height=0.0, wall_x=self.wall_x,
                          drag=self.drag)
         s.x[:, 0] -= s.x[:, 0].mean()
+        # the wire's left end: a wall mirroring the right one (or farther out), so that no
+        # policy can push the cloth away for ever
+        half_width = (self.nx - 1) * self.spacing / 2
+        self.left_wall_x = min(-self.wall_x, self.goal_range[0] - half_width - 0.15)
+        s.add(Wall((-1.0, 0.0), -self.left_wall_x, kw=200.0, cw=0.5))
         self.rest_shape = _hanging_equilibrium(s, top=np.arange(self.nx))
         s.x = self.rest_shape.copy()
         self.goal_height = float(self.rest_shape[:, 1].mean())
@@ -108,18 +118,29 @@ class ClothSlide(ParticleTask):
         return np.mean(np.ascontiguousarray(x[:, :, 0]), axis=1)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The common measures plus ``wall_force``: the wall's total contact force (N)."""
+        """The common measures plus ``wall_force``: both walls' total contact force (N), and
+        ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
+        action (positive pushes the corners together; 0 in spring mode)."""
         m = super().measure(stepped)
         F = np.zeros_like(self.system.x)
-        self.wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
+        for wall in self.system.forces:
+            if isinstance(wall, Wall):
+                wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
         m["wall_force"] = np.sum(np.abs(np.ascontiguousarray(F[:, 0]).reshape(self.num_envs,
                                                                               self.n)), axis=1)
+        m["squeeze"] = (0.5 * self.max_force * (self.action[:, 0] - self.action[:, 1])
+                        if self.action_mode == "force" else np.zeros(self.num_envs))
         return m
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed - wall_penalty * wall_force / weight + 10 * is_success``."""
-        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
-                / self.weight + SUCCESS_BONUS * m["is_success"])
+    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Cost to go ``Phi = d + s``: distance to the goal (m) plus RMS particle speed (m/s)."""
+        return m["distance"] + m["speed"]
+
+    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``SQUEEZE_COST q^2`` (q the squeeze in action units) plus ``wall_penalty F_wall /
+        (M g)``."""
+        q = m["squeeze"] / self.max_force
+        return SQUEEZE_COST * q**2 + self.wall_penalty * m["wall_force"] / self.weight
 
 
 def _hanging_equilibrium(s: ParticleSystem, top: np.ndarray) -> np.ndarray:

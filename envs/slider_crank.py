@@ -16,10 +16,10 @@ from .base import (
     check_positive,
     uniform_away,
 )
-from .cloth_slide import SUCCESS_BONUS
+from .rewards import ShapedTask
 
 
-class SliderCrank(ParticleTask):
+class SliderCrank(ShapedTask, ParticleTask):
     """The SliderCrank physics and task for ``num_envs`` copies (see :class:`SliderCrankEnv`)."""
 
     force_dim = 1
@@ -99,9 +99,20 @@ class SliderCrank(ParticleTask):
         """The slider's x (m)."""
         return x[:, 1, 0].copy()
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed + 10 * is_success``."""
-        return -m["distance"] - 0.1 * m["speed"] + SUCCESS_BONUS * m["is_success"]
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The common measures plus ``crank_height``: the crank's y (m); the success test also
+        needs the crank above the slider's wire (``crank_height > 0``)."""
+        up = self.positions()[:, 0, 1] > 0
+        m = super().measure(stepped)
+        if stepped is not None:  # a step held at the goal and at rest, but below, does not count
+            self.hold[stepped & ~up] = 0
+        m["crank_height"] = self.positions()[:, 0, 1].copy()
+        m["is_success"] = self.hold >= self.hold_steps
+        return m
+
+    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Cost to go ``Phi = d + s + max(0, -crank_height)`` (m, m/s, m)."""
+        return m["distance"] + m["speed"] + np.maximum(0.0, -m["crank_height"])
 
 
 class SliderCrankEnv(ParticleEnv):
