@@ -84,6 +84,8 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
             mod = importlib.import_module(module)
             mod.add_arguments(p)
             p.set_defaults(handler=mod.main)
+    if wanted in (None, "train", "evaluate"):  # Stable-Baselines3 subcommands (the rl extra)
+        importlib.import_module("envs.train").add_parsers(sub)
     return parser
 
 

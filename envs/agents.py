@@ -6,9 +6,9 @@ env's own normalization (positions, velocities, goal) and run PD control:
 
 - ClothSlide: PD on the cloth's centre of mass toward the goal; the total force goes to the two
   top corners (force mode) or through a mouse spring on the top row's middle particle (spring).
-- SliderCrank: the crank angle above the wire that puts the slider at the goal, reached by PD control on the
-  angle plus gravity compensation, as a tangential force (force mode) or through a mouse spring
-  on the crank (spring mode).
+- SliderCrank: the crank angle above the wire that puts the slider at the goal, reached by PD
+  control on the angle plus gravity compensation, as a tangential force (force mode) or through a
+  mouse spring on the crank (spring mode).
 
 >>> import gymnasium as gym
 >>> import envs
@@ -115,8 +115,8 @@ class ClothSlideController(ScriptedAgent):
 
 class SliderCrankController(ScriptedAgent):
     """Drive the crank to the angle above the wire that puts the slider at the goal (through a
-    dead centre if it starts below), with gravity compensation: ``F_t = m g cos(theta) + kp (theta* - theta)
-    - kd v_t`` along the tangent."""
+    dead centre if it starts below), with gravity compensation: ``F_t = m g cos(theta)
+    + kp (theta* - theta) - kd v_t`` along the tangent."""
 
     def __init__(self, task: SliderCrank, kp: float = 3.0, kd: float = 1.5) -> None:
         super().__init__(task)

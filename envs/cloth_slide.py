@@ -118,7 +118,8 @@ class ClothSlide(ShapedTask, ParticleTask):
         return np.mean(np.ascontiguousarray(x[:, :, 0]), axis=1)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The common measures plus ``wall_force``: both walls' total contact force (N), and
+        """The common measures plus ``wall_force``: both walls' total contact force (N; the
+        success test also needs it to be 0), and
         ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
         action (positive pushes the corners together; 0 in spring mode)."""
         m = super().measure(stepped)
@@ -128,6 +129,9 @@ class ClothSlide(ShapedTask, ParticleTask):
                 wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
         m["wall_force"] = np.sum(np.abs(np.ascontiguousarray(F[:, 0]).reshape(self.num_envs,
                                                                               self.n)), axis=1)
+        if stepped is not None:  # resting against a wall is not rest: a step touching it
+            self.hold[stepped & (m["wall_force"] > 0)] = 0  # restarts the success count
+            m["is_success"] = self.hold >= self.hold_steps
         m["squeeze"] = (0.5 * self.max_force * (self.action[:, 0] - self.action[:, 1])
                         if self.action_mode == "force" else np.zeros(self.num_envs))
         return m
