@@ -123,9 +123,8 @@ class SliderCrankEnv(ParticleEnv):
     a circular wire of radius ``radius`` about the origin, the slider particle rides a horizontal
     wire at y = 0, and a rigid rod of length ``rod`` joins them; all three are
     Lagrange-multiplier constraints solved together. Gravity pulls the crank down and air drag
-    slows both. Bring the slider to a goal position on its wire and hold it there at rest.
-    Every slider position but the two dead centres has two crank angles; holding the crank away
-    from the bottom needs a steady force against gravity.
+    slows both. Bring the slider to a goal position on its wire and hold it there at rest, with
+    the crank above the slider's wire.
 
     ## Action Space
 
@@ -158,9 +157,16 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Rewards
 
-    Every step: ``-d - 0.1 s + 10 * success``, with ``d`` the distance (m) from the slider to the
-    goal, ``s`` the RMS speed of the two particles (m/s) and ``success`` 1 on the step that
-    completes the success test (see Episode End).
+    Every step (see ``envs.rewards``):
+
+        r = 10 (Phi - Phi') - 0.1 + 10 * success
+
+    with the potential (cost to go) ``Phi = d + s + max(0, -y_crank)`` before the step and
+    ``Phi'`` after it: ``d`` the distance (m) from the slider to the goal, ``s`` the RMS speed of
+    the two particles (m/s), ``y_crank`` the crank's height (m; below the wire counts as
+    distance still to go). The shaping is potential-based (Ng, Harada & Russell 1999) and sums to
+    ``10 (Phi_0 - Phi_T)`` over an episode; ``-0.1`` is a time cost per step until success;
+    ``success`` is 1 on the step that completes the success test (see Episode End).
 
     ## Starting State
 
@@ -171,15 +177,19 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
-       steps (success, ``info["is_success"]``).
+    1. Termination: ``d < goal_tolerance``, ``s < rest_speed`` and the crank above the wire
+       (``y_crank > 0``), for ``hold_steps`` consecutive steps (success, ``info["is_success"]``).
+       Every slider position has a crank angle above and one below the wire; the task asks for
+       the one above. From a start below (half the starts) the crank must swing up through a
+       dead centre (slider at 0.5 m or 1.1 m, where the slider's motion reverses), and holding
+       it above needs a steady force ``m g cos(theta)`` against gravity.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|:
-    m for the line wire, m^2 for the circle and rod, whose C is (|d|^2 - r^2) / 2),
-    ``is_success`` and ``diverged``.
+    ``info`` holds ``distance`` (m), ``crank_height`` (m), ``kinetic_energy`` (J),
+    ``constraint_residual`` (max |C|: m for the line wire, m^2 for the circle and rod, whose C
+    is (|d|^2 - r^2) / 2), ``is_success`` and ``diverged``.
 
     ## Arguments
 
@@ -227,7 +237,8 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Version History
 
-    * v0: Initial version.
+    * v0: Initial version (the reward and the crank-above rule of the success test were settled
+      before any results were published on it).
     """
 
     task_class = SliderCrank

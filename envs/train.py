@@ -259,7 +259,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str =
     model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose, **kwargs)
     callback = _callback(out, env_id, action_mode, env_kwargs, eval_freq, eval_episodes, started)
     model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
-    if not callback.records or callback.records[-1]["timesteps"] != model.num_timesteps:
+    if not callback.records or callback.records[-1]["timesteps"] < timesteps:
         callback.evaluate_now()
     seconds = time.perf_counter() - started
     model.save(out / "model.zip")

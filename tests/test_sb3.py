@@ -230,3 +230,16 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     assert res["episodes"] == 5 and res["deterministic"] is False
     assert 0.0 <= res["success_rate"] <= 1.0 and 1 <= res["mean_length"] <= 200
     assert cli.main(["evaluate", str(tmp_path / "nothing")]) == 2
+
+
+def test_median_interval_coverage_matches_the_binomial():
+    from scipy.stats import binom
+
+    from envs.baselines import median_ci
+
+    low, high, cov = median_ci([0.9, 0.5, 1.0, 0.8, 0.7])  # 5 seeds: [min, max]
+    assert (low, high) == (0.5, 1.0) and cov == pytest.approx(1 - 2 * binom.cdf(0, 5, 0.5))
+    x = np.arange(10.0)  # 10 seeds: [x_(2), x_(9)], the narrowest with coverage >= 95%
+    low, high, cov = median_ci(x)
+    assert (low, high) == (1.0, 8.0) and cov == pytest.approx(1 - 2 * binom.cdf(1, 10, 0.5))
+    assert 1 - 2 * binom.cdf(2, 10, 0.5) < 0.95 <= cov
