@@ -120,7 +120,8 @@ def test_ppo_trains_through_to_sb3():
     model.learn(256)
     assert model.num_timesteps == 256
     after = list(model.policy.parameters())
-    assert any(not np.allclose(x.numpy(), y.detach().numpy()) for x, y in zip(before, after, strict=True))
+    assert any(not np.allclose(x.numpy(), y.detach().numpy())
+               for x, y in zip(before, after, strict=True))
     action, _ = model.predict(v.reset(), deterministic=True)
     assert action.shape == (4, 2)
 
