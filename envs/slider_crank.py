@@ -100,19 +100,28 @@ class SliderCrank(ShapedTask, ParticleTask):
         return x[:, 1, 0].copy()
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The common measures plus ``crank_height``: the crank's y (m); the success test also
-        needs the crank above the slider's wire (``crank_height > 0``)."""
-        up = self.positions()[:, 0, 1] > 0
+        """The common measures plus ``crank_height``: the crank's y (m; the success test also
+        needs the crank above the slider's wire, ``crank_height > 0``), and ``crank_to_go``: the
+        arc length (m) along the crank's wire, the short way round, from the crank to the point
+        above the wire that puts the slider at the goal."""
+        crank = self.positions()[:, 0]
+        up = crank[:, 1] > 0
         m = super().measure(stepped)
         if stepped is not None:  # a step held at the goal and at rest, but below, does not count
             self.hold[stepped & ~up] = 0
-        m["crank_height"] = self.positions()[:, 0, 1].copy()
+        m["crank_height"] = crank[:, 1].copy()
+        r, L, g = self.radius, self.rod, self.goal
+        target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
+        theta = np.arctan2(crank[:, 1], crank[:, 0])
+        m["crank_to_go"] = r * np.abs(np.angle(np.exp(1j * (target - theta))))
         m["is_success"] = self.hold >= self.hold_steps
         return m
 
     def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """Cost to go ``Phi = d + s + max(0, -crank_height)`` (m, m/s, m)."""
-        return m["distance"] + m["speed"] + np.maximum(0.0, -m["crank_height"])
+        """Cost to go ``Phi = crank_to_go + s`` (m, m/s): zero only with the crank at rest at
+        its goal point above the wire, and decreasing all the way along a swing-up through a
+        dead centre (the slider's distance to the goal would first grow)."""
+        return m["crank_to_go"] + m["speed"]
 
 
 class SliderCrankEnv(ParticleEnv):
@@ -161,12 +170,15 @@ class SliderCrankEnv(ParticleEnv):
 
         r = 10 (Phi - Phi') - 0.1 + 10 * success
 
-    with the potential (cost to go) ``Phi = d + s + max(0, -y_crank)`` before the step and
-    ``Phi'`` after it: ``d`` the distance (m) from the slider to the goal, ``s`` the RMS speed of
-    the two particles (m/s), ``y_crank`` the crank's height (m; below the wire counts as
-    distance still to go). The shaping is potential-based (Ng, Harada & Russell 1999) and sums to
-    ``10 (Phi_0 - Phi_T)`` over an episode; ``-0.1`` is a time cost per step until success;
-    ``success`` is 1 on the step that completes the success test (see Episode End).
+    with the potential (cost to go) ``Phi = a + s`` before the step and ``Phi'`` after it:
+    ``a`` the arc length (m) along the crank's wire, the short way round, from the crank to the
+    point above the wire that puts the slider at the goal (``info["crank_to_go"]``), and ``s``
+    the RMS speed of the two particles (m/s). ``Phi`` is zero only at the goal at rest and
+    decreases all the way along a swing-up through a dead centre, where the slider's own
+    distance ``d`` (m) to the goal would first grow. The shaping is potential-based (Ng, Harada
+    & Russell 1999) and sums to ``10 (Phi_0 - Phi_T)`` over an episode; ``-0.1`` is a time cost
+    per step until success; ``success`` is 1 on the step that completes the success test (see
+    Episode End).
 
     ## Starting State
 
@@ -187,9 +199,9 @@ class SliderCrankEnv(ParticleEnv):
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``crank_height`` (m), ``kinetic_energy`` (J),
-    ``constraint_residual`` (max |C|: m for the line wire, m^2 for the circle and rod, whose C
-    is (|d|^2 - r^2) / 2), ``is_success`` and ``diverged``.
+    ``info`` holds ``distance`` (m), ``crank_height`` (m), ``crank_to_go`` (m),
+    ``kinetic_energy`` (J), ``constraint_residual`` (max |C|: m for the line wire, m^2 for the
+    circle and rod, whose C is (|d|^2 - r^2) / 2), ``is_success`` and ``diverged``.
 
     ## Arguments
 
