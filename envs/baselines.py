@@ -135,7 +135,8 @@ def report(results_path: Path, runs: Path, docs: Path) -> str:
     cells: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in records:
         cells.setdefault((r["env"], r["action_mode"], r["algo"]), []).append(r)
-    lines = ["| env | action mode | algo | seeds | steps | success (det.), median [CI] | "
+    lines = ["| env | action mode | algo | seeds | steps | "
+             "success (det.), median [CI] (coverage) | "
              "success (stoch.), median | return (det.), median | train time / seed |",
              "|---|---|---|---|---|---|---|---|---|"]
     for (env, mode, algo), recs in sorted(cells.items()):
