@@ -221,6 +221,8 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
             mod.add_arguments(p)
             p.set_defaults(handler=mod.main, check=getattr(mod, "check_arguments", None))
         p.set_defaults(subparser=p)
+    if wanted in (None, "train", "evaluate"):  # Stable-Baselines3 subcommands (the rl extra)
+        importlib.import_module("envs.train").add_parsers(sub)
     return parser
 
 

@@ -6,9 +6,9 @@ env's own normalization (positions, velocities, goal) and run PD control:
 
 - ClothSlide: PD on the cloth's centre of mass toward the goal; the total force goes to the two
   top corners (force mode) or through a mouse spring on the top row's middle particle (spring).
-- SliderCrank: the crank angle that puts the slider at the goal, reached by PD control on the
-  angle plus gravity compensation, as a tangential force (force mode) or through a mouse spring
-  on the crank (spring mode).
+- SliderCrank: the crank angle above the wire that puts the slider at the goal, reached by PD
+  control on the angle plus gravity compensation, as a tangential force (force mode) or through a
+  mouse spring on the crank (spring mode).
 
 >>> import gymnasium as gym
 >>> import envs
@@ -118,9 +118,9 @@ class ClothSlideController(ScriptedAgent):
 
 
 class SliderCrankController(ScriptedAgent):
-    """Drive the crank to the angle that puts the slider at the goal (on the crank's current
-    side of the wire), with gravity compensation: ``F_t = m g cos(theta) + kp (theta* - theta)
-    - kd v_t`` along the tangent."""
+    """Drive the crank to the angle above the wire that puts the slider at the goal (through a
+    dead centre if it starts below), with gravity compensation: ``F_t = m g cos(theta)
+    + kp (theta* - theta) - kd v_t`` along the tangent."""
 
     def __init__(self, task: SliderCrank, kp: float = 3.0, kd: float = 1.5) -> None:
         super().__init__(task)
@@ -134,8 +134,8 @@ class SliderCrankController(ScriptedAgent):
         theta = np.arctan2(crank[:, 1], crank[:, 0])
         # slider at g: r cos(th) + sqrt(L^2 - r^2 sin^2(th)) = g, so cos(th) = (g^2 + r^2 - L^2)/2gr
         cos_target = np.clip((goal**2 + r**2 - L**2) / (2 * goal * r), -1.0, 1.0)
-        side = np.where(crank[:, 1] > 0, 1.0, -1.0)
-        target = side * np.arccos(cos_target)
+        target = np.arccos(cos_target)  # the success test wants the crank above the wire
+
         error = np.angle(np.exp(1j * (target - theta)))
         tangent = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
         v_t = np.sum(v[:, 0] * tangent, axis=1)

@@ -17,12 +17,17 @@ from .base import (
     check_positive,
     uniform_away,
 )
+from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 
-#: Reward on the step that reaches the goal at rest.
-SUCCESS_BONUS = 10.0
+__all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSlideEnv",
+           "ClothSlideVectorEnv"]
+
+#: Weight of the squeeze penalty: ``SQUEEZE_COST * q^2`` per step for the squeeze component
+#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, |q| <= 1).
+SQUEEZE_COST = 0.2
 
 
-class ClothSlide(ParticleTask):
+class ClothSlide(ShapedTask, ParticleTask):
     """The ClothSlide physics and task for ``num_envs`` copies (see :class:`ClothSlideEnv`)."""
 
     force_dim = 2
@@ -81,6 +86,11 @@ class ClothSlide(ParticleTask):
                          ks=self.cloth_ks, kd=self.cloth_kd, wire_height=0.0, wall_x=self.wall_x,
                          drag=self.drag)
         s.x[:, 0] -= s.x[:, 0].mean()
+        # the wire's left end: a wall mirroring the right one (or farther out), so that no
+        # policy can push the cloth away for ever
+        half_width = (self.nx - 1) * self.spacing / 2
+        self.left_wall_x = min(-self.wall_x, self.goal_range[0] - half_width - 0.15)
+        s.add(Wall((-1.0, 0.0), -self.left_wall_x, kw=200.0, cw=0.5))
         self.rest_shape = _hanging_equilibrium(s, top=np.arange(self.nx))
         s.x = self.rest_shape.copy()
         self.goal_height = float(self.rest_shape[:, 1].mean())
@@ -111,18 +121,33 @@ class ClothSlide(ParticleTask):
         return np.mean(np.ascontiguousarray(x[:, :, 0]), axis=1)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The common measures plus ``wall_force``: the wall's total contact force (N)."""
+        """The common measures plus ``wall_force``: both walls' total contact force (N; the
+        success test also needs it to be 0), and
+        ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
+        action (positive pushes the corners together; 0 in spring mode)."""
         m = super().measure(stepped)
         F = np.zeros_like(self.system.x)
-        self.wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
+        for wall in self.system.forces:
+            if isinstance(wall, Wall):
+                wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
         m["wall_force"] = np.sum(np.abs(np.ascontiguousarray(F[:, 0]).reshape(self.num_envs,
                                                                               self.n)), axis=1)
+        if stepped is not None:  # resting against a wall is not rest: a step touching it
+            self.hold[stepped & (m["wall_force"] > 0)] = 0  # restarts the success count
+            m["is_success"] = self.hold >= self.hold_steps
+        m["squeeze"] = (0.5 * self.max_force * (self.action[:, 0] - self.action[:, 1])
+                        if self.action_mode == "force" else np.zeros(self.num_envs))
         return m
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed - wall_penalty * wall_force / weight + 10 * is_success``."""
-        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
-                / self.weight + SUCCESS_BONUS * m["is_success"])
+    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Cost to go ``Phi = d + s``: distance to the goal (m) plus RMS particle speed (m/s)."""
+        return m["distance"] + m["speed"]
+
+    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``SQUEEZE_COST q^2`` (q the squeeze in action units) plus ``wall_penalty F_wall /
+        (M g)``."""
+        q = m["squeeze"] / self.max_force
+        return SQUEEZE_COST * q**2 + self.wall_penalty * m["wall_force"] / self.weight
 
 
 def _hanging_equilibrium(s: ParticleSystem, top: np.ndarray) -> np.ndarray:
@@ -155,7 +180,8 @@ class ClothSlideEnv(ParticleEnv):
 
     A spring-mass cloth hangs from a horizontal wire: its top row of particles slides along the
     wire (a Lagrange-multiplier constraint, Witkin & Baraff), gravity pulls it down, structural,
-    shear and bend springs hold it together, and a wall stands to the right at ``wall_x``.
+    shear and bend springs hold it together, and walls end the wire on both sides (the right one
+    at ``wall_x``, the left one mirrored, at ``-wall_x`` or farther out).
     Bring the cloth's centre of mass to rest at a goal position on the wire without slamming
     into the wall. The cloth swings like a pendulum hanging from a cart when it is pushed, so
     stopping it at the goal takes some care.
@@ -190,10 +216,25 @@ class ClothSlideEnv(ParticleEnv):
 
     ## Rewards
 
-    Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) + 10 * success``, with ``d`` the
-    distance (m) from the cloth's centre of mass to the goal, ``s`` the RMS particle speed (m/s),
-    ``F_wall`` the wall's total contact force (N), ``M g`` the cloth's weight (N), and
-    ``success`` 1 on the step that completes the success test (see Episode End).
+    Every step (see ``envs.rewards``):
+
+        r = 10 (Phi - Phi') - 0.1 - 0.2 q^2 - wall_penalty * F_wall / (M g) + 10 * success
+
+    - ``Phi = d + s``, the potential (cost to go) before the step, ``Phi'`` after it: ``d`` the
+      distance (m) from the cloth's centre of mass to the goal, ``s`` the RMS particle speed
+      (m/s). This potential-based shaping (Ng, Harada & Russell 1999) pays for progress toward
+      the goal *and* toward rest, and sums over an episode to ``10 (Phi_0 - Phi_T)``: it cannot
+      be farmed by moving back and forth.
+    - ``-0.1``: a time cost on every step; only finishing stops it, so a cloth that rests short
+      of the goal, or swings about on it, keeps paying.
+    - ``q = (a_left - a_right) / 2`` (force mode; 0 in spring mode): the *squeeze* component of
+      the two corner forces, the part that cancels and cannot move the cloth. Squeezing at
+      full force costs 0.2 per step.
+    - ``F_wall``: both walls' total contact force (N), relative to the cloth's weight ``M g``.
+    - ``success``: 1 on the step that completes the success test (see Episode End).
+
+    The undiscounted return is ``10 (d_0 - d_T - s_T) - 0.1 T - penalties + 10 success``:
+    for the scripted controller about +9, for random actions about -30.
 
     ## Starting State
 
@@ -203,14 +244,15 @@ class ClothSlideEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
-       steps (success, ``info["is_success"]``).
+    1. Termination: ``d < goal_tolerance``, ``s < rest_speed`` and no wall contact, for
+       ``hold_steps`` consecutive steps (success, ``info["is_success"]``): resting against a
+       wall is not rest.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|, m),
-    ``wall_force`` (N), ``is_success`` and ``diverged``.
+    ``wall_force`` (N), ``squeeze`` (N, ``max_force * q``), ``is_success`` and ``diverged``.
 
     ## Arguments
 
@@ -233,7 +275,7 @@ class ClothSlideEnv(ParticleEnv):
     | `cloth_ks`       | `40.0`               | structural springs (N/m; shear /2, bend /4)  |
     | `cloth_kd`       | `0.05`               | spring damping (N s/m)                       |
     | `drag`           | `0.01`               | air drag per particle (N s/m)                |
-    | `wall_x`         | `None` (1.0)         | the wall fills x > wall_x (m) (*)            |
+    | `wall_x`         | `None` (1.0)         | the right wall fills x > wall_x (m) (*)      |
     | `wall_penalty`   | `1.0`                | weight of the wall term of the reward        |
     | `dt`             | `0.01`               | physics step (s)                             |
     | `substeps`       | `5`                  | physics steps per env step (0.05 s)          |
@@ -248,7 +290,8 @@ class ClothSlideEnv(ParticleEnv):
     | `mouse_ks`       | `20.0`               | spring action stiffness (N/m)                |
     | `mouse_kd`       | `0.5`                | spring action damping (N s/m)                |
 
-    (*) ``wall_x=None`` puts the wall 0.15 m past the cloth's edge at the farthest goal.
+    (*) ``wall_x=None`` puts the wall 0.15 m past the cloth's edge at the farthest goal. The
+    left wall fills ``x < min(-wall_x, goal_range[0] - half_width - 0.15)``.
 
     Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
     ``set_state(state)`` save and restore the full simulation state (positions, velocities,
@@ -263,7 +306,8 @@ class ClothSlideEnv(ParticleEnv):
 
     ## Version History
 
-    * v0: Initial version.
+    * v0: Initial version (the reward, the left wall and the wall-contact rule of the success
+      test were settled before any results were published on it).
     """
 
     task_class = ClothSlide

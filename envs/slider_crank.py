@@ -16,10 +16,10 @@ from .base import (
     check_positive,
     uniform_away,
 )
-from .cloth_slide import SUCCESS_BONUS
+from .rewards import ShapedTask
 
 
-class SliderCrank(ParticleTask):
+class SliderCrank(ShapedTask, ParticleTask):
     """The SliderCrank physics and task for ``num_envs`` copies (see :class:`SliderCrankEnv`)."""
 
     force_dim = 1
@@ -103,9 +103,29 @@ class SliderCrank(ParticleTask):
         """The slider's x (m)."""
         return x[:, 1, 0].copy()
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed + 10 * is_success``."""
-        return -m["distance"] - 0.1 * m["speed"] + SUCCESS_BONUS * m["is_success"]
+    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The common measures plus ``crank_height``: the crank's y (m; the success test also
+        needs the crank above the slider's wire, ``crank_height > 0``), and ``crank_to_go``: the
+        arc length (m) along the crank's wire, the short way round, from the crank to the point
+        above the wire that puts the slider at the goal."""
+        crank = self.positions()[:, 0]
+        up = crank[:, 1] > 0
+        m = super().measure(stepped)
+        if stepped is not None:  # a step held at the goal and at rest, but below, does not count
+            self.hold[stepped & ~up] = 0
+        m["crank_height"] = crank[:, 1].copy()
+        r, L, g = self.radius, self.rod, self.goal
+        target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
+        theta = np.arctan2(crank[:, 1], crank[:, 0])
+        m["crank_to_go"] = r * np.abs(np.angle(np.exp(1j * (target - theta))))
+        m["is_success"] = self.hold >= self.hold_steps
+        return m
+
+    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Cost to go ``Phi = crank_to_go + s`` (m, m/s): zero only with the crank at rest at
+        its goal point above the wire, and decreasing all the way along a swing-up through a
+        dead centre (the slider's distance to the goal would first grow)."""
+        return m["crank_to_go"] + m["speed"]
 
 
 class SliderCrankEnv(ParticleEnv):
@@ -116,9 +136,8 @@ class SliderCrankEnv(ParticleEnv):
     a circular wire of radius ``radius`` about the origin, the slider particle rides a horizontal
     wire at y = 0, and a rigid rod of length ``rod`` joins them; all three are
     Lagrange-multiplier constraints solved together. Gravity pulls the crank down and air drag
-    slows both. Bring the slider to a goal position on its wire and hold it there at rest.
-    Every slider position but the two dead centres has two crank angles; holding the crank away
-    from the bottom needs a steady force against gravity.
+    slows both. Bring the slider to a goal position on its wire and hold it there at rest, with
+    the crank above the slider's wire.
 
     ## Action Space
 
@@ -151,9 +170,19 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Rewards
 
-    Every step: ``-d - 0.1 s + 10 * success``, with ``d`` the distance (m) from the slider to the
-    goal, ``s`` the RMS speed of the two particles (m/s) and ``success`` 1 on the step that
-    completes the success test (see Episode End).
+    Every step (see ``envs.rewards``):
+
+        r = 10 (Phi - Phi') - 0.1 + 10 * success
+
+    with the potential (cost to go) ``Phi = a + s`` before the step and ``Phi'`` after it:
+    ``a`` the arc length (m) along the crank's wire, the short way round, from the crank to the
+    point above the wire that puts the slider at the goal (``info["crank_to_go"]``), and ``s``
+    the RMS speed of the two particles (m/s). ``Phi`` is zero only at the goal at rest and
+    decreases all the way along a swing-up through a dead centre, where the slider's own
+    distance ``d`` (m) to the goal would first grow. The shaping is potential-based (Ng, Harada
+    & Russell 1999) and sums to ``10 (Phi_0 - Phi_T)`` over an episode; ``-0.1`` is a time cost
+    per step until success; ``success`` is 1 on the step that completes the success test (see
+    Episode End).
 
     ## Starting State
 
@@ -164,15 +193,19 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
-       steps (success, ``info["is_success"]``).
+    1. Termination: ``d < goal_tolerance``, ``s < rest_speed`` and the crank above the wire
+       (``y_crank > 0``), for ``hold_steps`` consecutive steps (success, ``info["is_success"]``).
+       Every slider position has a crank angle above and one below the wire; the task asks for
+       the one above. From a start below (half the starts) the crank must swing up through a
+       dead centre (slider at 0.5 m or 1.1 m, where the slider's motion reverses), and holding
+       it above needs a steady force ``m g cos(theta)`` against gravity.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|:
-    m for the line wire, m^2 for the circle and rod, whose C is (|d|^2 - r^2) / 2),
-    ``is_success`` and ``diverged``.
+    ``info`` holds ``distance`` (m), ``crank_height`` (m), ``crank_to_go`` (m),
+    ``kinetic_energy`` (J), ``constraint_residual`` (max |C|: m for the line wire, m^2 for the
+    circle and rod, whose C is (|d|^2 - r^2) / 2), ``is_success`` and ``diverged``.
 
     ## Arguments
 
@@ -220,7 +253,8 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Version History
 
-    * v0: Initial version.
+    * v0: Initial version (the reward and the crank-above rule of the success test were settled
+      before any results were published on it).
     """
 
     task_class = SliderCrank

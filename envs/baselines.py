@@ -1,0 +1,248 @@
+"""The published baselines (docs/baselines): run the grid, then make the plots and the table.
+
+    python -m envs.baselines run --runs runs/ --jobs 2                  # the full grid
+    python -m envs.baselines run --envs ClothSlide-v0 --modes force --algos ppo --seeds 0 1 2 3 4
+    python -m envs.baselines report                                     # plots + table
+
+``run`` trains every (env, action mode, algorithm, seed) of the grid with ``cparticles train``
+(the shipped hyperparameters and budgets) into ``RUNS/<env>-<mode>-<algo>-<seed>`` (a run whose
+``config.json`` exists is not trained again; its config.json and evaluations.json are copied to
+``docs/baselines/runs/``), evaluates each on ``EPISODES`` held-out episodes
+(seeds from ``HELD_OUT_SEED_START``), deterministic and stochastic, and merges the records into
+``docs/baselines/results.json``: ``{"env", "action_mode", "algo", "seed", "timesteps",
+"success_rate", "mean_return", "eval_episodes", "deterministic", "wall_seconds", ...}``.
+Trainings run in up to ``--jobs`` subprocesses, each with one torch thread.
+
+``report`` draws the learning curves (periodic evaluations from each run's evaluations.json:
+median and interquartile range over seeds) into ``docs/baselines/curves.png`` and writes
+``docs/baselines/table.md``: per (env, mode, algo), the median success rate over seeds with a
+distribution-free confidence interval for the median (order statistics; with 5 seeds the
+interval is [min, max], coverage 94%), the median return, and the training time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import ENV_IDS
+from .base import ACTION_MODES
+from .train import ALGOS, HELD_OUT_SEED_START
+
+#: Where the published files live.
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "baselines"
+#: Held-out episodes per evaluation.
+EPISODES = 100
+#: Seeds per algorithm in the full grid (the issue: PPO 5, the second algorithm 3).
+GRID_SEEDS = {"ppo": [0, 1, 2, 3, 4], "sac": [0, 1, 2]}
+#: Fields that identify a record (a new record with the same fields replaces the old one).
+KEY_FIELDS = ("env", "action_mode", "algo", "seed", "deterministic")
+
+
+def run_name(env: str, mode: str, algo: str, seed: int) -> str:
+    """The run directory's name for one grid cell."""
+    return f"{env}-{mode}-{algo}-{seed}"
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "constrained_particles.cli", *args]
+
+
+def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
+                       timesteps: int | None = None, episodes: int = EPISODES,
+                       timeout: float | None = None) -> list[dict[str, Any]]:
+    """Train one cell (unless already trained) and evaluate it both ways; its two records."""
+    out = runs / run_name(env, mode, algo, seed)
+    if not (out / "config.json").is_file():
+        cmd = _cli("train", env, "--algo", algo, "--seed", str(seed), "--out", str(out),
+                   "--action-mode", mode, "--no-progress")
+        if timesteps is not None:
+            cmd += ["--timesteps", str(timesteps)]
+        out.mkdir(parents=True, exist_ok=True)
+        with open(out / "train.log", "w") as log:
+            subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT,
+                           timeout=timeout)
+    config = json.loads((out / "config.json").read_text())
+    # the learning curve and what was run, kept with the published results (the models are not)
+    kept = DOCS / "runs" / out.name
+    kept.mkdir(parents=True, exist_ok=True)
+    for name in ("config.json", "evaluations.json"):
+        if (out / name).is_file():
+            (kept / name).write_text((out / name).read_text())
+    records = []
+    for deterministic in (True, False):
+        cmd = _cli("evaluate", str(out), "--episodes", str(episodes), "--seed-start",
+                   str(HELD_OUT_SEED_START), "--json")
+        if not deterministic:
+            cmd.append("--stochastic")
+        line = subprocess.run(cmd, check=True, capture_output=True, text=True,
+                              timeout=timeout).stdout.strip().splitlines()[-1]
+        res = json.loads(line)
+        records.append({"env": env, "action_mode": mode, "algo": algo, "seed": seed,
+                        "timesteps": config["timesteps"], "success_rate": res["success_rate"],
+                        "mean_return": round(res["mean_return"], 4),
+                        "mean_length": res["mean_length"], "eval_episodes": res["episodes"],
+                        "eval_seed_start": res["seed_start"], "deterministic": deterministic,
+                        "wall_seconds": config["wall_seconds"],
+                        "mean_abs_squeeze": res["mean_abs_squeeze"],
+                        "rms_speed_near_goal": res["rms_speed_near_goal"],
+                        "failures_final_distance": res["failures_final_distance"],
+                        "failures_final_speed": res["failures_final_speed"],
+                        "run": out.name})
+    return records
+
+
+def merge(path: Path, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Merge ``new`` records into the JSON list at ``path`` (same key: replaced); write it."""
+    old = json.loads(path.read_text()) if path.is_file() else []
+    keys = {tuple(r[k] for k in KEY_FIELDS) for r in new}
+    merged = [r for r in old if tuple(r[k] for k in KEY_FIELDS) not in keys] + new
+    merged.sort(key=lambda r: tuple(str(r[k]) for k in KEY_FIELDS))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(merged, indent=1) + "\n")
+    return merged
+
+
+def median_ci(values: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """Distribution-free interval ``[x_(k), x_(n+1-k)]`` for the median of ``values``: the
+    narrowest order-statistic interval whose coverage is at least ``level`` (or [min, max] if
+    none is); returns ``(low, high, coverage)``."""
+    x = np.sort(np.asarray(values, float))
+    n = len(x)
+    best = (x[0], x[-1], 1.0 - 2 * 0.5**n)
+    for k in range(1, n // 2 + 1):
+        # P(x_(k) <= median <= x_(n+1-k)) = 1 - 2 P(Binomial(n, 1/2) <= k - 1)
+        tail = sum(math.comb(n, j) for j in range(k)) / 2**n
+        coverage = 1 - 2 * tail
+        if coverage >= level or k == 1:
+            best = (x[k - 1], x[n - k], coverage)
+    return best
+
+
+def report(results_path: Path, runs: Path, docs: Path) -> str:
+    """Write ``docs/table.md`` and ``docs/curves.png`` from the results and the runs' learning
+    curves; returns the table (markdown)."""
+    records = json.loads(results_path.read_text())
+    cells: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for r in records:
+        cells.setdefault((r["env"], r["action_mode"], r["algo"]), []).append(r)
+    lines = ["| env | action mode | algo | seeds | steps | "
+             "success (det.), median [CI] (coverage) | "
+             "success (stoch.), median | return (det.), median | train time / seed |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for (env, mode, algo), recs in sorted(cells.items()):
+        det = [r for r in recs if r["deterministic"]]
+        sto = [r for r in recs if not r["deterministic"]]
+        if not det:
+            continue
+        s = np.array([r["success_rate"] for r in det])
+        low, high, cov = median_ci(s)
+        sto_s = np.median([r["success_rate"] for r in sto]) if sto else float("nan")
+        minutes = np.median([r["wall_seconds"] for r in det]) / 60
+        lines.append(f"| {env} | {mode} | {algo.upper()} | {len(det)} | "
+                     f"{int(np.median([r['timesteps'] for r in det])):,} | "
+                     f"{np.median(s):.0%} [{low:.0%}, {high:.0%}] ({cov:.0%}) | "
+                     f"{sto_s:.0%} | {np.median([r['mean_return'] for r in det]):.2f} | "
+                     f"{minutes:.1f} min |")
+    table = "\n".join(lines) + "\n"
+    (docs / "table.md").write_text(table)
+    _plot_curves(cells, runs, docs / "curves.png")
+    return table
+
+
+def _plot_curves(cells: dict, runs: Path, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    panels = sorted({(env, mode) for env, mode, _ in cells})
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
+    for ax, (env, mode) in zip(axes[0], panels, strict=True):
+        for algo in ALGOS:
+            recs = [r for r in cells.get((env, mode, algo), []) if r["deterministic"]]
+            curves = []
+            for r in recs:
+                f = runs / r["run"] / "evaluations.json"
+                if f.is_file():
+                    ev = json.loads(f.read_text())
+                    curves.append((np.array([e["timesteps"] for e in ev]),
+                                   np.array([e["success_rate"] for e in ev])))
+            if not curves:
+                continue
+            grid = np.unique(np.concatenate([c[0] for c in curves]))
+            ys = np.array([np.interp(grid, t, y) for t, y in curves])
+            q25, q50, q75 = np.percentile(ys, [25, 50, 75], axis=0)
+            line, = ax.plot(grid, q50, label=f"{algo.upper()} ({len(curves)} seeds)")
+            ax.fill_between(grid, q25, q75, alpha=0.25, color=line.get_color())
+        ax.set_title(f"{env}, {mode}")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("success rate (periodic eval)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m envs.baselines {run,report}``."""
+    p = argparse.ArgumentParser(prog="python -m envs.baselines", description=__doc__.split(
+        "\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="train and evaluate the grid")
+    r.add_argument("--runs", default="runs", help="folder of the run directories")
+    r.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=ENV_IDS)
+    r.add_argument("--modes", nargs="+", default=list(ACTION_MODES), choices=ACTION_MODES)
+    r.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS)
+    r.add_argument("--seeds", nargs="+", type=int,
+                   help="seeds (default: 5 for PPO, 3 for SAC)")
+    r.add_argument("--timesteps", type=int, help="override the shipped budgets")
+    r.add_argument("--episodes", type=int, default=EPISODES)
+    r.add_argument("--jobs", type=int, default=1, help="trainings in parallel")
+    r.add_argument("--timeout", type=float, help="seconds allowed per training")
+    r.add_argument("--results", default=str(DOCS / "results.json"))
+    g = sub.add_parser("report", help="plots and table from results.json")
+    g.add_argument("--runs", default=str(DOCS / "runs"),
+                   help="folder with <run>/evaluations.json (run copies them to docs)")
+    g.add_argument("--results", default=str(DOCS / "results.json"))
+    g.add_argument("--docs", default=str(DOCS))
+    args = p.parse_args(argv)
+    if args.command == "report":
+        print(report(Path(args.results), Path(args.runs), Path(args.docs)), end="")
+        return 0
+    runs = Path(args.runs)
+    grid = [(env, mode, algo, seed) for env in args.envs for mode in args.modes
+            for algo in args.algos for seed in (args.seeds or GRID_SEEDS[algo])]
+
+    lock = threading.Lock()
+
+    def cell(c: tuple[str, str, str, int]) -> list[dict[str, Any]]:
+        recs = train_and_evaluate(runs, *c, timesteps=args.timesteps, episodes=args.episodes,
+                                  timeout=args.timeout)
+        with lock:
+            merge(Path(args.results), recs)
+        print(f"{run_name(*c)}: success {recs[0]['success_rate']:.0%} (deterministic), "
+              f"{recs[1]['success_rate']:.0%} (stochastic), {recs[0]['wall_seconds']:.0f} s",
+              flush=True)
+        return recs
+
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        list(pool.map(cell, grid))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

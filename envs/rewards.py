@@ -1,0 +1,79 @@
+"""The reward both tasks share: a time cost, potential-based shaping and a success bonus.
+
+Every env step pays
+
+    r = k (Phi(s) - Phi(s')) - TIME_COST + SUCCESS_BONUS * success - (task penalties)
+
+where ``Phi >= 0`` is a task's *cost to go* (metres of distance plus m/s of speed, plus whatever
+else must be zero at success), ``s`` and ``s'`` the states before and after the step, and ``k``
+(:attr:`ShapedTask.shaping_scale`) converts it into reward. The shaping term is potential-based
+(Ng, Harada & Russell 1999, with the undiscounted potential difference): over an episode it sums
+to ``k (Phi(s_0) - Phi(s_T))``, so it cannot be farmed by circling, and for an agent discounting
+with gamma it equals Ng's policy-invariant shaping plus a dense cost ``k (1 - gamma) Phi(s')`` per
+step. The optimal behaviour is therefore set by the time cost and the success bonus alone: finish
+(reach the goal and come to rest there) as fast as possible. Any state that is not a success,
+including resting near the goal or moving about on it, costs ``TIME_COST`` every step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+#: Reward on the step that completes the success test.
+SUCCESS_BONUS = 10.0
+#: Reward subtracted on every step (the episode's clock).
+TIME_COST = 0.1
+
+
+class ShapedTask:
+    """Mixin for a :class:`~envs.base.ParticleTask`: keeps each copy's last potential.
+
+    Subclasses define :meth:`potential` (per copy, from the measures of ``measure()``) and
+    :meth:`penalties`. The potential of a copy's start is recorded whenever a start is written
+    (``reset``, autoreset) or a state restored (``set_state``), so the first step's shaping term
+    is right.
+    """
+
+    #: Reward per unit of potential (1/m, s/m).
+    shaping_scale: float = 10.0
+    num_envs: int
+    measure: Any  # ParticleTask.measure
+
+    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """The cost to go ``Phi`` (num_envs,) >= 0 from measures ``m``; 0 at the goal at rest."""
+        raise NotImplementedError
+
+    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """Non-negative per-step penalties (num_envs,) subtracted from the reward."""
+        return np.zeros(self.num_envs)
+
+    def _phi(self) -> np.ndarray:
+        if getattr(self, "_last_potential", None) is None:
+            self._last_potential = np.zeros(self.num_envs)
+        return self._last_potential
+
+    def _record_potential(self, envs: Any) -> None:
+        envs = np.asarray(envs, dtype=np.int64)
+        if envs.size:
+            self._phi()[envs] = self.potential(self.measure())[envs]
+
+    def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
+        super().write_start(envs, starts)  # type: ignore[misc]
+        self._record_potential(envs)
+
+    def set_state(self, i: int, state: dict[str, Any]) -> None:
+        super().set_state(i, state)  # type: ignore[misc]
+        self._record_potential([i])
+
+    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
+        """``k (Phi_before - Phi_after) - TIME_COST - penalties + SUCCESS_BONUS * success``
+        (called once per env step, after the physics)."""
+        phi = self.potential(m)
+        before = self._phi()
+        shaping = self.shaping_scale * (before - phi)
+        self._last_potential = phi.copy()
+        return (shaping - TIME_COST - self.penalties(m)
+                + SUCCESS_BONUS * m["is_success"].astype(float))

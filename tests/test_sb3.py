@@ -1,0 +1,246 @@
+"""Stable-Baselines3 on the native vector envs (envs.sb3.to_sb3), the shaped rewards, and the
+``cparticles train`` / ``evaluate`` commands."""
+
+import json
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from stable_baselines3 import PPO  # noqa: E402
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
+
+import envs  # noqa: E402, F401
+from constrained_particles import cli  # noqa: E402
+from envs.agents import make_agent  # noqa: E402
+from envs.rewards import SUCCESS_BONUS, TIME_COST  # noqa: E402
+from envs.sb3 import to_sb3  # noqa: E402
+from envs.train import load_hyperparams  # noqa: E402
+
+
+def native(env_id="ClothSlide-v0", n=4, **kwargs):
+    return to_sb3(gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
+                               **kwargs))
+
+
+def dummy(env_id="ClothSlide-v0", n=4, **kwargs):
+    return DummyVecEnv([lambda: gym.make(env_id, **kwargs) for _ in range(n)])
+
+
+def test_to_sb3_matches_dummy_vec_env_over_episode_ends():
+    """Same seeds, same actions: observations, rewards, dones, terminal observations and
+    TimeLimit.truncated agree with SB3's own DummyVecEnv of single envs, over 300 steps with
+    both successes (terminations) and time limits (truncations)."""
+    n, steps = 4, 300
+    a, b = native(n=n, max_episode_steps=80), dummy(n=n, max_episode_steps=80)
+    assert a.seed(7) == b.seed(7)
+    oa, ob = a.reset(), b.reset()
+    np.testing.assert_allclose(oa, ob, atol=1e-6)
+    scripted = make_agent("scripted", a.vector_env)
+    rng = np.random.default_rng(0)
+    kinds = {"terminated": 0, "truncated": 0}
+    noise = np.array([0.0, 0.0, 1.0, 1.0])[:, None]  # copies 0, 1 succeed; 2, 3 time out
+    for _ in range(steps):
+        act = np.clip(scripted(oa) + noise * rng.normal(0, 1, (n, 2)), -1, 1).astype(np.float32)
+        oa, ra, da, ia = a.step(act)
+        ob, rb, db, ib = b.step(act)
+        np.testing.assert_allclose(oa, ob, atol=1e-6)
+        np.testing.assert_allclose(ra, rb, atol=1e-6)
+        assert ra.dtype == rb.dtype and da.dtype == db.dtype
+        np.testing.assert_array_equal(da, db)
+        for i in range(n):
+            assert ia[i]["TimeLimit.truncated"] == ib[i]["TimeLimit.truncated"]
+            assert set(ia[i]) == set(ib[i])
+            assert ia[i]["is_success"] == ib[i]["is_success"]
+            if da[i]:
+                np.testing.assert_allclose(ia[i]["terminal_observation"],
+                                           ib[i]["terminal_observation"], atol=1e-6)
+                kinds["truncated" if ia[i]["TimeLimit.truncated"] else "terminated"] += 1
+    assert kinds["terminated"] >= 3 and kinds["truncated"] >= 3, kinds
+    a.close()
+    b.close()
+
+
+def test_to_sb3_slider_crank_matches_and_env_checker_passes():
+    from stable_baselines3.common.env_checker import check_env
+
+    check_env(gym.make("SliderCrank-v0"), warn=True)
+    a, b = native("SliderCrank-v0", n=3), dummy("SliderCrank-v0", n=3)
+    a.seed(1), b.seed(1)
+    np.testing.assert_allclose(a.reset(), b.reset(), atol=1e-6)
+    rng = np.random.default_rng(1)
+    for _ in range(30):
+        act = rng.uniform(-1, 1, (3, 1)).astype(np.float32)
+        oa, ra, _, _ = a.step(act)
+        ob, rb, _, _ = b.step(act)
+        np.testing.assert_allclose(oa, ob, atol=1e-6)
+        np.testing.assert_allclose(ra, rb, atol=1e-6)
+
+
+def test_to_sb3_vec_env_api():
+    v = native(n=3, render_mode="rgb_array")
+    assert v.num_envs == 3 and v.observation_space.shape == (145,)
+    assert v.render_mode == "rgb_array"
+    v.seed(0)
+    v.reset()
+    assert v.get_attr("num_envs") == [3, 3, 3]
+    assert v.get_attr("max_episode_steps", indices=[0, 2]) == [200, 200]
+    assert v.has_attr("task") and not v.has_attr("no_such_attribute")
+    assert v.env_is_wrapped(gym.Wrapper) == [False] * 3
+    v.set_attr("max_episode_steps", 100)
+    assert v.vector_env.max_episode_steps == 100
+    with pytest.raises(ValueError, match="all copies"):
+        v.set_attr("max_episode_steps", 50, indices=[1])
+    frame = v.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3
+    assert len(v.get_images()) == 3
+    # step_async / step_wait, and the reset infos of the copies
+    v.step_async(np.zeros((3, 2), np.float32))
+    obs, rew, done, info = v.step_wait()
+    assert obs.shape == (3, 145) and rew.shape == (3,) and done.shape == (3,)
+    assert len(v.reset_infos) == 3 and "distance" in v.reset_infos[0]
+    # VecNormalize over it works (the wrapper train uses)
+    norm = VecNormalize(v)
+    norm.reset()
+    assert norm.step(np.zeros((3, 2), np.float32))[0].shape == (3, 145)
+    v.close()
+    with pytest.raises(TypeError, match="VectorEnv"):
+        to_sb3(gym.make("ClothSlide-v0"))
+
+
+def test_ppo_trains_through_to_sb3():
+    """A tiny PPO run on the native vector env: it learns (the policy changes) and predicts."""
+    v = native(n=4)
+    model = PPO("MlpPolicy", v, n_steps=64, batch_size=64, n_epochs=2, seed=0,
+                policy_kwargs={"net_arch": [16]})
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(256)
+    assert model.num_timesteps == 256
+    after = list(model.policy.parameters())
+    assert any(not np.allclose(x.numpy(), y.detach().numpy())
+               for x, y in zip(before, after, strict=True))
+    action, _ = model.predict(v.reset(), deterministic=True)
+    assert action.shape == (4, 2)
+
+
+# ----------------------------------------------------------------------------- rewards
+@pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0"])
+def test_shaped_return_telescopes(env_id):
+    """The episode return is k (Phi_0 - Phi_T) - TIME_COST T - penalties + bonus, whatever the
+    actions: the shaping term cannot be farmed."""
+    env = gym.make(env_id, max_episode_steps=60)
+    task = env.unwrapped.task
+    rng = np.random.default_rng(3)
+    for seed in range(3):
+        env.reset(seed=seed)
+        phi0 = float(task.potential(task.measure())[0])
+        total, penalties, steps, success = 0.0, 0.0, 0, False
+        done = False
+        while not done:
+            _, r, term, trunc, info = env.step(rng.uniform(-1, 1, env.action_space.shape))
+            penalties += float(task.penalties(task.measure())[0])
+            total += r
+            steps += 1
+            success |= info["is_success"]
+            done = term or trunc
+        phiT = float(task.potential(task.measure())[0])
+        expected = (task.shaping_scale * (phi0 - phiT) - TIME_COST * steps - penalties
+                    + SUCCESS_BONUS * success)
+        assert total == pytest.approx(expected, abs=1e-9)
+
+
+def test_cloth_squeeze_is_penalised_and_reported():
+    """Pushing the corners together (net force 0) costs reward and shows in info["squeeze"]."""
+    rewards = {}
+    for name, action in (("idle", [0.0, 0.0]), ("squeeze", [1.0, -1.0])):
+        env = gym.make("ClothSlide-v0")
+        env.reset(seed=0)
+        _, r, _, _, info = env.step(np.array(action, np.float32))
+        rewards[name] = r
+        assert info["squeeze"] == pytest.approx(0.5 * (action[0] - action[1]))
+    assert rewards["squeeze"] < rewards["idle"] - 0.15
+
+
+def test_cloth_cannot_leave_to_the_left():
+    """The wire has a left end: pushing left at full force for 10 s keeps the cloth in view."""
+    env = gym.make("ClothSlide-v0")
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    for _ in range(200):
+        _, _, _, _, info = env.step(np.array([-1.0, -1.0], np.float32))
+    assert task.positions()[0, :, 0].min() > task.left_wall_x - 0.1
+    assert info["wall_force"] > 0
+
+
+def test_slider_crank_success_needs_the_crank_above():
+    """A linkage held at rest at the goal with the crank below the wire never succeeds; the
+    mirror image above does."""
+    outcomes = {}
+    for side in (-1.0, 1.0):
+        env = gym.make("SliderCrank-v0", drag=0.0)
+        env.reset(seed=0)
+        task = env.unwrapped.task
+        # crank angle whose slider position is 0.9 m, on the chosen side, at rest
+        g, r, L = 0.9, task.radius, task.rod
+        angle = side * np.arccos((g**2 + r**2 - L**2) / (2 * g * r))
+        x, v = task.linkage(angle, 0.0)
+        state = env.unwrapped.get_state()
+        state.update(x=x, v=v, goal=g)
+        env.unwrapped.set_state(state)
+        hold = task.particle_mass * 9.81 * np.cos(angle) / task.max_force  # cancels gravity
+        success = False
+        for _ in range(10):
+            _, _, term, _, info = env.step(np.array([hold], np.float32))
+            success |= term
+        outcomes[side] = success
+    assert outcomes == {-1.0: False, 1.0: True}
+
+
+# ----------------------------------------------------------------------------- train/evaluate
+def test_shipped_hyperparameters_cover_every_env_and_mode():
+    for algo in ("ppo", "sac"):
+        for env_id in envs.ENV_IDS:
+            for mode in ("force", "spring"):
+                hp = load_hyperparams(algo, env_id, mode)
+                assert hp["n_timesteps"] > 0 and hp["n_envs"] >= 1
+    with pytest.raises(ValueError, match="algo"):
+        load_hyperparams("dqn", "ClothSlide-v0")
+
+
+def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "run"
+    code = cli.main(["train", "SliderCrank-v0", "--algo", "ppo", "--seed", "3", "--out",
+                     str(out), "--timesteps", "2048", "--eval-freq", "2048",
+                     "--eval-episodes", "4", "--no-progress"])
+    assert code == 0
+    for name in ("model.zip", "vecnormalize.pkl", "config.json", "evaluations.json",
+                 "best_model.zip"):
+        assert (out / name).is_file(), name
+    config = json.loads((out / "config.json").read_text())
+    assert config["timesteps"] == 2048 and config["seed"] == 3 and config["wall_seconds"] > 0
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "5", "--seed-start", "100",
+                     "--stochastic", "--json"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    res = json.loads(lines[-1])
+    assert {"success_rate", "mean_return", "mean_length", "episodes"} <= set(res)
+    assert res["episodes"] == 5 and res["deterministic"] is False
+    assert 0.0 <= res["success_rate"] <= 1.0 and 1 <= res["mean_length"] <= 200
+    assert cli.main(["evaluate", str(tmp_path / "nothing")]) == 2
+
+
+def test_median_interval_coverage_matches_the_binomial():
+    from scipy.stats import binom
+
+    from envs.baselines import median_ci
+
+    low, high, cov = median_ci([0.9, 0.5, 1.0, 0.8, 0.7])  # 5 seeds: [min, max]
+    assert (low, high) == (0.5, 1.0) and cov == pytest.approx(1 - 2 * binom.cdf(0, 5, 0.5))
+    x = np.arange(10.0)  # 10 seeds: [x_(2), x_(9)], the narrowest with coverage >= 95%
+    low, high, cov = median_ci(x)
+    assert (low, high) == (1.0, 8.0) and cov == pytest.approx(1 - 2 * binom.cdf(1, 10, 0.5))
+    assert 1 - 2 * binom.cdf(2, 10, 0.5) < 0.95 <= cov
