@@ -22,8 +22,9 @@ Anything the fused kernel cannot do exactly as the reference does (a singular or
 solve, CG that does not converge, an index out of range, a user-defined block, a subclass) is
 handed back: the step then runs on the reference path, which raises the documented errors.
 Packed arrays are the blocks' own arrays where possible (zero copy, so in-place edits such as an
-environment writing its actions into ``ConstantForce.force`` are seen); the pack is rebuilt
-when a block's array attribute is replaced or a scalar parameter changes. Every particle index
+environment writing its actions into ``ConstantForce.force`` are seen); where several blocks of
+one type are joined, their parameter arrays are copied into the joined ones before every call.
+The pack is rebuilt when a block's attribute is reassigned (``Term.generation``). Every particle index
 is checked against ``n`` inside the kernel before any array is read.
 """
 
@@ -112,6 +113,7 @@ class Packed:
         self.generation = Term.generation
         self.valid = self.supported = supported(system)
         self._mouse_blocks: list[MouseSpring] = []
+        self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
         if not self.supported:
             return
         by_type: dict[type, list] = {}
@@ -136,13 +138,22 @@ class Packed:
             return float(getattr(block, name))
 
         def join(parts: list[tuple], empty: tuple) -> tuple:
+            """One block's arrays as they are; several blocks' concatenated. Index arrays are
+            read-only, so their concatenation stays right; parameter arrays are concatenated
+            again before every call (:meth:`refresh`), so in-place edits are seen."""
             if not parts:
                 return empty
             if len(parts) == 1:
                 return parts[0]
-            self.zero_copy = False  # concatenated copies: repack every call
-            cols = [np.ascontiguousarray(np.concatenate(col)) for col in zip(*parts, strict=True)]
-            return tuple(_ro(c) if c.dtype == np.int64 else c for c in cols)
+            out = []
+            for col in zip(*parts, strict=True):
+                joined = np.ascontiguousarray(np.concatenate(col))
+                if joined.dtype == np.int64:
+                    joined = _ro(joined)
+                else:
+                    self._refresh.append((joined, col))
+                out.append(joined)
+            return tuple(out)
 
         grav = []
         for k, g in enumerate(by_type.get(Gravity, [])):
@@ -239,6 +250,11 @@ class Packed:
         sizes = np.diff(self.comp_ptr)
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
+    def refresh(self) -> None:
+        """Copy the parameter arrays of types with several blocks into their joined arrays."""
+        for joined, parts in self._refresh:
+            np.concatenate(parts, out=joined)
+
     def current(self, system: ParticleSystem) -> bool:
         """True if this pack still describes ``system``: the same blocks, and no attribute of
         any term reassigned since it was built (in-place edits are seen through the arrays).
@@ -283,6 +299,8 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     p = pack(system)
     if not p.valid:  # unsupported blocks, or an index out of range
         return FALLBACK, system.x, system.v, 0
+    if p._refresh:
+        p.refresh()
     x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
     for arr in (x, v, mass, inv_mass, lam):  # float64 shapes were checked by the caller
         if not (type(arr) is np.ndarray and arr.flags.c_contiguous and arr.dtype == np.float64):

@@ -94,13 +94,18 @@ def test_fused_step_matches_the_reference_on_every_block(method, seed):
     assert s.t == pytest.approx(0.04)
 
 
-def test_several_blocks_of_one_type_are_summed():
+def test_several_blocks_of_one_type_are_summed_and_edits_seen():
     s = every_block(7, copies_of_gravity=3)
-    x_ref, v_ref = reference(s, "rk4", 2e-3, 20)
-    for _ in range(20):
+    ref = s.copy()
+    for k in range(20):
+        for system in (s, ref):  # in-place edits of a joined block's parameters
+            system.forces[1].g[0] = 0.1 * k
+            walls = [f for f in system.forces if isinstance(f, Wall)]
+            walls[1].offset = 0.5 + 0.01 * k  # and a reassigned scalar
         s.step(2e-3, "rk4")
-    close(s.x, x_ref)
-    close(s.v, v_ref)
+        ref.x, ref.v = METHODS["rk4"](ref, ref.t, ref.x, ref.v, 2e-3)
+    close(s.x, ref.x)
+    close(s.v, ref.v)
 
 
 def test_steps_in_one_call_equal_single_steps_bit_for_bit():
