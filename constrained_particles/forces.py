@@ -469,7 +469,7 @@ class Wall(Force):
 
     def penetration(self, x: np.ndarray) -> np.ndarray:
         """``normal . x - offset`` (m) for the affected particles; positive is inside the wall."""
-        return x[_selected(self.particles, len(x))] @ self.normal - self.offset
+        return (x if self.particles is None else x[self.particles]) @ self.normal - self.offset
 
     def accumulate(self, x, v, mass, F):
         idx = _selected(self.particles, len(x))

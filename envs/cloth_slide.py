@@ -118,7 +118,7 @@ class ClothSlide(ShapedTask, ParticleTask):
 
     def tracked(self, x: np.ndarray) -> np.ndarray:
         """The cloth's centre of mass x (m) (all particles have the same mass)."""
-        return np.mean(np.ascontiguousarray(x[:, :, 0]), axis=1)
+        return x[:, :, 0].sum(axis=1) * (1.0 / x.shape[1])
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``wall_force``: both walls' total contact force (N; the
@@ -126,12 +126,14 @@ class ClothSlide(ShapedTask, ParticleTask):
         ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
         action (positive pushes the corners together; 0 in spring mode)."""
         m = super().measure(stepped)
-        F = np.zeros_like(self.system.x)
-        for wall in self.system.forces:
-            if isinstance(wall, Wall):
-                wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
-        m["wall_force"] = np.sum(np.abs(np.ascontiguousarray(F[:, 0]).reshape(self.num_envs,
-                                                                              self.n)), axis=1)
+        s = self.system
+        m["wall_force"] = np.zeros(self.num_envs)
+        walls = [w for w in s.forces if isinstance(w, Wall)]
+        if any(w.penetration(s.x).max(initial=0.0) > 0 for w in walls):  # else no contact
+            F = np.zeros_like(s.x)
+            for wall in walls:
+                wall.accumulate(s.x, s.v, s.mass, F)
+            m["wall_force"] = np.abs(F[:, 0]).reshape(self.num_envs, self.n).sum(axis=1)
         if stepped is not None:  # resting against a wall is not rest: a step touching it
             self.hold[stepped & (m["wall_force"] > 0)] = 0  # restarts the success count
             m["is_success"] = self.hold >= self.hold_steps
