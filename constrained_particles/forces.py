@@ -562,6 +562,23 @@ class MouseSpring(Force):
             raise ValueError(f"elements must be in [0, {len(self.particle)}), got {elements!r}")
         return idx
 
+    def set_checked(self, elements: np.ndarray, particles: np.ndarray, anchors: np.ndarray,
+                    active: np.ndarray) -> None:
+        """:meth:`set` for arguments the caller has already validated (what the environments
+        call every step): ``elements`` and ``particles`` int64 arrays of one length with the
+        elements in range, ``anchors`` finite (k, 2) in m, ``active`` bools. Only the particle
+        indices are checked again (against the system), so the block stays safe to evaluate."""
+        bound = self.__dict__.get("_bound_n")
+        if len(particles) and (particles.min() < 0
+                               or (bound is not None and particles.max() >= bound)):
+            raise ValueError(f"particles holds unknown particle indices {particles.tolist()[:10]}"
+                             f" (system has {bound} particles)")
+        new_particle = self.particle.copy()
+        new_particle[elements] = particles
+        self.__dict__["particle"] = frozen(new_particle)
+        self.anchor[elements] = anchors
+        self.active[elements] = active
+
     def set(self, elements: Any, particles: Any = None, anchors: Any = None,
             active: Any = None) -> None:
         """Set springs ``elements`` at once: their ``particles`` (indices), ``anchors`` (m,

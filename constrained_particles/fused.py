@@ -24,8 +24,8 @@ handed back: the step then runs on the reference path, which raises the document
 Packed arrays are the blocks' own arrays where possible (zero copy, so in-place edits such as an
 environment writing its actions into ``ConstantForce.force`` are seen); where several blocks of
 one type are joined, their parameter arrays are copied into the joined ones before every call.
-The pack is rebuilt when a block's attribute is reassigned (``Term.generation``). Every particle index
-is checked against ``n`` inside the kernel before any array is read.
+The pack is rebuilt when a block's attribute is reassigned (``Term.generation``). Every particle
+index is checked against ``n`` inside the kernel before any array is read.
 """
 
 from __future__ import annotations

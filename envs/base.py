@@ -384,12 +384,12 @@ class ParticleTask:
             act.set(envs, active=np.zeros(len(envs), bool))
         else:
             # the spring action: the nearest particle within grab_radius of the grab point
-            x = self.positions()[envs]
+            x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]
             grab = self.to_world(action[:, :2])
             d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
             nearest = np.argmin(d2, axis=1)
-            act.set(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
-                    d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
+            act.set_checked(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
+                            d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
 
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no

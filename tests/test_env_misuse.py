@@ -34,7 +34,9 @@ def test_issue_repro_spring_mode_no_longer_explodes():
     for _ in range(150):
         obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4))
         assert not info["diverged"]
-        assert crank_residual(env) < 0.01 and np.isfinite(reward) and reward > -5
+        # the exploded step paid -36,430; the shaped reward moves by 10 x the change of the
+        # cost to go (metres of crank arc plus m/s of speed) in one step, a few units at most
+        assert crank_residual(env) < 0.01 and np.isfinite(reward) and reward > -100
         if terminated or truncated:
             env.reset()
 
