@@ -65,7 +65,7 @@ class ChainSwing(ParticleTask):
                  min_distance: float | None = None, start_angle: float = 0.1,
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05, hold_steps: int = 5,
                  grab_radius: float = 0.2, mouse_ks: float = 5.0,
-                 mouse_kd: float = 1.0) -> None:
+                 mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
         if target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
         self.target = target
@@ -100,7 +100,8 @@ class ChainSwing(ParticleTask):
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps)
+                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         residual_limit=residual_limit)
 
     def build_scene(self) -> ParticleSystem:
         """The carrier on a wire at y = 0 between walls at x = -+travel, the chain hanging
@@ -258,9 +259,9 @@ class ChainSwingEnv(ParticleEnv):
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|:
-    m for the wire, m^2 for the rods, whose C is (|d|^2 - L^2) / 2), ``is_success`` and
-    ``diverged``.
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (the
+    largest distance in m by which the carrier leaves its wire or a rod its length),
+    ``is_success`` and ``diverged``.
 
     ## Arguments
 
@@ -299,6 +300,7 @@ class ChainSwingEnv(ParticleEnv):
     | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)    |
     | `mouse_ks`       | `5.0`                | spring action stiffness (N/m) (**)             |
     | `mouse_kd`       | `1.0`                | spring action damping (N s/m)                  |
+    | `residual_limit` | `0.01`               | constraint error (m) that counts as diverged    |
 
     (*) ``"lateral"``: ``goal_range=(-0.6, 0.6)``, ``min_distance=0.3``; ``"swingup"``:
     ``(-0.3, 0.3)`` and ``0``. The goal range must lie inside the travel.

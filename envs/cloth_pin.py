@@ -54,7 +54,7 @@ class ClothPin(ParticleTask):
                  goal_range: tuple[float, float] = (0.0, 0.5), min_distance: float = 0.2,
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05,
-                 hold_steps: int = 5) -> None:
+                 hold_steps: int = 5, residual_limit: float = 0.01) -> None:
         if action_mode not in DRAW_MODES:
             raise ValueError(f"action_mode must be one of {DRAW_MODES}, got {action_mode!r}")
         try:
@@ -111,7 +111,8 @@ class ClothPin(ParticleTask):
         super().__init__(num_envs, action_mode="force", dt=dt, substeps=substeps,
                          integrator=integrator, max_force=self.push, grab_radius=snap_radius,
                          mouse_ks=1.0, mouse_kd=0.0, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps)
+                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         residual_limit=residual_limit)
         self.action_mode = action_mode
         N, B = self.num_envs, self.max_springs
         self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
@@ -479,7 +480,8 @@ class ClothPinEnv(ParticleEnv):
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|, m),
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
+    distance off the wire, m),
     ``wall_force`` (N), ``springs`` (placed so far), ``placed`` (on this step), ``is_success``
     and ``diverged``.
 
@@ -522,6 +524,7 @@ class ClothPinEnv(ParticleEnv):
     | `goal_tolerance` | `0.05`                      | success distance (m)                      |
     | `rest_speed`     | `0.05`                      | success RMS cloth particle speed (m/s)    |
     | `hold_steps`     | `5`                         | env steps the success test must hold      |
+    | `residual_limit` | `0.01`                      | constraint error (m) counted as diverged  |
 
     (*) ``(xmin, ymin, xmax, ymax)``, ending at least ``snap_radius`` left of the cloth at its
     leftmost start.

@@ -253,7 +253,8 @@ class ClothSlideEnv(ParticleEnv):
     3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned and ``info["diverged"]`` is True.
 
-    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (max |C|, m),
+    ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
+    distance off the wire, m),
     ``wall_force`` (N), ``squeeze`` (N, ``max_force * q``), ``is_success`` and ``diverged``.
 
     ## Arguments
@@ -291,6 +292,7 @@ class ClothSlideEnv(ParticleEnv):
     | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)  |
     | `mouse_ks`       | `20.0`               | spring action stiffness (N/m)                |
     | `mouse_kd`       | `0.5`                | spring action damping (N s/m)                |
+    | `residual_limit` | `0.01`               | constraint error (m) counted as diverged     |
 
     (*) ``wall_x=None`` puts the wall 0.15 m past the cloth's edge at the farthest goal. The
     left wall fills ``x < min(-wall_x, goal_range[0] - half_width - 0.15)``.

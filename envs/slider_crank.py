@@ -204,8 +204,9 @@ class SliderCrankEnv(ParticleEnv):
        the state before that step is returned and ``info["diverged"]`` is True.
 
     ``info`` holds ``distance`` (m), ``crank_height`` (m), ``crank_to_go`` (m),
-    ``kinetic_energy`` (J), ``constraint_residual`` (max |C|: m for the line wire, m^2 for the
-    circle and rod, whose C is (|d|^2 - r^2) / 2), ``is_success`` and ``diverged``.
+    ``kinetic_energy`` (J), ``constraint_residual`` (the largest distance in m by
+    which the crank leaves its circle, the slider its wire or the rod its length),
+    ``is_success`` and ``diverged``.
 
     ## Arguments
 
@@ -239,6 +240,7 @@ class SliderCrankEnv(ParticleEnv):
     | `grab_radius`     | `0.2`         | reach of the spring action's grab point (m)      |
     | `mouse_ks`        | `20.0`        | spring action stiffness (N/m)                    |
     | `mouse_kd`        | `1.0`         | spring action damping (N s/m)                    |
+    | `residual_limit`  | `0.01`        | constraint error (m) counted as diverged         |
 
     Bad values raise ValueError at ``make``. ``env.unwrapped.get_state()`` and
     ``set_state(state)`` save and restore the full simulation state for planning.
