@@ -4,7 +4,7 @@ Each block holds ``len(self) * rows_per_element`` scalar constraints ``C(q) = 0`
 the sparsity pattern of its rows of ``J = dC/dq`` once (:meth:`Constraint.pattern`, columns
 index the stacked coordinates ``q = (x_0, y_0, x_1, y_1, ...)``) and, at every evaluation,
 returns ``C``, ``Cdot = J qdot`` and the values of ``J`` and ``Jdot = dJ/dt`` in that pattern's
-order (:meth:`Constraint.evaluate`). Formulas follow shared/DESIGN.md.
+order (:meth:`Constraint.evaluate`). Formulas follow docs/physics.md ("Constraints").
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Every class is one vectorized block. ``accumulate`` adds the block's forces (newtons) into an
 (n, 2) array, ``potential`` returns its potential energy (joules; 0 for dissipative or
 external forces) and ``element_forces`` gives per-element force vectors for drawing.
-Formulas follow shared/DESIGN.md ("Physics (corrected)").
+Formulas follow docs/physics.md ("Forces").
 """
 
 from __future__ import annotations

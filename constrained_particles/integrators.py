@@ -3,7 +3,7 @@
 Each integrator is a stateless function ``step(system, t, x, v, h) -> (x_new, v_new)`` that
 calls ``system.acceleration(t, x, v)`` (forces and constraint forces re-evaluated at that
 stage's state) as many times as it has stages. It must not modify its inputs.
-Formulas are those of shared/DESIGN.md; y = (x, v) and f(t, y) = (v, a(t, x, v)).
+Formulas are those of docs/physics.md; y = (x, v) and f(t, y) = (v, a(t, x, v)).
 
 Which to use (figures from ``python -m verification energy``, 1e5 steps of 2 ms; README):
 
