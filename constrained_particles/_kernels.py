@@ -1,6 +1,6 @@
 """Compiled force and constraint *elements* (Numba), and the block kernels built on them.
 
-Each formula of DESIGN.md ("Physics (corrected)") is written here once, as a small compiled
+Each formula of docs/physics.md is written here once, as a small compiled
 function of one element (one spring, one wall contact, one constraint row). Two callers share
 them: the block kernels below, which the blocks' ``accumulate`` use, and the fused whole-step
 kernel in :mod:`constrained_particles.fused`. The readable numpy code in

@@ -183,7 +183,7 @@ class ConstantForce(Force):
 class DampedSpring(Force):
     """Damped springs between particle pairs ``i`` and ``j``: one block for many springs.
 
-    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (DESIGN.md, report eq. 1 with its sign fixed):
+    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (docs/physics.md, report eq. 1 with its sign fixed):
     ``f_i = -[ks (|l| - rest) + kd (ldot . l)/|l|] l/|l|``, ``f_j = -f_i``, energy
     ``ks/2 (|l| - rest)^2``. ``rest`` (m) defaults to the current length, ``ks`` is in N/m and
     ``kd`` in N s/m. A spring of zero current length exerts no force (its direction is undefined).
@@ -446,7 +446,7 @@ class Wall(Force):
     ``normal`` is a direction pointing into the wall (normalised here), ``offset`` in metres.
     A particle at penetration ``p = normal . x - offset > 0`` feels the one-sided spring-damper
     ``f = -max(kw p + cw (normal . v), 0) normal`` (``kw`` in N/m, ``cw`` in N s/m). The
-    ``max(., 0)`` keeps the damper from pulling a separating particle back in (DESIGN.md's
+    ``max(., 0)`` keeps the damper from pulling a separating particle back in (the design notes'
     formula without it makes walls sticky). Energy ``kw/2 p^2`` while inside.
 
     >>> from constrained_particles import Wall
