@@ -183,7 +183,7 @@ class ConstantForce(Force):
 class DampedSpring(Force):
     """Damped springs between particle pairs ``i`` and ``j``: one block for many springs.
 
-    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (docs/physics.md, report eq. 1 with its sign fixed):
+    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (report eq. 1 with its sign fixed):
     ``f_i = -[ks (|l| - rest) + kd (ldot . l)/|l|] l/|l|``, ``f_j = -f_i``, energy
     ``ks/2 (|l| - rest)^2``. ``rest`` (m) defaults to the current length, ``ks`` is in N/m and
     ``kd`` in N s/m. A spring of zero current length exerts no force (its direction is undefined).
