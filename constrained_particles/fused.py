@@ -222,10 +222,11 @@ class Packed:
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
         self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
+        self.ws_live = np.ones(n, bool)
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
-                     self.ws_A)
+                     self.ws_A, self.ws_live)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -288,8 +289,14 @@ def pack(system: ParticleSystem) -> Packed:
 
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
-        residual_limit: float) -> tuple[int, np.ndarray, np.ndarray, int]:
+        residual_limit: float, pieces: np.ndarray | None = None
+        ) -> tuple[int, np.ndarray, np.ndarray, int]:
     """Run ``steps`` fused steps of ``method`` from the system's state.
+
+    ``pieces`` (optional, (n,) int64 >= 1, checked by the caller) splits each step of particle q
+    into ``pieces[q]`` steps of ``dt / pieces[q]``; particles coupled by a force element or a
+    constraint must share a count (else FALLBACK), and each group of coupled particles is then
+    stepped bit for bit as it would be alone with its own count. Not for ``rattle`` (FALLBACK).
 
     Returns ``(status, x, v, failed_step)``: status :data:`OK` with the new state,
     :data:`DIVERGED` (``failed_step`` is the step whose result was non-finite, beyond
@@ -308,12 +315,20 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if x.shape != (p.n, 2) or v.shape != (p.n, 2) or lam.shape != (p.m,) or len(mass) != p.n \
             or len(inv_mass) != p.n:
         return FALLBACK, system.x, system.v, 0
+    if pieces is None:
+        counts, hp, total = _I0, _F0, int(steps)
+    else:
+        if pieces.shape != (p.n,) or pieces.dtype != np.int64:
+            return FALLBACK, system.x, system.v, 0
+        counts = pieces * int(steps)
+        hp = float(dt) / pieces
+        total = int(counts.max(initial=0))
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
     status, failed = _fused_steps(
-        METHOD_CODES[method], int(steps), float(dt), x, v, mass, inv_mass, lam, x_out, v_out,
-        float(system.ks), float(system.kd), float(system.tol), float(system.divergence_limit),
-        float(residual_limit), *p.args)
+        METHOD_CODES[method], total, float(dt), hp, counts, x, v, mass, inv_mass, lam, x_out,
+        v_out, float(system.ks), float(system.kd), float(system.tol),
+        float(system.divergence_limit), float(residual_limit), *p.args)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -334,10 +349,30 @@ if _kernels.ENABLED:
     njit = numba.njit(cache=True)
 
     @njit
-    def _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, m,
-                      lam):  # pragma: no cover - compiled
-        """False if the per-element arrays of a block disagree in length. (Particle indices are
-        checked where they are read: every loop below tests each index against n first.)"""
+    def _valid(idx, n):  # pragma: no cover - compiled
+        """True if every particle index in ``idx`` lies in [0, n)."""
+        for e in range(idx.shape[0]):
+            if idx[e] < 0 or idx[e] >= n:
+                return False
+        return True
+
+    @njit
+    def _same_count(counts, a, b):  # pragma: no cover - compiled
+        """True if particles a[e] and b[e] take the same number of steps, for every e."""
+        for e in range(a.shape[0]):
+            if counts[a[e]] != counts[b[e]]:
+                return False
+        return True
+
+    @njit
+    def _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols,
+                      nnz, n, m, lam, counts):  # pragma: no cover - compiled
+        """False if the per-element arrays of a block disagree in length, if a particle index is
+        outside [0, n) or a row outside [0, m), or (``counts`` not empty) if two particles
+        coupled by a force element or a constraint row take different numbers of steps.
+
+        Checked once per call, before any array is read through an index: the GIL stays held,
+        so no thread can change an index array until the call returns."""
         if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
                 or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
                 or drag[1].shape[0] != drag[0].shape[0]):
@@ -375,34 +410,61 @@ if _kernels.ENABLED:
         for e in range(fixed[2].shape[0]):  # two rows per pin
             if fixed[2][e] < 0 or fixed[2][e] + 1 >= m:
                 return False
-        return lam.shape[0] == m
+        if lam.shape[0] != m or cols.shape[0] != m or nnz.shape[0] != m:
+            return False
+        for idx in (grav[0], const[0], spring[0], spring[1], ang[0], ang[1], ang[2], drag[0],
+                    wall[0], circ[0], rod[0], rod[1], line[0], fixed[0]):
+            if not _valid(idx, n):
+                return False
+        mi, mact = mouse[0], mouse[2]
+        for e in range(mi.shape[0]):
+            if mact[e] and (mi[e] < 0 or mi[e] >= n):
+                return False
+        for r in range(m):
+            if nnz[r] < 1 or nnz[r] > 4:
+                return False
+            for k in range(nnz[r]):
+                if cols[r, k] < 0 or cols[r, k] >= 2 * n:
+                    return False
+        if counts.shape[0] == 0:
+            return True
+        if counts.shape[0] != n:
+            return False
+        if not (_same_count(counts, spring[0], spring[1]) and _same_count(counts, ang[0], ang[1])
+                and _same_count(counts, ang[1], ang[2])):
+            return False
+        for r in range(m):
+            for k in range(1, nnz[r]):
+                if counts[cols[r, k] // 2] != counts[cols[r, 0] // 2]:
+                    return False
+        return True
 
     @njit
-    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse):
+    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live, partial):
         # pragma: no cover - compiled
-        """Applied forces Q (N) into F (overwritten), summed by block type; False (and F
-        incomplete) if a particle index is out of range."""
-        n = x.shape[0]
+        """Applied forces Q (N) into F (overwritten), summed by block type (indices were
+        checked by :func:`_check_inputs`). With ``partial``, elements on particles that are not
+        ``live`` are skipped (their particles get zero force)."""
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
             q, k = gi[e], gblock[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
         for e in range(ci.shape[0]):
             q = ci[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         for e in range(si.shape[0]):
             a, b = si[e], sj[e]
-            if a < 0 or a >= n or b < 0 or b >= n:
-                return False
+            if partial and not live[a]:
+                continue
             fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
                                     v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
             F[a, 0] += fx
@@ -412,8 +474,8 @@ if _kernels.ENABLED:
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]
-            if a < 0 or a >= n or b < 0 or b >= n or c < 0 or c >= n:
-                return False
+            if partial and not live[a]:
+                continue
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
                 v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
@@ -426,15 +488,15 @@ if _kernels.ENABLED:
         di, dkd = drag
         for e in range(di.shape[0]):
             q = di[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
         for e in range(wi.shape[0]):
             q, k = wi[e], wblock[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
@@ -443,24 +505,23 @@ if _kernels.ENABLED:
         for e in range(mi.shape[0]):
             if mact[e]:
                 q = mi[e]
-                if q < 0 or q >= n:
-                    return False
+                if partial and not live[q]:
+                    continue
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
                 F[q, 0] += fx
                 F[q, 1] += fy
-        return True
 
     @njit
-    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):  # pragma: no cover
-        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row; False if a particle
-        index is out of range."""
-        n = x.shape[0]
+    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, partial):
+        # pragma: no cover - compiled
+        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
+        that are not ``live`` are skipped with ``partial``)."""
         cp, cc, cr, crow = circ
         for e in range(cp.shape[0]):
             q, r = cp[e], crow[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
             Jv[r, 0], Jv[r, 1] = dx, dy
@@ -468,8 +529,8 @@ if _kernels.ENABLED:
         ra, rb, rl, rrow = rod
         for e in range(ra.shape[0]):
             a, b, r = ra[e], rb[e], rrow[e]
-            if a < 0 or a >= n or b < 0 or b >= n:
-                return False
+            if partial and not live[a]:
+                continue
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
             C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
@@ -478,8 +539,8 @@ if _kernels.ENABLED:
         lp, ln, lpt, lrow = line
         for e in range(lp.shape[0]):
             q, r = lp[e], lrow[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
@@ -487,14 +548,13 @@ if _kernels.ENABLED:
         fp, fpt, frow = fixed
         for e in range(fp.shape[0]):
             q, r = fp[e], frow[e]
-            if q < 0 or q >= n:
-                return False
+            if partial and not live[q]:
+                continue
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
                 Cdot[r + axis] = v[q, axis]
                 Jv[r + axis, 0] = 1.0
                 Jdv[r + axis, 0] = 0.0
-        return True
 
     @njit
     def _distance_error(x, circ, rod, line, fixed):  # pragma: no cover - compiled
@@ -529,13 +589,16 @@ if _kernels.ENABLED:
         return worst
 
     @njit
-    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp):
-        # pragma: no cover - compiled
-        """Solve ``J W J^T lam = b`` component by component; False if any solve is singular,
-        ill-posed or does not converge (the caller then uses the reference solver)."""
+    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
+                          live, partial):  # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` component by component (with ``partial``, only those of
+        ``live`` particles); False if any solve is singular, ill-posed or does not converge
+        (the caller then uses the reference solver)."""
         ncomp = comp_ptr.shape[0] - 1
         for k in range(ncomp):
             start, stop = comp_ptr[k], comp_ptr[k + 1]
+            if partial and not live[cols[comp_rows[start], 0] // 2]:
+                continue
             s = stop - start
             if s <= DIRECT_MAX:
                 # dense J W J^T of this component
@@ -653,16 +716,16 @@ if _kernels.ENABLED:
     @njit
     def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
                rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
-               C, Cdot, Jv, Jdv, b, work, A, tmp):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out``; False if an index was out of range
-        or the solve failed."""
-        if not _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse):
-            return False
+               C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):  # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``partial``, of the ``live``
+        particles only; the others get 0); False if the solve failed."""
+        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live, partial)
         m = C.shape[0]
         if m:
-            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):
-                return False
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, partial)
             for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
+                if partial and not live[cols[r, 0] // 2]:
+                    continue
                 acc = 0.0
                 for k in range(nnz[r]):
                     c = cols[r, k]
@@ -670,9 +733,11 @@ if _kernels.ENABLED:
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
-                                     A, tmp):
+                                     A, tmp, live, partial):
                 return False
             for r in range(m):  # Q += J^T lam
+                if partial and not live[cols[r, 0] // 2]:
+                    continue
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
@@ -684,27 +749,25 @@ if _kernels.ENABLED:
     @njit
     def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
                 wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
-                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
+                Jv, Jdv, J0, b, dl, work, A, tmp, live):  # pragma: no cover - compiled
         """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
         rattle` does it; False where the reference must take over (it raises the errors)."""
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        if not _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse):
-            return False
+        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, live, False)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
-            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv):
-                return False
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, live, False)
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
             previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
-                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, False)
                 remaining = 0
                 for k in range(ncomp):
                     worst = 0.0
@@ -739,7 +802,7 @@ if _kernels.ENABLED:
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
                 if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
-                                         work, A, tmp):
+                                         work, A, tmp, live, False):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -754,8 +817,7 @@ if _kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        if not _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse):
-            return False
+        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, live, False)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
@@ -768,7 +830,7 @@ if _kernels.ENABLED:
                 b[r] = acc
                 dl[r] = 0.0
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
-                                     A, tmp):
+                                     A, tmp, live, False):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):
@@ -780,17 +842,25 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd, tol,
-                     limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ,
-                     rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
-                     ws_A):  # pragma: no cover - compiled
+    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
+                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
+                     ws_q, ws_A, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds; or, with ``counts`` not empty, ``counts[q]`` steps
+        of ``hp[q]`` seconds for particle q (``steps`` = the largest count): a particle that has
+        taken its steps waits, and the elements and constraint rows of waiting particles are
+        skipped, so each independent group of particles is stepped exactly as it would be alone.
+        """
         n = x0.shape[0]
         m = lam.shape[0]
-        if not _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                             m, lam):
+        partial = counts.shape[0] > 0
+        if partial and (method == 4 or hp.shape[0] != n):
+            return FALLBACK, 0
+        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             cols, nnz, n, m, lam, counts):
             return FALLBACK, 0
         if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n or cols.shape[0] != m or nnz.shape[0] != m):
+                or ws_q.shape[1] != 2 * n or live.shape[0] != n):
             return FALLBACK, 0
         w2, tmp = ws_q[0], ws_q[1]
         for q in range(n):
@@ -798,6 +868,7 @@ if _kernels.ENABLED:
             w2[2 * q + 1] = inv_mass[q]
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
+            live[q] = True
         Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
         C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
         work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
@@ -808,77 +879,102 @@ if _kernels.ENABLED:
         x, v = x0, v0
         xs, vs = ws_n[6], ws_n[7]
         spare_x, spare_v = ws_n[0], ws_n[1]
-        half = 0.5 * h
         for step in range(steps):
             if step == steps - 1:
                 xs, vs = x_out, v_out
+            if partial:  # particles done with their steps wait where they are
+                for q in range(n):
+                    live[q] = step < counts[q]
+                    if not live[q]:
+                        xs[q, 0], xs[q, 1] = x[q, 0], x[q, 1]
+                        vs[q, 0], vs[q, 1] = v[q, 0], v[q, 1]
             if method == 4:
                 if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
                                ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
                                comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
-                               tmp):
+                               tmp, live):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    hq = hp[q] if partial else h
                     for d in range(2):
                         if method == 0:
-                            xs[q, d] = x[q, d] + h * v[q, d]
-                            vs[q, d] = v[q, d] + h * a1[q, d]
+                            xs[q, d] = x[q, d] + hq * v[q, d]
+                            vs[q, d] = v[q, d] + hq * a1[q, d]
                         else:
-                            vs[q, d] = v[q, d] + h * a1[q, d]
-                            xs[q, d] = x[q, d] + h * vs[q, d]
+                            vs[q, d] = v[q, d] + hq * a1[q, d]
+                            xs[q, d] = x[q, d] + hq * vs[q, d]
             elif method == 1:  # explicit midpoint
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    half = 0.5 * (hp[q] if partial else h)
                     for d in range(2):
                         xs[q, d] = x[q, d] + half * v[q, d]
                         vs2[q, d] = v[q, d] + half * a1[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    hq = hp[q] if partial else h
                     for d in range(2):
-                        xs[q, d] = x[q, d] + h * vs2[q, d]
-                        vs[q, d] = v[q, d] + h * a2[q, d]
+                        xs[q, d] = x[q, d] + hq * vs2[q, d]
+                        vs[q, d] = v[q, d] + hq * a2[q, d]
             else:  # rk4, every stage from the step's initial state
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    half = 0.5 * (hp[q] if partial else h)
                     for d in range(2):
                         vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
                         xs[q, d] = x[q, d] + half * v[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    half = 0.5 * (hp[q] if partial else h)
                     for d in range(2):
                         vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
                         xs[q, d] = x[q, d] + half * vs2[q, d]
                 if not _accel(xs, vs3, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    hq = hp[q] if partial else h
                     for d in range(2):
-                        vs[q, d] = v[q, d] + h * a3[q, d]  # k4x
-                        xs[q, d] = x[q, d] + h * vs3[q, d]
+                        vs[q, d] = v[q, d] + hq * a3[q, d]  # k4x
+                        xs[q, d] = x[q, d] + hq * vs3[q, d]
                 if not _accel(xs, vs, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
                     return FALLBACK, step
-                sixth = h / 6.0
                 for q in range(n):
+                    if partial and not live[q]:
+                        continue
+                    sixth = (hp[q] if partial else h) / 6.0
                     for d in range(2):
                         k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
                         xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
