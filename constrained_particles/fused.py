@@ -226,7 +226,7 @@ class Packed:
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
-                     self.ws_A, self.ws_live)
+                     self.ws_A)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -315,9 +315,11 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if x.shape != (p.n, 2) or v.shape != (p.n, 2) or lam.shape != (p.m,) or len(mass) != p.n \
             or len(inv_mass) != p.n:
         return FALLBACK, system.x, system.v, 0
+    live = None  # the kernel is compiled twice: without per-particle counts, and with
     if pieces is None:
         counts, hp, total = _I0, _F0, int(steps)
     else:
+        live = p.ws_live
         if pieces.shape != (p.n,) or pieces.dtype != np.int64:
             return FALLBACK, system.x, system.v, 0
         counts = pieces * int(steps)
@@ -328,7 +330,7 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     status, failed = _fused_steps(
         METHOD_CODES[method], total, float(dt), hp, counts, x, v, mass, inv_mass, lam, x_out,
         v_out, float(system.ks), float(system.kd), float(system.tol),
-        float(system.divergence_limit), float(residual_limit), *p.args)
+        float(system.divergence_limit), float(residual_limit), *p.args, live)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -440,30 +442,30 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live, partial):
+    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
         # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
-        checked by :func:`_check_inputs`). With ``partial``, elements on particles that are not
-        ``live`` are skipped (their particles get zero force)."""
+        checked by :func:`_check_inputs`). With a ``live`` mask (None: all live), elements on
+        particles that are not live are skipped (their particles get zero force)."""
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
             q, k = gi[e], gblock[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
         for e in range(ci.shape[0]):
             q = ci[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         for e in range(si.shape[0]):
             a, b = si[e], sj[e]
-            if partial and not live[a]:
+            if live is not None and not live[a]:
                 continue
             fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
                                     v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
@@ -474,7 +476,7 @@ if _kernels.ENABLED:
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]
-            if partial and not live[a]:
+            if live is not None and not live[a]:
                 continue
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
@@ -488,14 +490,14 @@ if _kernels.ENABLED:
         di, dkd = drag
         for e in range(di.shape[0]):
             q = di[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
         for e in range(wi.shape[0]):
             q, k = wi[e], wblock[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
@@ -505,7 +507,7 @@ if _kernels.ENABLED:
         for e in range(mi.shape[0]):
             if mact[e]:
                 q = mi[e]
-                if partial and not live[q]:
+                if live is not None and not live[q]:
                     continue
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
@@ -513,14 +515,14 @@ if _kernels.ENABLED:
                 F[q, 1] += fy
 
     @njit
-    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, partial):
+    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live):
         # pragma: no cover - compiled
         """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
-        that are not ``live`` are skipped with ``partial``)."""
+        that are not ``live`` are skipped; None: all live)."""
         cp, cc, cr, crow = circ
         for e in range(cp.shape[0]):
             q, r = cp[e], crow[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
@@ -529,7 +531,7 @@ if _kernels.ENABLED:
         ra, rb, rl, rrow = rod
         for e in range(ra.shape[0]):
             a, b, r = ra[e], rb[e], rrow[e]
-            if partial and not live[a]:
+            if live is not None and not live[a]:
                 continue
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
@@ -539,7 +541,7 @@ if _kernels.ENABLED:
         lp, ln, lpt, lrow = line
         for e in range(lp.shape[0]):
             q, r = lp[e], lrow[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
@@ -548,7 +550,7 @@ if _kernels.ENABLED:
         fp, fpt, frow = fixed
         for e in range(fp.shape[0]):
             q, r = fp[e], frow[e]
-            if partial and not live[q]:
+            if live is not None and not live[q]:
                 continue
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
@@ -557,31 +559,39 @@ if _kernels.ENABLED:
                 Jdv[r + axis, 0] = 0.0
 
     @njit
-    def _distance_error(x, circ, rod, line, fixed):  # pragma: no cover - compiled
+    def _distance_error(x, circ, rod, line, fixed, live):  # pragma: no cover - compiled
         """Largest geometric constraint residual (m): how far any particle is off its wire,
-        any rod from its length, any pin from its point."""
+        any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
         worst = 0.0
         cp, cc, cr, _ = circ
         for e in range(cp.shape[0]):
             q = cp[e]
+            if live is not None and not live[q]:
+                continue
             d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
             if not d <= worst:
                 worst = d
         ra, rb, rl, _ = rod
         for e in range(ra.shape[0]):
             a, b = ra[e], rb[e]
+            if live is not None and not live[a]:
+                continue
             d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
             if not d <= worst:
                 worst = d
         lp, ln, lpt, _ = line
         for e in range(lp.shape[0]):
             q = lp[e]
+            if live is not None and not live[q]:
+                continue
             d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
             if not d <= worst:
                 worst = d
         fp, fpt, _ = fixed
         for e in range(fp.shape[0]):
             q = fp[e]
+            if live is not None and not live[q]:
+                continue
             for axis in range(2):
                 d = abs(x[q, axis] - fpt[e, axis])
                 if not d <= worst:
@@ -590,14 +600,14 @@ if _kernels.ENABLED:
 
     @njit
     def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
-                          live, partial):  # pragma: no cover - compiled
-        """Solve ``J W J^T lam = b`` component by component (with ``partial``, only those of
-        ``live`` particles); False if any solve is singular, ill-posed or does not converge
+                          live):  # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` component by component (with a ``live`` mask, only those
+        of live particles); False if any solve is singular, ill-posed or does not converge
         (the caller then uses the reference solver)."""
         ncomp = comp_ptr.shape[0] - 1
         for k in range(ncomp):
             start, stop = comp_ptr[k], comp_ptr[k + 1]
-            if partial and not live[cols[comp_rows[start], 0] // 2]:
+            if live is not None and not live[cols[comp_rows[start], 0] // 2]:
                 continue
             s = stop - start
             if s <= DIRECT_MAX:
@@ -716,15 +726,15 @@ if _kernels.ENABLED:
     @njit
     def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
                rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
-               C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``partial``, of the ``live``
-        particles only; the others get 0); False if the solve failed."""
-        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live, partial)
+               C, Cdot, Jv, Jdv, b, work, A, tmp, live):  # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with a ``live`` mask, of the
+        live particles only; the others get 0); False if the solve failed."""
+        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live)
         m = C.shape[0]
         if m:
-            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, partial)
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live)
             for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
-                if partial and not live[cols[r, 0] // 2]:
+                if live is not None and not live[cols[r, 0] // 2]:
                     continue
                 acc = 0.0
                 for k in range(nnz[r]):
@@ -733,15 +743,17 @@ if _kernels.ENABLED:
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
-                                     A, tmp, live, partial):
+                                     A, tmp, live):
                 return False
             for r in range(m):  # Q += J^T lam
-                if partial and not live[cols[r, 0] // 2]:
+                if live is not None and not live[cols[r, 0] // 2]:
                     continue
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
         for q in range(x.shape[0]):
+            if live is not None and not live[q]:
+                continue
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True
@@ -749,25 +761,25 @@ if _kernels.ENABLED:
     @njit
     def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
                 wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
-                Jv, Jdv, J0, b, dl, work, A, tmp, live):  # pragma: no cover - compiled
+                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
         """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
         rattle` does it; False where the reference must take over (it raises the errors)."""
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, live, False)
+        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
-            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, live, False)
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, None)
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
             previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
-                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live, False)
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, None)
                 remaining = 0
                 for k in range(ncomp):
                     worst = 0.0
@@ -802,7 +814,7 @@ if _kernels.ENABLED:
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
                 if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
-                                         work, A, tmp, live, False):
+                                         work, A, tmp, None):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -817,7 +829,7 @@ if _kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, live, False)
+        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
@@ -830,7 +842,7 @@ if _kernels.ENABLED:
                 b[r] = acc
                 dl[r] = 0.0
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
-                                     A, tmp, live, False):
+                                     A, tmp, None):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):
@@ -853,14 +865,15 @@ if _kernels.ENABLED:
         """
         n = x0.shape[0]
         m = lam.shape[0]
-        partial = counts.shape[0] > 0
-        if partial and (method == 4 or hp.shape[0] != n):
+        if live is not None and (method == 4 or hp.shape[0] != n or counts.shape[0] != n):
+            return FALLBACK, 0
+        if live is None and counts.shape[0] != 0:
             return FALLBACK, 0
         if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
                              cols, nnz, n, m, lam, counts):
             return FALLBACK, 0
         if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n or live.shape[0] != n):
+                or ws_q.shape[1] != 2 * n):
             return FALLBACK, 0
         w2, tmp = ws_q[0], ws_q[1]
         for q in range(n):
@@ -868,7 +881,6 @@ if _kernels.ENABLED:
             w2[2 * q + 1] = inv_mass[q]
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
-            live[q] = True
         Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
         C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
         work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
@@ -882,7 +894,7 @@ if _kernels.ENABLED:
         for step in range(steps):
             if step == steps - 1:
                 xs, vs = x_out, v_out
-            if partial:  # particles done with their steps wait where they are
+            if live is not None:  # particles done with their steps wait where they are
                 for q in range(n):
                     live[q] = step < counts[q]
                     if not live[q]:
@@ -892,17 +904,17 @@ if _kernels.ENABLED:
                 if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
                                ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
                                comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
-                               tmp, live):
+                               tmp):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    hq = hp[q] if partial else h
+                    hq = hp[q] if live is not None else h
                     for d in range(2):
                         if method == 0:
                             xs[q, d] = x[q, d] + hq * v[q, d]
@@ -913,68 +925,68 @@ if _kernels.ENABLED:
             elif method == 1:  # explicit midpoint
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    half = 0.5 * (hp[q] if partial else h)
+                    half = 0.5 * (hp[q] if live is not None else h)
                     for d in range(2):
                         xs[q, d] = x[q, d] + half * v[q, d]
                         vs2[q, d] = v[q, d] + half * a1[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    hq = hp[q] if partial else h
+                    hq = hp[q] if live is not None else h
                     for d in range(2):
                         xs[q, d] = x[q, d] + hq * vs2[q, d]
                         vs[q, d] = v[q, d] + hq * a2[q, d]
             else:  # rk4, every stage from the step's initial state
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    half = 0.5 * (hp[q] if partial else h)
+                    half = 0.5 * (hp[q] if live is not None else h)
                     for d in range(2):
                         vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
                         xs[q, d] = x[q, d] + half * v[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    half = 0.5 * (hp[q] if partial else h)
+                    half = 0.5 * (hp[q] if live is not None else h)
                     for d in range(2):
                         vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
                         xs[q, d] = x[q, d] + half * vs2[q, d]
                 if not _accel(xs, vs3, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    hq = hp[q] if partial else h
+                    hq = hp[q] if live is not None else h
                     for d in range(2):
                         vs[q, d] = v[q, d] + hq * a3[q, d]  # k4x
                         xs[q, d] = x[q, d] + hq * vs3[q, d]
                 if not _accel(xs, vs, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live, partial):
+                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
                 for q in range(n):
-                    if partial and not live[q]:
+                    if live is not None and not live[q]:
                         continue
-                    sixth = (hp[q] if partial else h) / 6.0
+                    sixth = (hp[q] if live is not None else h) / 6.0
                     for d in range(2):
                         k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
                         xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
@@ -982,11 +994,13 @@ if _kernels.ENABLED:
                                                        + 2.0 * a3[q, d]) + a4[q, d])
             # divergence: non-finite, beyond the limit, or off the constraints
             for q in range(n):
+                if live is not None and not live[q]:
+                    continue  # unchanged since its last step, which passed
                 for d in range(2):
                     if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                         return DIVERGED, step
             if residual_limit < math.inf and m:
-                if not _distance_error(xs, circ, rod, line, fixed) <= residual_limit:
+                if not _distance_error(xs, circ, rod, line, fixed, live) <= residual_limit:
                     return DIVERGED, step
             if step == 0:  # the new state becomes current; never reuse the caller's arrays
                 x, xs = xs, spare_x

@@ -199,7 +199,7 @@ def test_out_of_range_index_never_reaches_compiled_code():
         status, _ = fused._fused_steps(2, 1, 1e-3, fused._F0, fused._I0, x, v, s.mass,
                                        s.inv_mass, s.constraint_solver.lam.copy(),
                                        np.empty_like(x), np.empty_like(v), 100.0, 20.0, 1e-10,
-                                       1e6, np.inf, *args)
+                                       1e6, np.inf, *args, None)
         assert status == fused.FALLBACK, (slot, column)
 
 
