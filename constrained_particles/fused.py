@@ -137,6 +137,12 @@ class Packed:
         def scalar(block: Any, name: str) -> float:
             return float(getattr(block, name))
 
+        fresh: list[np.ndarray] = []  # parameter arrays made here from scalars
+
+        def made(a: np.ndarray) -> np.ndarray:
+            fresh.append(a)
+            return a
+
         def join(parts: list[tuple], empty: tuple) -> tuple:
             """One block's arrays as they are; several blocks' concatenated. Index arrays are
             read-only, so their concatenation stays right; parameter arrays are concatenated
@@ -150,8 +156,8 @@ class Packed:
                 joined = np.ascontiguousarray(np.concatenate(col))
                 if joined.dtype == np.int64:
                     joined = _ro(joined)
-                else:
-                    self._refresh.append((joined, col))
+                elif not all(any(a is f for f in fresh) for a in col):
+                    self._refresh.append((joined, col))  # (arrays made here never change)
                 out.append(joined)
             return tuple(out)
 
@@ -172,14 +178,15 @@ class Packed:
         drag = []
         for d in by_type.get(Drag, []):
             idx = idx_of(d, "particles")
-            drag.append((idx, np.full(len(idx), scalar(d, "kd"))))
+            drag.append((idx, made(np.full(len(idx), scalar(d, "kd")))))
         self.drag = join(drag, (_I0, _F0))
         wall = []
         for k, w in enumerate(by_type.get(Wall, [])):
             idx = idx_of(w, "particles")
             wall.append((idx, _ro(np.full(len(idx), k, np.int64)),
                          f64(w, "normal", 1).reshape(1, 2),
-                         np.array([[scalar(w, "offset"), scalar(w, "kw"), scalar(w, "cw")]])))
+                         made(np.array([[scalar(w, "offset"), scalar(w, "kw"),
+                                         scalar(w, "cw")]]))))
         self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))))
         mouse = []
         self._mouse_blocks = by_type.get(MouseSpring, [])
@@ -309,11 +316,14 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if p._refresh:
         p.refresh()
     x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
-    for arr in (x, v, mass, inv_mass, lam):  # float64 shapes were checked by the caller
-        if not (type(arr) is np.ndarray and arr.flags.c_contiguous and arr.dtype == np.float64):
-            return FALLBACK, system.x, system.v, 0
-    if x.shape != (p.n, 2) or v.shape != (p.n, 2) or lam.shape != (p.m,) or len(mass) != p.n \
-            or len(inv_mass) != p.n:
+    nd, f64 = np.ndarray, np.float64
+    if not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
+            and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
+            and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
+            and v.flags.c_contiguous and mass.flags.c_contiguous
+            and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
+            and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
+            and mass.shape == inv_mass.shape == (p.n,)):
         return FALLBACK, system.x, system.v, 0
     live = None  # the kernel is compiled twice: without per-particle counts, and with
     if pieces is None:

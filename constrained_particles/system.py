@@ -37,6 +37,8 @@ def _flag(name: str, value: Any) -> bool:
 
 def check_dt(dt: Any) -> float:
     """``dt`` (s) as a float in [MIN_DT, inf), TypeError or ValueError naming it otherwise."""
+    if type(dt) is float and math.isfinite(dt) and dt >= MIN_DT:  # the usual case, quickly
+        return dt
     if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, numbers.Real):
         raise ArgumentTypeError(f"dt must be a number of seconds, got {dt!r}")
     if not (np.isfinite(dt) and dt >= MIN_DT):
@@ -328,7 +330,8 @@ class ParticleSystem:
         ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
         """
         dt = check_dt(dt)
-        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+        if type(steps) is not int and (isinstance(steps, (bool, np.bool_))
+                                       or not isinstance(steps, numbers.Integral)):
             raise ArgumentTypeError(f"steps must be an integer >= 1, got {steps!r}")
         if not 1 <= steps <= 10**9:
             raise ValueError(f"steps must be an integer in [1, 1e9], got {steps!r}")
@@ -338,7 +341,7 @@ class ParticleSystem:
         solver = self.constraint_solver
         h = float(dt)
         project = bool(project and self.constraints)
-        if self._fused_step(h, method, int(steps), project):
+        if self._fused_step(h, method, int(steps), project, solver=solver):
             return
         lam = solver.lam.copy()
         x, v, t = self.x, self.v, self.t
@@ -362,12 +365,13 @@ class ParticleSystem:
                 and type(self).acceleration is ParticleSystem.acceleration)
 
     def _fused_step(self, h: float, method: str, steps: int, project: bool,
-                    pieces: np.ndarray | None = None) -> bool:
+                    pieces: np.ndarray | None = None,
+                    solver: ConstraintSolver | None = None) -> bool:
         """Take the steps on the fused kernel if it can (True); False, with nothing changed,
         if the reference path must. Raises SimulationDiverged, keeping the state."""
         if not self._fusable(method) or (project and steps > 1):
             return False
-        solver = self.constraint_solver
+        solver = self.constraint_solver if solver is None else solver
         lam = solver.lam.copy()
         # with projection, the residual is judged after it (as on the reference path)
         status, x, v, failed = fused.run(self, h, method, steps, solver.lam,
@@ -422,6 +426,13 @@ class ParticleSystem:
         """ValueError unless the state arrays are consistent: ``x``, ``v`` float64 (n, 2),
         ``mass``, ``inv_mass`` float64 (n,), ``t`` a finite number. Run before every step, so a
         replaced array cannot send the compiled kernels outside their memory."""
+        x, v, mass, inv_mass, f64 = self.x, self.v, self.mass, self.inv_mass, np.float64
+        if (type(x) is np.ndarray and type(v) is np.ndarray and type(mass) is np.ndarray
+                and type(inv_mass) is np.ndarray and x.dtype == f64 and v.dtype == f64
+                and mass.dtype == f64 and inv_mass.dtype == f64 and x.ndim == 2
+                and x.shape[1] == 2 and v.shape == x.shape and mass.shape == inv_mass.shape
+                == x.shape[:1] and type(self.t) is float and math.isfinite(self.t)):
+            return  # the usual case, in a few operations
         n = len(self.x) if isinstance(self.x, np.ndarray) else -1
         for name, shape in (("x", (n, 2)), ("v", (n, 2)), ("mass", (n,)), ("inv_mass", (n,))):
             arr = getattr(self, name)
