@@ -229,7 +229,9 @@ class Packed:
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
         self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
-        self.ws_live = np.ones(n, bool)
+        # with per-particle step counts: the live mask, live particle, row and component lists
+        self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
+                        np.zeros(len(self.comp_ptr) - 1, np.int64), np.zeros(3, np.int64))
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
@@ -325,23 +327,31 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
             and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
             and mass.shape == inv_mass.shape == (p.n,)):
         return FALLBACK, system.x, system.v, 0
-    live = None  # the kernel is compiled twice: without per-particle counts, and with
-    if pieces is None:
-        counts, hp, total = _I0, _F0, int(steps)
-    else:
-        live = p.ws_live
-        if pieces.shape != (p.n,) or pieces.dtype != np.int64:
-            return FALLBACK, system.x, system.v, 0
-        counts = pieces * int(steps)
-        hp = float(dt) / pieces
-        total = int(counts.max(initial=0))
+    code, h = METHOD_CODES[method], float(dt)
+    common = (float(system.ks), float(system.kd), float(system.tol),
+              float(system.divergence_limit), float(residual_limit), *p.args)
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
-    status, failed = _fused_steps(
-        METHOD_CODES[method], total, float(dt), hp, counts, x, v, mass, inv_mass, lam, x_out,
-        v_out, float(system.ks), float(system.kd), float(system.tol),
-        float(system.divergence_limit), float(residual_limit), *p.args, live)
-    return int(status), x_out, v_out, int(failed)
+    if pieces is None:
+        status, failed = _fused_steps(code, int(steps), h, _F0, _I0, x, v, mass, inv_mass, lam,
+                                      x_out, v_out, *common, None)
+        return int(status), x_out, v_out, int(failed)
+    if pieces.shape != (p.n,) or pieces.dtype != np.int64:
+        return FALLBACK, system.x, system.v, 0
+    # The kernel is compiled twice: without a live mask, and with one. The steps every particle
+    # takes run without (each particle with its own step length), the rest with the mask.
+    counts = pieces * int(steps)
+    hp = h / pieces
+    first, total = int(counts.min()), int(counts.max())
+    status, failed = _fused_steps(code, first, h, hp, _I0, x, v, mass, inv_mass, lam, x_out,
+                                  v_out, *common, None)
+    if status != OK or total == first:
+        return int(status), x_out, v_out, int(failed)
+    x_mid, v_mid = x_out, v_out
+    x_out, v_out = np.empty_like(x), np.empty_like(v)
+    status, failed = _fused_steps(code, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+                                  inv_mass, lam, x_out, v_out, *common, p.ws_live)
+    return int(status), x_out, v_out, int(failed) + first
 
 
 if _kernels.ENABLED:
@@ -455,27 +465,27 @@ if _kernels.ENABLED:
     def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
         # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
-        checked by :func:`_check_inputs`). With a ``live`` mask (None: all live), elements on
-        particles that are not live are skipped (their particles get zero force)."""
+        checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
+        all live), elements on particles that are not live are skipped (they get zero force)."""
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
             q, k = gi[e], gblock[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
         for e in range(ci.shape[0]):
             q = ci[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         for e in range(si.shape[0]):
             a, b = si[e], sj[e]
-            if live is not None and not live[a]:
+            if live is not None and not live[0][a]:
                 continue
             fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
                                     v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
@@ -486,7 +496,7 @@ if _kernels.ENABLED:
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]
-            if live is not None and not live[a]:
+            if live is not None and not live[0][a]:
                 continue
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
@@ -500,14 +510,14 @@ if _kernels.ENABLED:
         di, dkd = drag
         for e in range(di.shape[0]):
             q = di[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
         for e in range(wi.shape[0]):
             q, k = wi[e], wblock[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
@@ -517,7 +527,7 @@ if _kernels.ENABLED:
         for e in range(mi.shape[0]):
             if mact[e]:
                 q = mi[e]
-                if live is not None and not live[q]:
+                if live is not None and not live[0][q]:
                     continue
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
@@ -532,7 +542,7 @@ if _kernels.ENABLED:
         cp, cc, cr, crow = circ
         for e in range(cp.shape[0]):
             q, r = cp[e], crow[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
@@ -541,7 +551,7 @@ if _kernels.ENABLED:
         ra, rb, rl, rrow = rod
         for e in range(ra.shape[0]):
             a, b, r = ra[e], rb[e], rrow[e]
-            if live is not None and not live[a]:
+            if live is not None and not live[0][a]:
                 continue
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
@@ -551,7 +561,7 @@ if _kernels.ENABLED:
         lp, ln, lpt, lrow = line
         for e in range(lp.shape[0]):
             q, r = lp[e], lrow[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
@@ -560,7 +570,7 @@ if _kernels.ENABLED:
         fp, fpt, frow = fixed
         for e in range(fp.shape[0]):
             q, r = fp[e], frow[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
@@ -576,7 +586,7 @@ if _kernels.ENABLED:
         cp, cc, cr, _ = circ
         for e in range(cp.shape[0]):
             q = cp[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
             if not d <= worst:
@@ -584,7 +594,7 @@ if _kernels.ENABLED:
         ra, rb, rl, _ = rod
         for e in range(ra.shape[0]):
             a, b = ra[e], rb[e]
-            if live is not None and not live[a]:
+            if live is not None and not live[0][a]:
                 continue
             d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
             if not d <= worst:
@@ -592,7 +602,7 @@ if _kernels.ENABLED:
         lp, ln, lpt, _ = line
         for e in range(lp.shape[0]):
             q = lp[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
             if not d <= worst:
@@ -600,7 +610,7 @@ if _kernels.ENABLED:
         fp, fpt, _ = fixed
         for e in range(fp.shape[0]):
             q = fp[e]
-            if live is not None and not live[q]:
+            if live is not None and not live[0][q]:
                 continue
             for axis in range(2):
                 d = abs(x[q, axis] - fpt[e, axis])
@@ -611,14 +621,13 @@ if _kernels.ENABLED:
     @njit
     def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
                           live):  # pragma: no cover - compiled
-        """Solve ``J W J^T lam = b`` component by component (with a ``live`` mask, only those
-        of live particles); False if any solve is singular, ill-posed or does not converge
-        (the caller then uses the reference solver)."""
+        """Solve ``J W J^T lam = b`` component by component (with ``live``, only those of
+        live particles: see :func:`_gate`); False if any solve is singular, ill-posed or does
+        not converge (the caller then uses the reference solver)."""
         ncomp = comp_ptr.shape[0] - 1
-        for k in range(ncomp):
+        for kk in range(ncomp if live is None else live[4][2]):
+            k = kk if live is None else live[3][kk]
             start, stop = comp_ptr[k], comp_ptr[k + 1]
-            if live is not None and not live[cols[comp_rows[start], 0] // 2]:
-                continue
             s = stop - start
             if s <= DIRECT_MAX:
                 # dense J W J^T of this component
@@ -737,15 +746,14 @@ if _kernels.ENABLED:
     def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
                rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
                C, Cdot, Jv, Jdv, b, work, A, tmp, live):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with a ``live`` mask, of the
-        live particles only; the others get 0); False if the solve failed."""
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``live``, of the live
+        particles only: see :func:`_gate`); False if the solve failed."""
         _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live)
         m = C.shape[0]
         if m:
             _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live)
-            for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
-                if live is not None and not live[cols[r, 0] // 2]:
-                    continue
+            for rr in range(m if live is None else live[4][1]):  # b = -Jdot qdot - J W Q
+                r = rr if live is None else live[2][rr]             # - ks C - kd Cdot
                 acc = 0.0
                 for k in range(nnz[r]):
                     c = cols[r, k]
@@ -755,15 +763,13 @@ if _kernels.ENABLED:
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
                                      A, tmp, live):
                 return False
-            for r in range(m):  # Q += J^T lam
-                if live is not None and not live[cols[r, 0] // 2]:
-                    continue
+            for rr in range(m if live is None else live[4][1]):  # Q += J^T lam
+                r = rr if live is None else live[2][rr]
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
-        for q in range(x.shape[0]):
-            if live is not None and not live[q]:
-                continue
+        for i in range(x.shape[0] if live is None else live[4][0]):
+            q = i if live is None else live[1][i]
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True
@@ -864,18 +870,59 @@ if _kernels.ENABLED:
         return True
 
     @njit
+    def _gate(step, counts, cols, comp_rows, comp_ptr, live):  # pragma: no cover - compiled
+        """Which particles take step ``step`` (those with ``counts`` above it): the mask
+        ``live[0]`` and, when it changed, the lists of live particles, rows and components
+        (``live[1:4]``, their lengths in ``live[4]``)."""
+        mask, plist, rlist, clist, sizes = live
+        changed = step == 0
+        for q in range(mask.shape[0]):
+            now = step < counts[q]
+            if now != mask[q] or step == 0:
+                changed = True
+            mask[q] = now
+        if not changed:
+            return
+        k = 0
+        for q in range(mask.shape[0]):
+            if mask[q]:
+                plist[k] = q
+                k += 1
+        sizes[0] = k
+        k = 0
+        for r in range(cols.shape[0]):
+            if mask[cols[r, 0] // 2]:
+                rlist[k] = r
+                k += 1
+        sizes[1] = k
+        k = 0
+        for c in range(comp_ptr.shape[0] - 1):
+            if mask[cols[comp_rows[comp_ptr[c]], 0] // 2]:
+                clist[k] = c
+                k += 1
+        sizes[2] = k
+
+    @njit
     def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
                      kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
                      circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
                      ws_q, ws_A, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds; or, with ``counts`` not empty, ``counts[q]`` steps
-        of ``hp[q]`` seconds for particle q (``steps`` = the largest count): a particle that has
-        taken its steps waits, and the elements and constraint rows of waiting particles are
-        skipped, so each independent group of particles is stepped exactly as it would be alone.
-        """
+        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
+        every step), particle q takes ``counts[q]`` steps (``steps`` = the largest count): a
+        particle that has taken its steps waits, and the elements and constraint rows of waiting
+        particles are skipped, so each independent group of particles is stepped exactly as it
+        would be alone."""
         n = x0.shape[0]
         m = lam.shape[0]
-        if live is not None and (method == 4 or hp.shape[0] != n or counts.shape[0] != n):
+        per_particle = hp.shape[0] > 0
+        if per_particle and (method == 4 or hp.shape[0] != n):
+            return FALLBACK, 0
+        if live is not None and (not per_particle or counts.shape[0] != n
+                                 or live[0].shape[0] != n or live[1].shape[0] != n
+                                 or live[2].shape[0] != m
+                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
+                                 or live[4].shape[0] != 3):
             return FALLBACK, 0
         if live is None and counts.shape[0] != 0:
             return FALLBACK, 0
@@ -905,9 +952,10 @@ if _kernels.ENABLED:
             if step == steps - 1:
                 xs, vs = x_out, v_out
             if live is not None:  # particles done with their steps wait where they are
+                _gate(step, counts, cols, comp_rows, comp_ptr, live)
+                mask = live[0]
                 for q in range(n):
-                    live[q] = step < counts[q]
-                    if not live[q]:
+                    if not mask[q]:
                         xs[q, 0], xs[q, 1] = x[q, 0], x[q, 1]
                         vs[q, 0], vs[q, 1] = v[q, 0], v[q, 1]
             if method == 4:
@@ -921,10 +969,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    hq = hp[q] if live is not None else h
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
                         if method == 0:
                             xs[q, d] = x[q, d] + hq * v[q, d]
@@ -937,10 +984,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    half = 0.5 * (hp[q] if live is not None else h)
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         xs[q, d] = x[q, d] + half * v[q, d]
                         vs2[q, d] = v[q, d] + half * a1[q, d]
@@ -948,10 +994,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    hq = hp[q] if live is not None else h
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
                         xs[q, d] = x[q, d] + hq * vs2[q, d]
                         vs[q, d] = v[q, d] + hq * a2[q, d]
@@ -960,10 +1005,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    half = 0.5 * (hp[q] if live is not None else h)
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
                         xs[q, d] = x[q, d] + half * v[q, d]
@@ -971,10 +1015,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    half = 0.5 * (hp[q] if live is not None else h)
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
                         xs[q, d] = x[q, d] + half * vs2[q, d]
@@ -982,10 +1025,9 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    hq = hp[q] if live is not None else h
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
                         vs[q, d] = v[q, d] + hq * a3[q, d]  # k4x
                         xs[q, d] = x[q, d] + hq * vs3[q, d]
@@ -993,19 +1035,17 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
-                    if live is not None and not live[q]:
-                        continue
-                    sixth = (hp[q] if live is not None else h) / 6.0
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    sixth = (hp[q] if per_particle else h) / 6.0
                     for d in range(2):
                         k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
                         xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
                         vs[q, d] = v[q, d] + sixth * (((a1[q, d] + 2.0 * a2[q, d])
                                                        + 2.0 * a3[q, d]) + a4[q, d])
             # divergence: non-finite, beyond the limit, or off the constraints
-            for q in range(n):
-                if live is not None and not live[q]:
-                    continue  # unchanged since its last step, which passed
+            for i in range(n if live is None else live[4][0]):  # (waiting particles are
+                q = i if live is None else live[1][i]            # unchanged since they passed)
                 for d in range(2):
                     if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                         return DIVERGED, step
