@@ -49,6 +49,8 @@ METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rat
 #: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
 #: them): convergence and stall tolerances as fractions of the system's size, and iterations.
 RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
+#: Springs per block of the compiled spring loop (see ``_springs``).
+SPRING_BLOCK = 128
 #: Kernel status codes.
 OK, DIVERGED, FALLBACK = 0, 1, 2
 
@@ -462,6 +464,52 @@ if _kernels.ENABLED:
         return True
 
     @njit
+    def _springs(x, v, F, si, sj, srest, sks, skd):  # pragma: no cover - compiled
+        """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
+        ``F``. Indices were checked by :func:`_check_inputs`; read as unsigned, they are used
+        without the negative-index wraparound.
+
+        Many springs go ``SPRING_BLOCK`` at a time: the ends' differences are gathered into a
+        scratch array made here (so the compiler knows it aliases nothing else),
+        :func:`spring_element` runs over the block without indirect access (so its square root
+        and division are vectorized), and the forces are added to ``F`` in spring order. Each
+        spring's arithmetic and the order of the sums into ``F`` are those of the plain loop,
+        so both ways give bitwise the same result."""
+        k = si.shape[0]
+        if k < 2 * SPRING_BLOCK:  # few springs: the plain loop (no allocation)
+            for e in range(k):
+                a, b = np.uint64(si[e]), np.uint64(sj[e])
+                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
+                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], sks[e], skd[e],
+                                        srest[e])
+                F[a, 0] += fx
+                F[a, 1] += fy
+                F[b, 0] -= fx
+                F[b, 1] -= fy
+            return
+        ws = np.empty((6, SPRING_BLOCK))
+        lx, ly, ux, uy, fx, fy = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5]
+        for lo in range(0, k, SPRING_BLOCK):
+            m = min(SPRING_BLOCK, k - lo)
+            ii, jj = si[lo:lo + m], sj[lo:lo + m]
+            for t in range(m):
+                a, b = np.uint64(ii[t]), np.uint64(jj[t])
+                lx[t] = x[a, 0] - x[b, 0]
+                ly[t] = x[a, 1] - x[b, 1]
+                ux[t] = v[a, 0] - v[b, 0]
+                uy[t] = v[a, 1] - v[b, 1]
+            rest, ks, kd = srest[lo:lo + m], sks[lo:lo + m], skd[lo:lo + m]
+            for t in range(m):
+                fx[t], fy[t] = spring_element(lx[t], ly[t], ux[t], uy[t], ks[t], kd[t], rest[t])
+            for t in range(m):
+                a, b = np.uint64(ii[t]), np.uint64(jj[t])
+                fa, fb = fx[t], fy[t]
+                F[a, 0] += fa
+                F[a, 1] += fb
+                F[b, 0] -= fa
+                F[b, 1] -= fb
+
+    @njit
     def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
         # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
@@ -483,16 +531,20 @@ if _kernels.ENABLED:
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
-        for e in range(si.shape[0]):
-            a, b = si[e], sj[e]
-            if live is not None and not live[0][a]:
-                continue
-            fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
-                                    v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
-            F[a, 0] += fx
-            F[a, 1] += fy
-            F[b, 0] -= fx
-            F[b, 1] -= fy
+        if live is None:
+            _springs(x, v, F, si, sj, srest, sks, skd)
+        else:
+            for e in range(si.shape[0]):
+                a, b = np.uint64(si[e]), np.uint64(sj[e])  # (checked: no wraparound needed)
+                if not live[0][a]:
+                    continue
+                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
+                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], sks[e], skd[e],
+                                        srest[e])
+                F[a, 0] += fx
+                F[a, 1] += fy
+                F[b, 0] -= fx
+                F[b, 1] -= fy
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]

@@ -338,3 +338,56 @@ def test_per_copy_pieces_divergence_keeps_the_state():
     with pytest.raises(SimulationDiverged):
         s._step_pieces(0.05, "euler", 20, np.array([1, 1, 2, 2], np.int64))
     assert s.x.tobytes() == x0.tobytes() and s.v.tobytes() == v0.tobytes() and s.t == 0.0
+
+
+def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_numpy():
+    """More springs than the compiled loop's plain-loop limit (a last block part full, one
+    spring of zero length): bit for bit the block kernel's plain loop, and within 1e-12 of
+    the force formula written here in numpy."""
+    rng = np.random.default_rng(3)
+    n, k = 300, 4 * fused.SPRING_BLOCK + 37
+    x, v = rng.uniform(-1, 1, (n, 2)), rng.normal(size=(n, 2))
+    i, j = rng.integers(0, n, k), rng.integers(0, n, k)
+    i[5] = j[5]  # zero length: no force
+    ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
+    blocks = np.zeros((n, 2))
+    fused._springs(x, v, blocks, i, j, rest, ks, kd)
+    plain = np.zeros((n, 2))
+    _kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
+    assert blocks.tobytes() == plain.tobytes()
+    d, u = x[i] - x[j], v[i] - v[j]
+    length = np.linalg.norm(d, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mag = np.where(length > 0, ks * (length - rest) + kd * (u * d).sum(axis=1) / length, 0.0)
+        f = np.where(length[:, None] > 0, -mag[:, None] * d / length[:, None], 0.0)
+    expected = np.zeros((n, 2))
+    np.add.at(expected, i, f)
+    np.add.at(expected, j, -f)
+    close(blocks, expected)
+
+
+@pytest.mark.parametrize("method", ["symplectic_euler", "rk4"])
+def test_tiled_cloths_are_copy_exact_with_the_spring_blocks(method):
+    """A small cloth alone takes the plain spring loop; eight copies of it (616 springs) take
+    the blocked one: each copy still ends bit for bit as the cloth stepped alone, and the
+    batch stays within 1e-12 of the reference."""
+    single = scenes.cloth(nx=5, ny=4, push=0.3)
+    n = single.n
+    tiled = single.tile(8)
+    assert len(fused.pack(tiled).spring[0]) > 2 * fused.SPRING_BLOCK
+    rng = np.random.default_rng(1)
+    alone = []
+    for c in range(8):
+        one = single.copy()
+        one.v = rng.normal(0, 0.05, one.v.shape) * (one.inv_mass > 0)[:, None]
+        one.v[:5, 1] = 0.0  # the top row slides on its wire
+        tiled.v[n * c:n * (c + 1)] = one.v
+        alone.append(one)
+    x_ref, v_ref = reference(tiled, method, 1e-3, 30)
+    tiled.step(1e-3, method, steps=30)
+    close(tiled.x, x_ref)
+    close(tiled.v, v_ref)
+    for c, one in enumerate(alone):
+        one.step(1e-3, method, steps=30)
+        assert tiled.x[n * c:n * (c + 1)].tobytes() == one.x.tobytes(), c
+        assert tiled.v[n * c:n * (c + 1)].tobytes() == one.v.tobytes(), c
