@@ -518,7 +518,7 @@ if _kernels.ENABLED:
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
-            q, k = gi[e], gblock[e]
+            q, k = np.uint64(gi[e]), np.uint64(gblock[e])  # (checked: no wraparound needed)
             if live is not None and not live[0][q]:
                 continue
             F[q, 0] += mass[q] * gg[k, 0]
