@@ -51,6 +51,9 @@ METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rat
 RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
 #: Springs per block of the compiled spring loop (see ``_springs``).
 SPRING_BLOCK = 128
+#: Particles from which the compiled per-particle loops run over flat views (a view costs
+#: about as much as the loop saves on a few dozen particles).
+FLAT_MIN = 256
 #: Kernel status codes.
 OK, DIVERGED, FALLBACK = 0, 1, 2
 
@@ -509,6 +512,45 @@ if _kernels.ENABLED:
                 F[b, 0] -= fa
                 F[b, 1] -= fb
 
+    # Loops over every particle as flat views, which the compiler vectorizes (each view costs
+    # about what the vectorized loop saves on a few dozen particles: see FLAT_MIN). Kept out of
+    # the step kernel, whose small-system speed suffers from their presence.
+    @njit
+    def _scale_flat(out, inv_mass):  # pragma: no cover - compiled
+        """``out[q] *= inv_mass[q]`` for every particle q."""
+        flat = out.reshape(-1)
+        for q in range(inv_mass.shape[0]):
+            w = inv_mass[q]
+            flat[2 * q] *= w
+            flat[2 * q + 1] *= w
+
+    @njit
+    def _euler_flat(explicit, h, x, v, a, xs, vs):  # pragma: no cover - compiled
+        """One Euler step of ``h`` seconds from ``(x, v)`` with accelerations ``a`` into
+        ``(xs, vs)``: explicit (positions with the old velocities) or symplectic (with the
+        new ones)."""
+        xf, vf, af, xsf, vsf = x.reshape(-1), v.reshape(-1), a.reshape(-1), xs.reshape(-1), \
+            vs.reshape(-1)
+        if explicit:
+            for c in range(xf.shape[0]):
+                xsf[c] = xf[c] + h * vf[c]
+                vsf[c] = vf[c] + h * af[c]
+        else:
+            for c in range(xf.shape[0]):
+                vnew = vf[c] + h * af[c]
+                vsf[c] = vnew
+                xsf[c] = xf[c] + h * vnew
+
+    @njit
+    def _beyond_flat(xs, vs, limit):  # pragma: no cover - compiled
+        """True if any coordinate of ``xs`` or ``vs`` is not below ``limit`` in magnitude
+        (NaN included); counted without an early exit, so the loop vectorizes."""
+        xsf, vsf = xs.reshape(-1), vs.reshape(-1)
+        bad = 0
+        for c in range(xsf.shape[0]):
+            bad += not (abs(xsf[c]) < limit and abs(vsf[c]) < limit)
+        return bad > 0
+
     @njit
     def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
         # pragma: no cover - compiled
@@ -820,15 +862,11 @@ if _kernels.ENABLED:
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
-        if live is None:  # (flat: the compiler vectorizes it)
-            flat = out.reshape(-1)
-            for q in range(x.shape[0]):
-                w = inv_mass[q]
-                flat[2 * q] *= w
-                flat[2 * q + 1] *= w
+        if live is None and x.shape[0] >= FLAT_MIN:
+            _scale_flat(out, inv_mass)
             return True
-        for i in range(live[4][0]):
-            q = live[1][i]
+        for i in range(x.shape[0] if live is None else live[4][0]):
+            q = i if live is None else live[1][i]
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True
@@ -1028,19 +1066,10 @@ if _kernels.ENABLED:
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                if live is None and not per_particle:  # (flat: the compiler vectorizes it)
-                    xf, vf, af = x.reshape(-1), v.reshape(-1), a1.reshape(-1)
-                    xsf, vsf = xs.reshape(-1), vs.reshape(-1)
-                    for c in range(2 * n):
-                        if method == 0:
-                            xsf[c] = xf[c] + h * vf[c]
-                            vsf[c] = vf[c] + h * af[c]
-                        else:
-                            vnew = vf[c] + h * af[c]
-                            vsf[c] = vnew
-                            xsf[c] = xf[c] + h * vnew
-                for i in range(0 if live is None and not per_particle
-                               else n if live is None else live[4][0]):
+                flat = live is None and not per_particle and n >= FLAT_MIN
+                if flat:
+                    _euler_flat(method == 0, h, x, v, a1, xs, vs)
+                for i in range(0 if flat else n if live is None else live[4][0]):
                     q = i if live is None else live[1][i]
                     hq = hp[q] if per_particle else h
                     for d in range(2):
@@ -1115,16 +1144,12 @@ if _kernels.ENABLED:
                         vs[q, d] = v[q, d] + sixth * (((a1[q, d] + 2.0 * a2[q, d])
                                                        + 2.0 * a3[q, d]) + a4[q, d])
             # divergence: non-finite, beyond the limit, or off the constraints
-            if live is None:  # (flat, counted without an exit: the compiler vectorizes it)
-                xsf, vsf = xs.reshape(-1), vs.reshape(-1)
-                bad = 0
-                for c in range(2 * n):
-                    bad += not (abs(xsf[c]) < limit and abs(vsf[c]) < limit)
-                if bad:
+            if live is None and n >= FLAT_MIN:
+                if _beyond_flat(xs, vs, limit):
                     return DIVERGED, step
             else:
-                for i in range(live[4][0]):  # (waiting particles are unchanged since they
-                    q = live[1][i]           # passed)
+                for i in range(n if live is None else live[4][0]):  # (waiting particles are
+                    q = i if live is None else live[1][i]  # unchanged since they passed)
                     for d in range(2):
                         if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                             return DIVERGED, step
