@@ -377,11 +377,12 @@ if _kernels.ENABLED:
 
     @njit
     def _valid(idx, n):  # pragma: no cover - compiled
-        """True if every particle index in ``idx`` lies in [0, n)."""
+        """True if every particle index in ``idx`` lies in [0, n) (counted without an early
+        exit, so the loop vectorizes)."""
+        bad = 0
         for e in range(idx.shape[0]):
-            if idx[e] < 0 or idx[e] >= n:
-                return False
-        return True
+            bad += (idx[e] < 0) | (idx[e] >= n)
+        return bad == 0
 
     @njit
     def _same_count(counts, a, b):  # pragma: no cover - compiled
