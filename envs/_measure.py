@@ -50,6 +50,10 @@ def packed(system: Any) -> Any:
 
 measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is False)
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
+grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is False)
+clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
+crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
+crank_push: Any = None  #: the compiled SliderCrank force action (None when ``ENABLED`` is False)
 
 if ENABLED:
     import numba
@@ -156,5 +160,75 @@ if ENABLED:
                 obs[i, 2 * n + 2 * k + 1] = min(max(np.float32(v[p, 1] * iy), lo), hi)
             obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
 
+    @njit
+    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, particles, anchors, active):
+        # pragma: no cover - compiled
+        """The spring action of copies ``envs``: for each, the particle of the copy nearest the
+        grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
+        the target ``c + h * action[2:]`` (``anchors``, m) and whether the particle is within
+        ``sqrt(r2)`` metres of the grab point (``active``)."""
+        for e in range(envs.shape[0]):
+            gx = cx + hx * action[e, 0]
+            gy = cy + hy * action[e, 1]
+            base = envs[e] * n
+            best = base
+            d2 = math.inf
+            for k in range(base, base + n):
+                dx = x[k, 0] - gx
+                dy = x[k, 1] - gy
+                dk = dx * dx + dy * dy
+                if dk < d2:
+                    d2 = dk
+                    best = k
+            particles[e] = best
+            anchors[e, 0] = cx + hx * action[e, 2]
+            anchors[e, 1] = cy + hy * action[e, 3]
+            active[e] = d2 <= r2
+
+    @njit
+    def _clip_actions(a, out):  # pragma: no cover - compiled
+        """``out = clip(a, -1, 1)`` as float64 (same shape, C order); False, with ``out``
+        unspecified, if any entry of ``a`` is NaN or infinite."""
+        flat = a.reshape(-1)
+        dst = out.reshape(-1)
+        for k in range(flat.shape[0]):
+            u = np.float64(flat[k])
+            if not math.isfinite(u):
+                return False
+            dst[k] = min(max(u, -1.0), 1.0)
+        return True
+
+    @njit
+    def _crank(x, n, goal, r, r2, rod2, height, to_go, below):  # pragma: no cover - compiled
+        """SliderCrank's crank measures per copy (particle 0 of each copy is the crank, on a
+        circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is ``rod2``):
+        ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
+        ``to_go`` the arc length (m) the short way round to the point above the wire that puts
+        the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``."""
+        for i in range(goal.shape[0]):
+            px, py = x[i * n, 0], x[i * n, 1]
+            g = goal[i]
+            target = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
+            d = target - math.atan2(py, px)
+            height[i] = py
+            below[i] = not py > 0.0
+            to_go[i] = r * abs(math.atan2(math.sin(d), math.cos(d)))
+
+    @njit
+    def _crank_push(x, action, max_force, out):  # pragma: no cover - compiled
+        """SliderCrank's force action: ``out[i, 0] = action[i, 0] max_force t`` (N), ``t`` the
+        unit counter-clockwise tangent ``(-y, x) / |(x, y)|`` at copy ``i``'s crank ``x[i, 0]``
+        (positions (copies, n, 2), m)."""
+        for i in range(action.shape[0]):
+            px, py = x[i, 0, 0], x[i, 0, 1]
+            norm = math.sqrt(py * py + px * px)
+            f = action[i, 0] * max_force
+            out[i, 0, 0] = f * (-py / norm)
+            out[i, 0, 1] = f * (px / norm)
+
     measures = _measures
     observe = _observe
+    grab = _grab
+    clip_actions = _clip_actions
+    crank = _crank
+    crank_push = _crank_push

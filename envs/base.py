@@ -361,6 +361,11 @@ class ParticleTask:
         shape = (self.action_dim,) if single else (self.num_envs, self.action_dim)
         if (type(actions) is np.ndarray and actions.dtype.kind == "f"
                 and actions.shape == shape):  # the usual case, checked in a few operations
+            if _measure.ENABLED and actions.flags.c_contiguous and actions.dtype.char in "fd":
+                a = np.empty((self.num_envs, self.action_dim))
+                if not _measure.clip_actions(actions, a):
+                    raise ValueError(f"action must be finite, got {actions!r}")
+                return a
             a = actions.astype(np.float64).reshape(self.num_envs, self.action_dim)
             if not np.isfinite(a).all():
                 raise ValueError(f"action must be finite, got {actions!r}")
@@ -397,6 +402,13 @@ class ParticleTask:
                                self.force_vectors(action, self.positions()[envs]).reshape(-1, 2))
         elif action is None:
             act.set(envs, active=np.zeros(len(envs), bool))
+        elif _measure.ENABLED:  # the spring action, compiled (the reference is below)
+            k = len(envs)
+            particles, anchors, active = np.empty(k, np.int64), np.empty((k, 2)), np.empty(k, bool)
+            c, h = self.center, self.half
+            _measure.grab(self.system.x, self.n, envs, action, c[0], c[1], h[0], h[1],
+                          self.grab_radius**2, particles, anchors, active)
+            act.set_checked(envs, particles, anchors, active)
         else:
             # the spring action: the nearest particle within grab_radius of the grab point
             x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]

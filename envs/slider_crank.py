@@ -8,6 +8,7 @@ import numpy as np
 
 from constrained_particles import Drag, ParticleSystem, scenes
 
+from . import _measure
 from .base import (
     ParticleEnv,
     ParticleTask,
@@ -76,6 +77,10 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``action * max_force`` (N) along the crank's counter-clockwise tangent."""
+        if _measure.ENABLED and len(x) == len(action):  # compiled; the reference is below
+            f = np.empty((len(action), 1, 2))
+            _measure.crank_push(x, action, self.max_force, f)
+            return f
         crank = x[:, 0, :]
         tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
@@ -107,14 +112,21 @@ class SliderCrank(ShapedTask, ParticleTask):
         and at rest, but below, does not count), and ``crank_to_go``: the arc length (m) along
         the crank's wire, the short way round, from the crank to the point above the wire that
         puts the slider at the goal."""
-        crank = self.positions()[:, 0]
-        height = crank[:, 1].copy()
-        m, _ = self._measures(stepped, blocked=~(height > 0))
-        m["crank_height"] = height
+        N = self.num_envs
         r, L, g = self.radius, self.rod, self.goal
-        target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
-        theta = np.arctan2(crank[:, 1], crank[:, 0])
-        m["crank_to_go"] = r * np.abs(np.angle(np.exp(1j * (target - theta))))
+        if _measure.ENABLED:
+            height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
+            _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below)
+        else:
+            crank = self.positions()[:, 0]
+            height = crank[:, 1].copy()
+            below = ~(height > 0)
+            target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
+            theta = np.arctan2(crank[:, 1], crank[:, 0])
+            to_go = r * np.abs(np.angle(np.exp(1j * (target - theta))))
+        m, _ = self._measures(stepped, blocked=below)
+        m["crank_height"] = height
+        m["crank_to_go"] = to_go
         return m
 
     def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
