@@ -212,8 +212,10 @@ class ParticleTask:
         raise NotImplementedError
 
     #: Particles (indices within one copy) whose mean x is the coordinate driven to the goal
-    #: (see :meth:`tracked`); subclasses set it, or override :meth:`tracked` (the measures then
-    #: take the numpy reference path).
+    #: (see :meth:`tracked`). Subclasses set it, or override :meth:`tracked` and leave it None
+    #: (the measures then take the numpy reference path); a subclass that does both must
+    #: compute that same mean (the compiled measures use this attribute, the reference
+    #: :meth:`tracked`).
     tracked_particles: np.ndarray | None = None
 
     def tracked(self, x: np.ndarray) -> np.ndarray:
@@ -626,9 +628,8 @@ class ParticleTask:
 
     def _tracking(self) -> tuple[np.ndarray, float] | None:
         """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
-        None if a subclass computes :meth:`tracked` its own way."""
-        if self._track is None and type(self).tracked is ParticleTask.tracked \
-                and self.tracked_particles is not None:
+        None if it is not set (a subclass computes :meth:`tracked` its own way)."""
+        if self._track is None and self.tracked_particles is not None:
             idx = np.ascontiguousarray(self.tracked_particles, dtype=np.int64).reshape(-1)
             if len(idx) and idx.min() >= 0 and idx.max() < self.n:
                 self._track = (idx, 1.0 / len(idx))

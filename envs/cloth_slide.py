@@ -78,8 +78,8 @@ class ClothSlide(ShapedTask, ParticleTask):
                          rest_speed=rest_speed, hold_steps=hold_steps,
                          residual_limit=residual_limit)
         self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
-        #: The tracked coordinate is the cloth's centre of mass x (m): all particles have the
-        #: same mass.
+        #: The tracked coordinate is the cloth's centre of mass x (m), the mean x of every
+        #: particle (all have the same mass): see :meth:`tracked`.
         self.tracked_particles = np.arange(self.n)
         self.weight = float(np.sum(self.single.mass) * scenes.G)
 
@@ -118,6 +118,12 @@ class ClothSlide(ShapedTask, ParticleTask):
         x = self.rest_shape.copy()
         x[:, 0] += x0
         return x, np.zeros_like(x), goal
+
+    def tracked(self, x: np.ndarray) -> np.ndarray:
+        """The cloth's centre of mass x (m) (all particles have the same mass): the mean x of
+        :attr:`tracked_particles`, summed along the strided axis so that the numpy reference
+        gives every copy the same bits whatever the number of copies."""
+        return x[:, :, 0].sum(axis=1) * (1.0 / x.shape[1])
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``wall_force``: both walls' total contact force (N; the
