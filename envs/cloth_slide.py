@@ -141,11 +141,11 @@ class ClothSlide(ShapedTask, ParticleTask):
         """Cost to go ``Phi = d + s``: distance to the goal (m) plus RMS particle speed (m/s)."""
         return m["distance"] + m["speed"]
 
-    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
+    def penalties(self, m: dict[str, Any]) -> Any:
         """``SQUEEZE_COST q^2`` (q the squeeze in action units) plus ``wall_penalty F_wall /
-        (M g)``."""
+        (M g)``, per copy (arrays) or for one copy (numbers: see ``reward_one``)."""
         q = m["squeeze"] / self.max_force
-        return SQUEEZE_COST * q**2 + self.wall_penalty * m["wall_force"] / self.weight
+        return SQUEEZE_COST * (q * q) + self.wall_penalty * m["wall_force"] / self.weight
 
 
 def _hanging_equilibrium(s: ParticleSystem, top: np.ndarray) -> np.ndarray:
