@@ -161,19 +161,23 @@ if ENABLED:
             obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
 
     @njit
-    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, particles, anchors, active):
+    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, current, particles, anchors, active):
         # pragma: no cover - compiled
         """The spring action of copies ``envs``: for each, the particle of the copy nearest the
         grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
-        the target ``c + h * action[2:]`` (``anchors``, m) and whether the particle is within
-        ``sqrt(r2)`` metres of the grab point (``active``)."""
+        the target ``c + h * action[2:]`` (``anchors[envs]``, m) and whether the particle is
+        within ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and
+        ``active`` are the mouse-spring block's own arrays, written in place; True if some
+        copy's particle differs from its entry of ``current`` (the block's particle array),
+        which the caller must then replace."""
+        changed = False
         for e in range(envs.shape[0]):
+            i = envs[e]
             gx = cx + hx * action[e, 0]
             gy = cy + hy * action[e, 1]
-            base = envs[e] * n
-            best = base
+            best = i * n
             d2 = math.inf
-            for k in range(base, base + n):
+            for k in range(i * n, (i + 1) * n):
                 dx = x[k, 0] - gx
                 dy = x[k, 1] - gy
                 dk = dx * dx + dy * dy
@@ -181,9 +185,11 @@ if ENABLED:
                     d2 = dk
                     best = k
             particles[e] = best
-            anchors[e, 0] = cx + hx * action[e, 2]
-            anchors[e, 1] = cy + hy * action[e, 3]
-            active[e] = d2 <= r2
+            changed |= current[i] != best
+            anchors[i, 0] = cx + hx * action[e, 2]
+            anchors[i, 1] = cy + hy * action[e, 3]
+            active[i] = d2 <= r2
+        return changed
 
     @njit
     def _clip_actions(a, out):  # pragma: no cover - compiled

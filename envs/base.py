@@ -411,12 +411,12 @@ class ParticleTask:
         elif action is None:
             act.set(envs, active=np.zeros(len(envs), bool))
         elif _measure.ENABLED:  # the spring action, compiled (the reference is below)
-            k = len(envs)
-            particles, anchors, active = np.empty(k, np.int64), np.empty((k, 2)), np.empty(k, bool)
+            particles = np.empty(len(envs), np.int64)
             c, h = self.center, self.half
-            _measure.grab(self.system.x, self.n, envs, action, c[0], c[1], h[0], h[1],
-                          self.grab_radius**2, particles, anchors, active)
-            act.set_checked(envs, particles, anchors, active)
+            if _measure.grab(self.system.x, self.n, envs, action, c[0], c[1], h[0], h[1],
+                             self.grab_radius**2, act.particle, particles, act.anchor,
+                             act.active):  # anchors and flags are written in place
+                act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
         else:
             # the spring action: the nearest particle within grab_radius of the grab point
             x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]
