@@ -898,7 +898,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
         m = self.task.measure(stepped)
         info = _info(m, diverged)
-        info.update({f"_{k}": np.ones(self.num_envs, bool) for k in list(info)})
+        masks = np.ones((len(info), self.num_envs), bool)  # one allocation, a row per key
+        info.update({f"_{k}": mask for k, mask in zip(list(info), masks, strict=True)})
         return self.task.observe(), info, m
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
@@ -927,13 +928,15 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         a = self.task.check_actions(actions)
         resetting = self._autoreset.copy()
         envs = np.flatnonzero(resetting)
-        starts = [self.task.sample_start(self._rngs[i]) for i in envs]
-        self.task.write_start(envs, starts)
+        if len(envs):
+            starts = [self.task.sample_start(self._rngs[i]) for i in envs]
+            self.task.write_start(envs, starts)
         self.task.apply(a, idle=resetting)
         diverged = self.task.simulate()
-        # the resetting copies were stepped along (no actuation); put their first state back
-        self.task.write_start(envs, starts)
-        diverged[resetting] = False
+        if len(envs):
+            # the resetting copies were stepped along (no actuation); put their first state back
+            self.task.write_start(envs, starts)
+            diverged[resetting] = False
         obs, info, m = self._result(diverged, ~resetting & ~diverged)
         reward = self.task.reward(m)
         self.steps += 1
