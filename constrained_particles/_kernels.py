@@ -21,6 +21,7 @@ import numpy as np
 
 ENABLED = False  #: True when the compiled paths are in use
 spring_forces = None  #: compiled DampedSpring block accumulation, or None
+group_pieces = None  #: compiled step splitting for groups of particles (envs), or None
 
 if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
     try:
@@ -151,3 +152,27 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                            np.ascontiguousarray(ks, dtype=np.float64),
                            np.ascontiguousarray(kd, dtype=np.float64),
                            np.ascontiguousarray(rest, dtype=np.float64), F)
+
+        @njit
+        def group_pieces(v: np.ndarray, F: np.ndarray, inv_mass: np.ndarray, size: int,
+                         horizon: float, dt: float, travel: float, max_pieces: int,
+                         out: np.ndarray) -> None:  # pragma: no cover - compiled
+            """For each group of ``size`` consecutive particles, into how many pieces a step of
+            ``dt`` (s) must be split so that no particle moves more than ``travel`` (m) per
+            piece, bounding its speed over the next ``horizon`` seconds by ``|v| + |F| horizon /
+            m`` (m/s): ``ceil(dt max_speed / travel)``, or 1 where that is below 1, above
+            ``max_pieces`` or not finite. Writes one count per group into ``out``."""
+            for g in range(out.shape[0]):
+                worst = 0.0
+                finite = True
+                for q in range(g * size, (g + 1) * size):
+                    speed = (math.sqrt(v[q, 0] * v[q, 0] + v[q, 1] * v[q, 1])
+                             + math.sqrt(F[q, 0] * F[q, 0] + F[q, 1] * F[q, 1])
+                             * (inv_mass[q] * horizon))
+                    if not speed < math.inf:
+                        finite = False
+                    elif speed > worst:
+                        worst = speed
+                need = np.ceil(worst * dt / travel)
+                out[g] = int(need) if finite and 1.0 <= need <= max_pieces else 1
+

@@ -137,6 +137,12 @@ class Packed:
         def scalar(block: Any, name: str) -> float:
             return float(getattr(block, name))
 
+        fresh: list[np.ndarray] = []  # parameter arrays made here from scalars
+
+        def made(a: np.ndarray) -> np.ndarray:
+            fresh.append(a)
+            return a
+
         def join(parts: list[tuple], empty: tuple) -> tuple:
             """One block's arrays as they are; several blocks' concatenated. Index arrays are
             read-only, so their concatenation stays right; parameter arrays are concatenated
@@ -150,8 +156,8 @@ class Packed:
                 joined = np.ascontiguousarray(np.concatenate(col))
                 if joined.dtype == np.int64:
                     joined = _ro(joined)
-                else:
-                    self._refresh.append((joined, col))
+                elif not all(any(a is f for f in fresh) for a in col):
+                    self._refresh.append((joined, col))  # (arrays made here never change)
                 out.append(joined)
             return tuple(out)
 
@@ -172,14 +178,15 @@ class Packed:
         drag = []
         for d in by_type.get(Drag, []):
             idx = idx_of(d, "particles")
-            drag.append((idx, np.full(len(idx), scalar(d, "kd"))))
+            drag.append((idx, made(np.full(len(idx), scalar(d, "kd")))))
         self.drag = join(drag, (_I0, _F0))
         wall = []
         for k, w in enumerate(by_type.get(Wall, [])):
             idx = idx_of(w, "particles")
             wall.append((idx, _ro(np.full(len(idx), k, np.int64)),
                          f64(w, "normal", 1).reshape(1, 2),
-                         np.array([[scalar(w, "offset"), scalar(w, "kw"), scalar(w, "cw")]])))
+                         made(np.array([[scalar(w, "offset"), scalar(w, "kw"),
+                                         scalar(w, "cw")]]))))
         self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))))
         mouse = []
         self._mouse_blocks = by_type.get(MouseSpring, [])
@@ -222,6 +229,9 @@ class Packed:
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
         self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
+        # with per-particle step counts: the live mask, live particle, row and component lists
+        self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
+                        np.zeros(len(self.comp_ptr) - 1, np.int64), np.zeros(3, np.int64))
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
@@ -288,8 +298,14 @@ def pack(system: ParticleSystem) -> Packed:
 
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
-        residual_limit: float) -> tuple[int, np.ndarray, np.ndarray, int]:
+        residual_limit: float, pieces: np.ndarray | None = None
+        ) -> tuple[int, np.ndarray, np.ndarray, int]:
     """Run ``steps`` fused steps of ``method`` from the system's state.
+
+    ``pieces`` (optional, (n,) int64 >= 1, checked by the caller) splits each step of particle q
+    into ``pieces[q]`` steps of ``dt / pieces[q]``; particles coupled by a force element or a
+    constraint must share a count (else FALLBACK), and each group of coupled particles is then
+    stepped bit for bit as it would be alone with its own count. Not for ``rattle`` (FALLBACK).
 
     Returns ``(status, x, v, failed_step)``: status :data:`OK` with the new state,
     :data:`DIVERGED` (``failed_step`` is the step whose result was non-finite, beyond
@@ -302,19 +318,40 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if p._refresh:
         p.refresh()
     x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
-    for arr in (x, v, mass, inv_mass, lam):  # float64 shapes were checked by the caller
-        if not (type(arr) is np.ndarray and arr.flags.c_contiguous and arr.dtype == np.float64):
-            return FALLBACK, system.x, system.v, 0
-    if x.shape != (p.n, 2) or v.shape != (p.n, 2) or lam.shape != (p.m,) or len(mass) != p.n \
-            or len(inv_mass) != p.n:
+    nd, f64 = np.ndarray, np.float64
+    if not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
+            and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
+            and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
+            and v.flags.c_contiguous and mass.flags.c_contiguous
+            and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
+            and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
+            and mass.shape == inv_mass.shape == (p.n,)):
         return FALLBACK, system.x, system.v, 0
+    code, h = METHOD_CODES[method], float(dt)
+    common = (float(system.ks), float(system.kd), float(system.tol),
+              float(system.divergence_limit), float(residual_limit), *p.args)
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
-    status, failed = _fused_steps(
-        METHOD_CODES[method], int(steps), float(dt), x, v, mass, inv_mass, lam, x_out, v_out,
-        float(system.ks), float(system.kd), float(system.tol), float(system.divergence_limit),
-        float(residual_limit), *p.args)
-    return int(status), x_out, v_out, int(failed)
+    if pieces is None:
+        status, failed = _fused_steps(code, int(steps), h, _F0, _I0, x, v, mass, inv_mass, lam,
+                                      x_out, v_out, *common, None)
+        return int(status), x_out, v_out, int(failed)
+    if pieces.shape != (p.n,) or pieces.dtype != np.int64:
+        return FALLBACK, system.x, system.v, 0
+    # The kernel is compiled twice: without a live mask, and with one. The steps every particle
+    # takes run without (each particle with its own step length), the rest with the mask.
+    counts = pieces * int(steps)
+    hp = h / pieces
+    first, total = int(counts.min()), int(counts.max())
+    status, failed = _fused_steps(code, first, h, hp, _I0, x, v, mass, inv_mass, lam, x_out,
+                                  v_out, *common, None)
+    if status != OK or total == first:
+        return int(status), x_out, v_out, int(failed)
+    x_mid, v_mid = x_out, v_out
+    x_out, v_out = np.empty_like(x), np.empty_like(v)
+    status, failed = _fused_steps(code, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+                                  inv_mass, lam, x_out, v_out, *common, p.ws_live)
+    return int(status), x_out, v_out, int(failed) + first
 
 
 if _kernels.ENABLED:
@@ -334,10 +371,30 @@ if _kernels.ENABLED:
     njit = numba.njit(cache=True)
 
     @njit
-    def _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, m,
-                      lam):  # pragma: no cover - compiled
-        """False if the per-element arrays of a block disagree in length. (Particle indices are
-        checked where they are read: every loop below tests each index against n first.)"""
+    def _valid(idx, n):  # pragma: no cover - compiled
+        """True if every particle index in ``idx`` lies in [0, n)."""
+        for e in range(idx.shape[0]):
+            if idx[e] < 0 or idx[e] >= n:
+                return False
+        return True
+
+    @njit
+    def _same_count(counts, a, b):  # pragma: no cover - compiled
+        """True if particles a[e] and b[e] take the same number of steps, for every e."""
+        for e in range(a.shape[0]):
+            if counts[a[e]] != counts[b[e]]:
+                return False
+        return True
+
+    @njit
+    def _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols,
+                      nnz, n, m, lam, counts):  # pragma: no cover - compiled
+        """False if the per-element arrays of a block disagree in length, if a particle index is
+        outside [0, n) or a row outside [0, m), or (``counts`` not empty) if two particles
+        coupled by a force element or a constraint row take different numbers of steps.
+
+        Checked once per call, before any array is read through an index: the GIL stays held,
+        so no thread can change an index array until the call returns."""
         if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
                 or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
                 or drag[1].shape[0] != drag[0].shape[0]):
@@ -375,34 +432,61 @@ if _kernels.ENABLED:
         for e in range(fixed[2].shape[0]):  # two rows per pin
             if fixed[2][e] < 0 or fixed[2][e] + 1 >= m:
                 return False
-        return lam.shape[0] == m
+        if lam.shape[0] != m or cols.shape[0] != m or nnz.shape[0] != m:
+            return False
+        for idx in (grav[0], const[0], spring[0], spring[1], ang[0], ang[1], ang[2], drag[0],
+                    wall[0], circ[0], rod[0], rod[1], line[0], fixed[0]):
+            if not _valid(idx, n):
+                return False
+        mi, mact = mouse[0], mouse[2]
+        for e in range(mi.shape[0]):
+            if mact[e] and (mi[e] < 0 or mi[e] >= n):
+                return False
+        for r in range(m):
+            if nnz[r] < 1 or nnz[r] > 4:
+                return False
+            for k in range(nnz[r]):
+                if cols[r, k] < 0 or cols[r, k] >= 2 * n:
+                    return False
+        if counts.shape[0] == 0:
+            return True
+        if counts.shape[0] != n:
+            return False
+        if not (_same_count(counts, spring[0], spring[1]) and _same_count(counts, ang[0], ang[1])
+                and _same_count(counts, ang[1], ang[2])):
+            return False
+        for r in range(m):
+            for k in range(1, nnz[r]):
+                if counts[cols[r, k] // 2] != counts[cols[r, 0] // 2]:
+                    return False
+        return True
 
     @njit
-    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse):
+    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
         # pragma: no cover - compiled
-        """Applied forces Q (N) into F (overwritten), summed by block type; False (and F
-        incomplete) if a particle index is out of range."""
-        n = x.shape[0]
+        """Applied forces Q (N) into F (overwritten), summed by block type (indices were
+        checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
+        all live), elements on particles that are not live are skipped (they get zero force)."""
         F[:, :] = 0.0
         gi, gblock, gg = grav
         for e in range(gi.shape[0]):
             q, k = gi[e], gblock[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
         for e in range(ci.shape[0]):
             q = ci[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         for e in range(si.shape[0]):
             a, b = si[e], sj[e]
-            if a < 0 or a >= n or b < 0 or b >= n:
-                return False
+            if live is not None and not live[0][a]:
+                continue
             fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
                                     v[a, 1] - v[b, 1], sks[e], skd[e], srest[e])
             F[a, 0] += fx
@@ -412,8 +496,8 @@ if _kernels.ENABLED:
         aa, ab, ac, arest, ak, akd = ang
         for e in range(aa.shape[0]):
             a, b, c = aa[e], ab[e], ac[e]
-            if a < 0 or a >= n or b < 0 or b >= n or c < 0 or c >= n:
-                return False
+            if live is not None and not live[0][a]:
+                continue
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
                 v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
@@ -426,15 +510,15 @@ if _kernels.ENABLED:
         di, dkd = drag
         for e in range(di.shape[0]):
             q = di[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
         for e in range(wi.shape[0]):
             q, k = wi[e], wblock[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
@@ -443,24 +527,23 @@ if _kernels.ENABLED:
         for e in range(mi.shape[0]):
             if mact[e]:
                 q = mi[e]
-                if q < 0 or q >= n:
-                    return False
+                if live is not None and not live[0][q]:
+                    continue
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
                 F[q, 0] += fx
                 F[q, 1] += fy
-        return True
 
     @njit
-    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):  # pragma: no cover
-        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row; False if a particle
-        index is out of range."""
-        n = x.shape[0]
+    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live):
+        # pragma: no cover - compiled
+        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
+        that are not ``live`` are skipped; None: all live)."""
         cp, cc, cr, crow = circ
         for e in range(cp.shape[0]):
             q, r = cp[e], crow[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
             Jv[r, 0], Jv[r, 1] = dx, dy
@@ -468,8 +551,8 @@ if _kernels.ENABLED:
         ra, rb, rl, rrow = rod
         for e in range(ra.shape[0]):
             a, b, r = ra[e], rb[e], rrow[e]
-            if a < 0 or a >= n or b < 0 or b >= n:
-                return False
+            if live is not None and not live[0][a]:
+                continue
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
             C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
@@ -478,8 +561,8 @@ if _kernels.ENABLED:
         lp, ln, lpt, lrow = line
         for e in range(lp.shape[0]):
             q, r = lp[e], lrow[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
@@ -487,41 +570,48 @@ if _kernels.ENABLED:
         fp, fpt, frow = fixed
         for e in range(fp.shape[0]):
             q, r = fp[e], frow[e]
-            if q < 0 or q >= n:
-                return False
+            if live is not None and not live[0][q]:
+                continue
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
                 Cdot[r + axis] = v[q, axis]
                 Jv[r + axis, 0] = 1.0
                 Jdv[r + axis, 0] = 0.0
-        return True
 
     @njit
-    def _distance_error(x, circ, rod, line, fixed):  # pragma: no cover - compiled
+    def _distance_error(x, circ, rod, line, fixed, live):  # pragma: no cover - compiled
         """Largest geometric constraint residual (m): how far any particle is off its wire,
-        any rod from its length, any pin from its point."""
+        any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
         worst = 0.0
         cp, cc, cr, _ = circ
         for e in range(cp.shape[0]):
             q = cp[e]
+            if live is not None and not live[0][q]:
+                continue
             d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
             if not d <= worst:
                 worst = d
         ra, rb, rl, _ = rod
         for e in range(ra.shape[0]):
             a, b = ra[e], rb[e]
+            if live is not None and not live[0][a]:
+                continue
             d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
             if not d <= worst:
                 worst = d
         lp, ln, lpt, _ = line
         for e in range(lp.shape[0]):
             q = lp[e]
+            if live is not None and not live[0][q]:
+                continue
             d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
             if not d <= worst:
                 worst = d
         fp, fpt, _ = fixed
         for e in range(fp.shape[0]):
             q = fp[e]
+            if live is not None and not live[0][q]:
+                continue
             for axis in range(2):
                 d = abs(x[q, axis] - fpt[e, axis])
                 if not d <= worst:
@@ -529,12 +619,14 @@ if _kernels.ENABLED:
         return worst
 
     @njit
-    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp):
-        # pragma: no cover - compiled
-        """Solve ``J W J^T lam = b`` component by component; False if any solve is singular,
-        ill-posed or does not converge (the caller then uses the reference solver)."""
+    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
+                          live):  # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` component by component (with ``live``, only those of
+        live particles: see :func:`_gate`); False if any solve is singular, ill-posed or does
+        not converge (the caller then uses the reference solver)."""
         ncomp = comp_ptr.shape[0] - 1
-        for k in range(ncomp):
+        for kk in range(ncomp if live is None else live[4][2]):
+            k = kk if live is None else live[3][kk]
             start, stop = comp_ptr[k], comp_ptr[k + 1]
             s = stop - start
             if s <= DIRECT_MAX:
@@ -653,16 +745,15 @@ if _kernels.ENABLED:
     @njit
     def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
                rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
-               C, Cdot, Jv, Jdv, b, work, A, tmp):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out``; False if an index was out of range
-        or the solve failed."""
-        if not _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse):
-            return False
+               C, Cdot, Jv, Jdv, b, work, A, tmp, live):  # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``live``, of the live
+        particles only: see :func:`_gate`); False if the solve failed."""
+        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live)
         m = C.shape[0]
         if m:
-            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv):
-                return False
-            for r in range(m):  # b = -Jdot qdot - J W Q - ks C - kd Cdot
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live)
+            for rr in range(m if live is None else live[4][1]):  # b = -Jdot qdot - J W Q
+                r = rr if live is None else live[2][rr]             # - ks C - kd Cdot
                 acc = 0.0
                 for k in range(nnz[r]):
                     c = cols[r, k]
@@ -670,13 +761,15 @@ if _kernels.ENABLED:
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
-                                     A, tmp):
+                                     A, tmp, live):
                 return False
-            for r in range(m):  # Q += J^T lam
+            for rr in range(m if live is None else live[4][1]):  # Q += J^T lam
+                r = rr if live is None else live[2][rr]
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
-        for q in range(x.shape[0]):
+        for i in range(x.shape[0] if live is None else live[4][0]):
+            q = i if live is None else live[1][i]
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True
@@ -690,21 +783,19 @@ if _kernels.ENABLED:
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        if not _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse):
-            return False
+        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
-            if not _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv):
-                return False
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, None)
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
             previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
-                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv)
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, None)
                 remaining = 0
                 for k in range(ncomp):
                     worst = 0.0
@@ -739,7 +830,7 @@ if _kernels.ENABLED:
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
                 if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
-                                         work, A, tmp):
+                                         work, A, tmp, None):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -754,8 +845,7 @@ if _kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        if not _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse):
-            return False
+        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
@@ -768,7 +858,7 @@ if _kernels.ENABLED:
                 b[r] = acc
                 dl[r] = 0.0
             if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
-                                     A, tmp):
+                                     A, tmp, None):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):
@@ -780,17 +870,67 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _fused_steps(method, steps, h, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd, tol,
-                     limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ,
-                     rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
-                     ws_A):  # pragma: no cover - compiled
+    def _gate(step, counts, cols, comp_rows, comp_ptr, live):  # pragma: no cover - compiled
+        """Which particles take step ``step`` (those with ``counts`` above it): the mask
+        ``live[0]`` and, when it changed, the lists of live particles, rows and components
+        (``live[1:4]``, their lengths in ``live[4]``)."""
+        mask, plist, rlist, clist, sizes = live
+        changed = step == 0
+        for q in range(mask.shape[0]):
+            now = step < counts[q]
+            if now != mask[q] or step == 0:
+                changed = True
+            mask[q] = now
+        if not changed:
+            return
+        k = 0
+        for q in range(mask.shape[0]):
+            if mask[q]:
+                plist[k] = q
+                k += 1
+        sizes[0] = k
+        k = 0
+        for r in range(cols.shape[0]):
+            if mask[cols[r, 0] // 2]:
+                rlist[k] = r
+                k += 1
+        sizes[1] = k
+        k = 0
+        for c in range(comp_ptr.shape[0] - 1):
+            if mask[cols[comp_rows[comp_ptr[c]], 0] // 2]:
+                clist[k] = c
+                k += 1
+        sizes[2] = k
+
+    @njit
+    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
+                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
+                     ws_q, ws_A, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
+        every step), particle q takes ``counts[q]`` steps (``steps`` = the largest count): a
+        particle that has taken its steps waits, and the elements and constraint rows of waiting
+        particles are skipped, so each independent group of particles is stepped exactly as it
+        would be alone."""
         n = x0.shape[0]
         m = lam.shape[0]
-        if not _check_shapes(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                             m, lam):
+        per_particle = hp.shape[0] > 0
+        if per_particle and (method == 4 or hp.shape[0] != n):
+            return FALLBACK, 0
+        if live is not None and (not per_particle or counts.shape[0] != n
+                                 or live[0].shape[0] != n or live[1].shape[0] != n
+                                 or live[2].shape[0] != m
+                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
+                                 or live[4].shape[0] != 3):
+            return FALLBACK, 0
+        if live is None and counts.shape[0] != 0:
+            return FALLBACK, 0
+        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             cols, nnz, n, m, lam, counts):
             return FALLBACK, 0
         if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n or cols.shape[0] != m or nnz.shape[0] != m):
+                or ws_q.shape[1] != 2 * n):
             return FALLBACK, 0
         w2, tmp = ws_q[0], ws_q[1]
         for q in range(n):
@@ -808,10 +948,16 @@ if _kernels.ENABLED:
         x, v = x0, v0
         xs, vs = ws_n[6], ws_n[7]
         spare_x, spare_v = ws_n[0], ws_n[1]
-        half = 0.5 * h
         for step in range(steps):
             if step == steps - 1:
                 xs, vs = x_out, v_out
+            if live is not None:  # particles done with their steps wait where they are
+                _gate(step, counts, cols, comp_rows, comp_ptr, live)
+                mask = live[0]
+                for q in range(n):
+                    if not mask[q]:
+                        xs[q, 0], xs[q, 1] = x[q, 0], x[q, 1]
+                        vs[q, 0], vs[q, 1] = v[q, 0], v[q, 1]
             if method == 4:
                 if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
                                ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
@@ -821,76 +967,90 @@ if _kernels.ENABLED:
             elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
                         if method == 0:
-                            xs[q, d] = x[q, d] + h * v[q, d]
-                            vs[q, d] = v[q, d] + h * a1[q, d]
+                            xs[q, d] = x[q, d] + hq * v[q, d]
+                            vs[q, d] = v[q, d] + hq * a1[q, d]
                         else:
-                            vs[q, d] = v[q, d] + h * a1[q, d]
-                            xs[q, d] = x[q, d] + h * vs[q, d]
+                            vs[q, d] = v[q, d] + hq * a1[q, d]
+                            xs[q, d] = x[q, d] + hq * vs[q, d]
             elif method == 1:  # explicit midpoint
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         xs[q, d] = x[q, d] + half * v[q, d]
                         vs2[q, d] = v[q, d] + half * a1[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
-                        xs[q, d] = x[q, d] + h * vs2[q, d]
-                        vs[q, d] = v[q, d] + h * a2[q, d]
+                        xs[q, d] = x[q, d] + hq * vs2[q, d]
+                        vs[q, d] = v[q, d] + hq * a2[q, d]
             else:  # rk4, every stage from the step's initial state
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
                         xs[q, d] = x[q, d] + half * v[q, d]
                 if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    half = 0.5 * (hp[q] if per_particle else h)
                     for d in range(2):
                         vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
                         xs[q, d] = x[q, d] + half * vs2[q, d]
                 if not _accel(xs, vs3, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    hq = hp[q] if per_particle else h
                     for d in range(2):
-                        vs[q, d] = v[q, d] + h * a3[q, d]  # k4x
-                        xs[q, d] = x[q, d] + h * vs3[q, d]
+                        vs[q, d] = v[q, d] + hq * a3[q, d]  # k4x
+                        xs[q, d] = x[q, d] + hq * vs3[q, d]
                 if not _accel(xs, vs, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp):
+                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
                     return FALLBACK, step
-                sixth = h / 6.0
-                for q in range(n):
+                for i in range(n if live is None else live[4][0]):
+                    q = i if live is None else live[1][i]
+                    sixth = (hp[q] if per_particle else h) / 6.0
                     for d in range(2):
                         k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
                         xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
                         vs[q, d] = v[q, d] + sixth * (((a1[q, d] + 2.0 * a2[q, d])
                                                        + 2.0 * a3[q, d]) + a4[q, d])
             # divergence: non-finite, beyond the limit, or off the constraints
-            for q in range(n):
+            for i in range(n if live is None else live[4][0]):  # (waiting particles are
+                q = i if live is None else live[1][i]            # unchanged since they passed)
                 for d in range(2):
                     if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                         return DIVERGED, step
             if residual_limit < math.inf and m:
-                if not _distance_error(xs, circ, rod, line, fixed) <= residual_limit:
+                if not _distance_error(xs, circ, rod, line, fixed, live) <= residual_limit:
                     return DIVERGED, step
             if step == 0:  # the new state becomes current; never reuse the caller's arrays
                 x, xs = xs, spare_x

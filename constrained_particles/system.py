@@ -37,6 +37,8 @@ def _flag(name: str, value: Any) -> bool:
 
 def check_dt(dt: Any) -> float:
     """``dt`` (s) as a float in [MIN_DT, inf), TypeError or ValueError naming it otherwise."""
+    if type(dt) is float and math.isfinite(dt) and dt >= MIN_DT:  # the usual case, quickly
+        return dt
     if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, numbers.Real):
         raise ArgumentTypeError(f"dt must be a number of seconds, got {dt!r}")
     if not (np.isfinite(dt) and dt >= MIN_DT):
@@ -328,7 +330,8 @@ class ParticleSystem:
         ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
         """
         dt = check_dt(dt)
-        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+        if type(steps) is not int and (isinstance(steps, (bool, np.bool_))
+                                       or not isinstance(steps, numbers.Integral)):
             raise ArgumentTypeError(f"steps must be an integer >= 1, got {steps!r}")
         if not 1 <= steps <= 10**9:
             raise ValueError(f"steps must be an integer in [1, 1e9], got {steps!r}")
@@ -336,38 +339,11 @@ class ParticleSystem:
         project = self.project_each_step if project is None else _flag("project", project)
         self.check_arrays()
         solver = self.constraint_solver
-        lam = solver.lam.copy()
         h = float(dt)
         project = bool(project and self.constraints)
-        if (self.solver == "cg" and method in fused.METHOD_CODES and (steps == 1 or not project)
-                and "acceleration" not in self.__dict__
-                and type(self).acceleration is ParticleSystem.acceleration):
-            # with projection, the residual is judged after it (as on the reference path)
-            status, x, v, failed = fused.run(self, h, method, int(steps), solver.lam,
-                                             math.inf if project else self.residual_limit)
-            if status == fused.OK:
-                try:
-                    if project:
-                        with np.errstate(all="ignore"):
-                            x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
-                        self._check(x, v)
-                except Exception:
-                    solver.lam = lam
-                    raise
-                t = self.t
-                for _ in range(int(steps)):
-                    t = t + h
-                self.x, self.v, self.t = x, v, t
-                return
-            solver.lam = lam
-            if status == fused.DIVERGED:
-                t = self.t
-                for _ in range(failed):
-                    t = t + h
-                raise SimulationDiverged(
-                    f"step at t = {t:.6g} s produced a non-finite state, one beyond "
-                    f"divergence_limit = {self.divergence_limit:g} or one off the constraints "
-                    "by more than residual_limit; state kept as it was before the step")
+        if self._fused_step(h, method, int(steps), project, solver=solver):
+            return
+        lam = solver.lam.copy()
         x, v, t = self.x, self.v, self.t
         try:
             with np.errstate(all="ignore"):
@@ -383,10 +359,80 @@ class ParticleSystem:
             raise
         self.x, self.v, self.t = x, v, t
 
+    def _fusable(self, method: str) -> bool:
+        return (self.solver == "cg" and method in fused.METHOD_CODES
+                and "acceleration" not in self.__dict__
+                and type(self).acceleration is ParticleSystem.acceleration)
+
+    def _fused_step(self, h: float, method: str, steps: int, project: bool,
+                    pieces: np.ndarray | None = None,
+                    solver: ConstraintSolver | None = None) -> bool:
+        """Take the steps on the fused kernel if it can (True); False, with nothing changed,
+        if the reference path must. Raises SimulationDiverged, keeping the state."""
+        if not self._fusable(method) or (project and steps > 1):
+            return False
+        solver = self.constraint_solver if solver is None else solver
+        lam = solver.lam.copy()
+        # with projection, the residual is judged after it (as on the reference path)
+        status, x, v, failed = fused.run(self, h, method, steps, solver.lam,
+                                         math.inf if project else self.residual_limit, pieces)
+        if status == fused.OK:
+            try:
+                if project:
+                    with np.errstate(all="ignore"):
+                        x, v = solver.project(x, v, np.repeat(self.inv_mass, 2))
+                    self._check(x, v)
+            except Exception:
+                solver.lam = lam
+                raise
+            t = self.t
+            for _ in range(steps):
+                t = t + h
+            self.x, self.v, self.t = x, v, t
+            return True
+        solver.lam = lam
+        if status == fused.DIVERGED:
+            t = self.t
+            for _ in range(failed):
+                t = t + h
+            raise SimulationDiverged(
+                f"step at t = {t:.6g} s produced a non-finite state, one beyond "
+                f"divergence_limit = {self.divergence_limit:g} or one off the constraints "
+                "by more than residual_limit; state kept as it was before the step")
+        return False
+
+    def _step_pieces(self, dt: float, method: str, steps: int, pieces: np.ndarray) -> bool:
+        """``steps`` steps of ``dt`` seconds in which particle q takes each step as
+        ``pieces[q]`` equal steps (an (n,) int64 array >= 1; coupled particles must share a
+        count), on the fused kernel; ``t`` advances by ``steps dt``. Returns False, with nothing
+        changed, where the fused kernel cannot do it (the caller steps the groups itself, as
+        envs.base.ParticleTask does); raises SimulationDiverged keeping the state.
+
+        A group of coupled particles ends bit for bit where ``steps * k`` steps of ``dt / k`` of
+        that group alone would leave it, so copies of a tiled system can each split their steps
+        as they need without touching the others."""
+        if not (isinstance(pieces, np.ndarray) and pieces.dtype == np.int64
+                and pieces.shape == (self.n,) and pieces.min(initial=1) >= 1):
+            raise ValueError(f"pieces must be an int64 array of shape ({self.n},) with entries "
+                             f">= 1, got {pieces!r}")
+        dt = check_dt(dt)
+        get_method(method)
+        self.check_arrays()
+        if method == "rattle" or self.project_each_step:
+            return False
+        return self._fused_step(float(dt), method, int(steps), False, pieces)
+
     def check_arrays(self) -> None:
         """ValueError unless the state arrays are consistent: ``x``, ``v`` float64 (n, 2),
         ``mass``, ``inv_mass`` float64 (n,), ``t`` a finite number. Run before every step, so a
         replaced array cannot send the compiled kernels outside their memory."""
+        x, v, mass, inv_mass, f64 = self.x, self.v, self.mass, self.inv_mass, np.float64
+        if (type(x) is np.ndarray and type(v) is np.ndarray and type(mass) is np.ndarray
+                and type(inv_mass) is np.ndarray and x.dtype == f64 and v.dtype == f64
+                and mass.dtype == f64 and inv_mass.dtype == f64 and x.ndim == 2
+                and x.shape[1] == 2 and v.shape == x.shape and mass.shape == inv_mass.shape
+                == x.shape[:1] and type(self.t) is float and math.isfinite(self.t)):
+            return  # the usual case, in a few operations
         n = len(self.x) if isinstance(self.x, np.ndarray) else -1
         for name, shape in (("x", (n, 2)), ("v", (n, 2)), ("mass", (n,)), ("inv_mass", (n,))):
             arr = getattr(self, name)

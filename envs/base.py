@@ -29,7 +29,14 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from constrained_particles import ConstantForce, MouseSpring, ParticleSystem, Shape, Wall
+from constrained_particles import (
+    ConstantForce,
+    MouseSpring,
+    ParticleSystem,
+    Shape,
+    Wall,
+    _kernels,
+)
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
 from constrained_particles.terms import ArgumentTypeError
@@ -459,10 +466,18 @@ class ParticleTask:
             return np.ones(copies, np.int64)
         F = np.zeros_like(s.x)
         s.forces[-1].accumulate(s.x, s.v, s.mass, F)
-        speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
-            s.inv_mass * (self.substeps * self.dt))
-        need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt / self.step_travel)
-        return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
+        horizon = self.substeps * self.dt
+        if _kernels.group_pieces is not None:  # the same formula, compiled
+            out = np.empty(copies, np.int64)
+            _kernels.group_pieces(s.v, F, s.inv_mass, self.n, horizon, self.dt,
+                                  self.step_travel, MAX_PIECES, out)
+            return out
+        with np.errstate(invalid="ignore", over="ignore"):
+            speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
+                s.inv_mass * horizon)
+            need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt
+                           / self.step_travel)
+            return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
 
     def _physics_step(self, system: ParticleSystem, need: np.ndarray | None = None) -> None:
         """One physics step of ``dt`` for every copy of ``system``, each in its own number of
@@ -531,15 +546,18 @@ class ParticleTask:
         """
         s = self.system
         need = self._one_piece if self.step_travel == math.inf else self.pieces(s)
-        if need is self._one_piece or need.max() == 1:
-            # the usual case: every substep of every copy in one compiled call (bit for bit the
-            # same as stepping them one by one); a divergence leaves the state as it was and
-            # the careful path below finds the copy and parks it
-            try:
+        # the usual case: every substep of every copy in one compiled call (bit for bit the same
+        # as stepping them one by one; copies that need their steps split take their own pieces
+        # in the same call); a divergence leaves the state as it was and the careful path below
+        # finds the copy and parks it
+        try:
+            if need is self._one_piece or need.max() == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
-            except SimulationDiverged:
-                pass
+            if s._step_pieces(self.dt, self.integrator, self.substeps, np.repeat(need, self.n)):
+                return np.zeros(self.num_envs, bool)
+        except SimulationDiverged:
+            pass
         x0, v0 = s.x.copy(), s.v.copy()
         park = np.tile(self.park, (self.num_envs, 1))
         rest = np.zeros_like(v0)

@@ -171,7 +171,7 @@ def test_in_place_edits_are_seen_and_replaced_arrays_repacked():
 
 def test_out_of_range_index_never_reaches_compiled_code():
     """Bad indices are refused at the door, block arrays cannot be edited behind the system's
-    back, and the kernel itself checks every index it reads before reading."""
+    back, and the kernel itself checks every index before reading through any."""
     s = every_block(2)
     with pytest.raises(ValueError, match="particle"):
         s.forces[7].particle = np.array([10**6])  # replaced attribute: validated
@@ -182,18 +182,25 @@ def test_out_of_range_index_never_reaches_compiled_code():
         s.forces[2].i[0] = 10**6
     status, *_ = fused.run(s, 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), np.inf)
     assert status == fused.OK
-    # the kernel's own guard: hand it a corrupted copy of the spring indices directly
+    # the kernel's own guard: hand it corrupted copies of index arrays directly (spring ends,
+    # an angular spring's third particle, a wire's particle, a rod's second end)
     p = fused.pack(s)
-    bad = p.spring[0].copy()
-    bad[0] = 10**6
-    bad.flags.writeable = False  # the same array type as the pack's: no new compilation
-    args = list(p.args)
-    args[2] = (bad, *p.spring[1:])
-    x, v = s.x.copy(), s.v.copy()
-    status, _ = fused._fused_steps(2, 1, 1e-3, x, v, s.mass, s.inv_mass,
-                                   s.constraint_solver.lam.copy(), np.empty_like(x),
-                                   np.empty_like(v), 100.0, 20.0, 1e-10, 1e6, np.inf, *args)
-    assert status == fused.FALLBACK
+    for slot, column in [(2, 0), (2, 1), (3, 2), (7, 0), (8, 1)]:
+        if len(p.args[slot][column]) == 0:
+            continue
+        bad = p.args[slot][column].copy()
+        bad[0] = 10**6
+        bad.flags.writeable = False  # the same array type as the pack's: no new compilation
+        block = list(p.args[slot])
+        block[column] = bad
+        args = list(p.args)
+        args[slot] = tuple(block)
+        x, v = s.x.copy(), s.v.copy()
+        status, _ = fused._fused_steps(2, 1, 1e-3, fused._F0, fused._I0, x, v, s.mass,
+                                       s.inv_mass, s.constraint_solver.lam.copy(),
+                                       np.empty_like(x), np.empty_like(v), 100.0, 20.0, 1e-10,
+                                       1e6, np.inf, *args, None)
+        assert status == fused.FALLBACK, (slot, column)
 
 
 def test_divergence_keeps_the_state_from_before_the_call():
@@ -281,3 +288,53 @@ def test_fused_rattle_on_tiled_pendulums_and_slider_cranks_is_copy_exact():
     for i, one in enumerate(alone):
         assert tiled.x[n * i:n * (i + 1)].tobytes() == one.x.tobytes()
         assert tiled.v[n * i:n * (i + 1)].tobytes() == one.v.tobytes()
+
+
+@pytest.mark.parametrize("method", EXPLICIT)
+def test_per_copy_pieces_step_each_copy_as_it_would_be_stepped_alone(method):
+    """``_step_pieces``: copy i of a tiled scene, split into k_i pieces per step, ends bit for bit
+    where ``steps * k_i`` separate steps of ``dt / k_i`` of that copy alone leave it, while the
+    other copies (with other counts) wait; cloths (CG components) and slider-cranks (direct)."""
+    for single, dt in [(scenes.wire_mixture(omega=3.0), 4e-3),
+                       (scenes.cloth(nx=4, ny=3, push=0.2), 1e-3)]:
+        single.add(Drag(0.1))
+        n = single.n
+        counts = [1, 3, 2, 4]
+        tiled = single.tile(len(counts))
+        rng = np.random.default_rng(1)
+        alone = []
+        for i in range(len(counts)):
+            one = single.copy()
+            one.v = one.v * rng.uniform(0.5, 2.0)
+            tiled.v[n * i:n * (i + 1)] = one.v
+            alone.append(one)
+        pieces = np.repeat(np.array(counts, np.int64), n)
+        for _ in range(3):  # several calls: the warm starts carry over as they would alone
+            assert tiled._step_pieces(dt, method, 5, pieces)
+            for one, k in zip(alone, counts, strict=True):
+                for _ in range(5 * k):
+                    one.step(dt / k, method)
+        for i, one in enumerate(alone):
+            assert tiled.x[n * i:n * (i + 1)].tobytes() == one.x.tobytes(), (i, method)
+            assert tiled.v[n * i:n * (i + 1)].tobytes() == one.v.tobytes(), (i, method)
+        assert tiled.t == pytest.approx(15 * dt)
+
+
+def test_per_copy_pieces_refuse_what_they_cannot_do():
+    s = scenes.wire_mixture(omega=3.0).tile(2)
+    x0 = s.x.copy()
+    mixed = np.array([1, 2, 2, 2], np.int64)  # the crank and slider of copy 0 are coupled
+    assert not s._step_pieces(1e-3, "rk4", 1, mixed)
+    assert not s._step_pieces(1e-3, "rattle", 1, np.ones(4, np.int64))
+    assert s.x.tobytes() == x0.tobytes() and s.t == 0.0
+    for bad in [np.ones(3, np.int64), np.zeros(4, np.int64), np.ones(4), [1, 1, 1, 1]]:
+        with pytest.raises(ValueError, match="pieces"):
+            s._step_pieces(1e-3, "rk4", 1, bad)
+
+
+def test_per_copy_pieces_divergence_keeps_the_state():
+    s = scenes.spring_pair(ks=1e7).tile(2)
+    x0, v0 = s.x.copy(), s.v.copy()
+    with pytest.raises(SimulationDiverged):
+        s._step_pieces(0.05, "euler", 20, np.array([1, 1, 2, 2], np.int64))
+    assert s.x.tobytes() == x0.tobytes() and s.v.tobytes() == v0.tobytes() and s.t == 0.0

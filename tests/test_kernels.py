@@ -75,3 +75,26 @@ def test_environment_variable_disables_numba():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "True"
+
+
+def test_group_pieces_matches_the_numpy_rule():
+    """The compiled step-splitting rule of envs.base.ParticleTask.pieces against its numpy
+    form, on random states including non-finite speeds and counts beyond the cap."""
+    if _kernels.group_pieces is None:
+        pytest.skip("compiled path disabled (CPARTICLES_NUMBA=0)")
+    rng = np.random.default_rng(0)
+    size, groups, dt, travel, horizon, cap = 3, 400, 0.025, 0.12, 0.05, 8
+    v = rng.normal(0, 3, (size * groups, 2)) * rng.uniform(0, 4, (size * groups, 1))
+    F = rng.normal(0, 2, (size * groups, 2))
+    inv_mass = rng.uniform(0.5, 20, size * groups)
+    v[5, 0], v[40, 1], F[77, 0] = np.nan, np.inf, -np.inf
+    out = np.empty(groups, np.int64)
+    _kernels.group_pieces(v, F, inv_mass, size, horizon, dt, travel, cap, out)
+    with np.errstate(invalid="ignore"):
+        speed = (np.sqrt(np.sum(v * v, axis=1))
+                 + np.sqrt(np.sum(F * F, axis=1)) * (inv_mass * horizon))
+        need = np.ceil(speed.reshape(groups, size).max(axis=1) * dt / travel)
+    expected = np.where((need >= 1) & (need <= cap), need, 1).astype(np.int64)
+    assert np.array_equal(out, expected)
+    assert set(out[[1, 13, 25]]) == {1}  # the groups holding the non-finite entries
+    assert 1 < len(np.unique(out)) and out.max() <= cap
