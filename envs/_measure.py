@@ -210,15 +210,21 @@ if ENABLED:
         circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is ``rod2``):
         ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
         ``to_go`` the arc length (m) the short way round to the point above the wire that puts
-        the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``."""
+        the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``, the
+        difference wrapped into [-pi, pi] by a whole turn (the reference takes the angle of
+        ``exp(i d)``: the same to rounding)."""
         for i in range(goal.shape[0]):
             px, py = x[i * n, 0], x[i * n, 1]
             g = goal[i]
             target = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
-            d = target - math.atan2(py, px)
+            d = target - math.atan2(py, px)  # in [-pi, 2 pi]: one turn at most to wrap
+            if d > math.pi:
+                d -= 2.0 * math.pi
+            elif d < -math.pi:
+                d += 2.0 * math.pi
             height[i] = py
             below[i] = not py > 0.0
-            to_go[i] = r * abs(math.atan2(math.sin(d), math.cos(d)))
+            to_go[i] = r * abs(d)
 
     @njit
     def _crank_push(x, action, max_force, out):  # pragma: no cover - compiled
