@@ -227,7 +227,7 @@ class Packed:
         m = self.m
         # scratch space reused by every call: state-sized stage arrays, per-row values,
         # per-coordinate buffers, one dense component block
-        self.ws_n = np.zeros((10, n, 2))
+        self.ws_n = np.zeros((12, n, 2))
         self.ws_J = np.zeros((3, m, 4))
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
@@ -345,20 +345,9 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, system.x, system.v, 0
-    # The kernel is compiled twice: without a live mask, and with one. The steps every particle
-    # takes run without (each particle with its own step length), the rest with the mask.
-    counts = pieces * int(steps)
-    hp = h / pieces
-    first, total = int(counts.min()), int(counts.max())
-    status, failed = _fused_steps(code, first, h, hp, _I0, x, v, mass, inv_mass, lam, x_out,
-                                  v_out, *common, None)
-    if status != OK or total == first:
-        return int(status), x_out, v_out, int(failed)
-    x_mid, v_mid = x_out, v_out
-    x_out, v_out = np.empty_like(x), np.empty_like(v)
-    status, failed = _fused_steps(code, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+    status, failed = _fused_steps(code, 0, h, h / pieces, pieces * int(steps), x, v, mass,
                                   inv_mass, lam, x_out, v_out, *common, p.ws_live)
-    return int(status), x_out, v_out, int(failed) + first
+    return int(status), x_out, v_out, int(failed)
 
 
 if _kernels.ENABLED:
@@ -938,44 +927,18 @@ if _kernels.ENABLED:
         sizes[13] = _firsts(firsts[10], mask, elements[10])
 
     @njit
-    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
-                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
-                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
-                     ws_q, ws_A, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
-        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
-        every step), particle q takes ``counts[q]`` steps (``steps`` = the largest count): a
-        particle that has taken its steps waits, and the elements and constraint rows of waiting
-        particles are skipped, so each independent group of particles is stepped exactly as it
-        would be alone."""
+    def _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd,
+               tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ, rod,
+               line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A,
+               live):  # pragma: no cover - compiled
+        """The step loop of :func:`_fused_steps` (inputs checked, ``ws_q`` prepared by it):
+        ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty; with ``live`` (the workspace of :func:`_gate`), particle q takes only
+        ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only."""
         n = x0.shape[0]
         m = lam.shape[0]
         per_particle = hp.shape[0] > 0
-        if per_particle and (method == 4 or hp.shape[0] != n):
-            return FALLBACK, 0
-        if live is not None and (not per_particle or counts.shape[0] != n
-                                 or live[0].shape[0] != n or live[1].shape[0] != n
-                                 or live[2].shape[0] != m
-                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
-                                 or live[4].shape[0] != 3 + len(_ELEMENT_TYPES)
-                                 or not _element_lists_fit(live[5], grav, const, spring, ang,
-                                                           drag, wall, mouse, circ, rod, line,
-                                                           fixed)):
-            return FALLBACK, 0
-        if live is None and counts.shape[0] != 0:
-            return FALLBACK, 0
-        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                             cols, nnz, n, m, lam, counts):
-            return FALLBACK, 0
-        if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n):
-            return FALLBACK, 0
         w2, tmp = ws_q[0], ws_q[1]
-        for q in range(n):
-            w2[2 * q] = inv_mass[q]
-            w2[2 * q + 1] = inv_mass[q]
-            tmp[2 * q] = 0.0
-            tmp[2 * q + 1] = 0.0
         Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
         C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
         work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
@@ -1102,3 +1065,63 @@ if _kernels.ENABLED:
             x_out[:, :] = x0
             v_out[:, :] = v0
         return OK, steps
+
+
+    @njit
+    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
+                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
+                     ws_q, ws_A, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
+        every step), particle q takes ``counts[q]`` steps instead (``steps`` is ignored): the
+        steps every particle takes run first, without the mask; in the rest a particle that has
+        taken its steps waits, and the elements, constraint rows and components of waiting
+        particles are skipped, so each independent group of particles is stepped exactly as it
+        would be alone. Returns ``(status, steps done)``."""
+        n = x0.shape[0]
+        m = lam.shape[0]
+        per_particle = hp.shape[0] > 0
+        if per_particle and (method == 4 or hp.shape[0] != n):
+            return FALLBACK, 0
+        if live is not None and (not per_particle or counts.shape[0] != n
+                                 or live[0].shape[0] != n or live[1].shape[0] != n
+                                 or live[2].shape[0] != m
+                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
+                                 or live[4].shape[0] != 3 + len(_ELEMENT_TYPES)
+                                 or not _element_lists_fit(live[5], grav, const, spring, ang,
+                                                           drag, wall, mouse, circ, rod, line,
+                                                           fixed)):
+            return FALLBACK, 0
+        if live is None and counts.shape[0] != 0:
+            return FALLBACK, 0
+        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             cols, nnz, n, m, lam, counts):
+            return FALLBACK, 0
+        if (ws_n.shape[0] < 12 or ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
+                or ws_q.shape[1] != 2 * n):
+            return FALLBACK, 0
+        w2, tmp = ws_q[0], ws_q[1]
+        for q in range(n):
+            w2[2 * q] = inv_mass[q]
+            w2[2 * q + 1] = inv_mass[q]
+            tmp[2 * q] = 0.0
+            tmp[2 * q + 1] = 0.0
+        args = (ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
+                ws_A)
+        if live is None or n == 0:
+            return _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
+                          v_out, *args, None)
+        first, total = counts.min(), counts.max()
+        if first == total:  # every particle takes every step
+            return _steps(method, total, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
+                          v_out, *args, None)
+        x_mid, v_mid = ws_n[10], ws_n[11]
+        status, done = _steps(method, first, h, hp, counts, x0, v0, mass, inv_mass, lam, x_mid,
+                              v_mid, *args, None)
+        if status != OK:
+            return status, done
+        status, done = _steps(method, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+                              inv_mass, lam, x_out, v_out, *args, live)
+        return status, done + first
