@@ -270,17 +270,25 @@ class ParticleTask:
         return (p - self.center) / self.half
 
     def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
-        """Write starting states into the slices of copies ``envs`` only."""
-        for i, (x, v, goal) in zip(envs, starts, strict=True):
-            sl = self.copy_slice(i)
-            self.system.x[sl] = x
-            self.system.v[sl] = v
-            self.goal[i] = goal
-            self.hold[i] = 0
-            self.action[i] = 0.0
-            self._actuate_rows(i, None)
-            # the multiplier solve's warm start, so that a seed fixes the episode bit for bit
-            self._lam()[self._row_env == i] = 0.0
+        """Write starting states ``(x, v, goal)`` into the slices of copies ``envs`` only
+        (all of them in a few whole-array operations)."""
+        envs = np.asarray(envs, dtype=np.int64).reshape(-1)
+        if len(envs) != len(starts):
+            raise ValueError(f"write_start: {len(envs)} copies but {len(starts)} starts")
+        if not len(envs):
+            return
+        n = self.n
+        rows = (envs[:, None] * n + np.arange(n)).reshape(-1)
+        self.system.x[rows] = np.concatenate([x for x, _, _ in starts]).reshape(-1, 2)
+        self.system.v[rows] = np.concatenate([v for _, v, _ in starts]).reshape(-1, 2)
+        self.goal[envs] = [goal for _, _, goal in starts]
+        self.hold[envs] = 0
+        self.action[envs] = 0.0
+        self._actuate(envs, None)
+        # the multiplier solve's warm start, so that a seed fixes the episode bit for bit
+        chosen = np.zeros(self.num_envs, bool)
+        chosen[envs] = True
+        self._lam()[chosen[self._row_env]] = 0.0
 
     def reset_envs(self, envs: Sequence[int], rngs: Sequence[np.random.Generator]) -> None:
         """Draw a starting state for each copy in ``envs`` from its generator and write it."""

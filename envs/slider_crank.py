@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -90,11 +91,11 @@ class SliderCrank(ShapedTask, ParticleTask):
         """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
         counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
         r, L = self.radius, self.rod
-        c, s = np.cos(angle), np.sin(angle)
-        reach = np.sqrt(L**2 - (r * s) ** 2)
+        c, s = math.cos(angle), math.sin(angle)
+        reach = math.sqrt(L**2 - (r * s) ** 2)
         x = np.array([[r * c, r * s], [r * c + reach, 0.0]])
         dslider = -r * s - (r * s) * (r * c) / reach  # d(slider x)/d(angle)
-        v = omega * np.array([[-r * s, r * c], [dslider, 0.0]])
+        v = np.array([[omega * (-r * s), omega * (r * c)], [omega * dslider, 0.0]])
         return x, v
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
