@@ -57,6 +57,9 @@ FLAT_MIN = 256
 #: Kernel status codes.
 OK, DIVERGED, FALLBACK = 0, 1, 2
 
+#: The order of block types in the fused kernel's per-type element lists.
+_ELEMENT_TYPES = ("gravity", "constant", "spring", "angular", "drag", "wall", "mouse", "circle",
+                  "rod", "line", "fixed")
 _FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring)
 _CONSTRAINT_TYPES = (CircularWire, Rod, LineWire, HorizontalWire, FixedPoint)
 
@@ -229,14 +232,18 @@ class Packed:
         m = self.m
         # scratch space reused by every call: state-sized stage arrays, per-row values,
         # per-coordinate buffers, one dense component block
-        self.ws_n = np.zeros((10, n, 2))
+        self.ws_n = np.zeros((12, n, 2))
         self.ws_J = np.zeros((3, m, 4))
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
         self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
         # with per-particle step counts: the live mask, live particle, row and component lists
+        blocks = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
+                  self.mouse, self.circ, self.rod, self.line, self.fixed)
         self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
-                        np.zeros(len(self.comp_ptr) - 1, np.int64), np.zeros(3, np.int64))
+                        np.zeros(len(self.comp_ptr) - 1, np.int64),
+                        np.zeros(3 + len(_ELEMENT_TYPES), np.int64),
+                        tuple(np.zeros(len(b[0]), np.int64) for b in blocks))
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
@@ -343,20 +350,9 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, system.x, system.v, 0
-    # The kernel is compiled twice: without a live mask, and with one. The steps every particle
-    # takes run without (each particle with its own step length), the rest with the mask.
-    counts = pieces * int(steps)
-    hp = h / pieces
-    first, total = int(counts.min()), int(counts.max())
-    status, failed = _fused_steps(code, first, h, hp, _I0, x, v, mass, inv_mass, lam, x_out,
-                                  v_out, *common, None)
-    if status != OK or total == first:
-        return int(status), x_out, v_out, int(failed)
-    x_mid, v_mid = x_out, v_out
-    x_out, v_out = np.empty_like(x), np.empty_like(v)
-    status, failed = _fused_steps(code, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+    status, failed = _fused_steps(code, 0, h, h / pieces, pieces * int(steps), x, v, mass,
                                   inv_mass, lam, x_out, v_out, *common, p.ws_live)
-    return int(status), x_out, v_out, int(failed) + first
+    return int(status), x_out, v_out, int(failed)
 
 
 if _kernels.ENABLED:
@@ -560,27 +556,24 @@ if _kernels.ENABLED:
         all live), elements on particles that are not live are skipped (they get zero force)."""
         F[:, :] = 0.0
         gi, gblock, gg = grav
-        for e in range(gi.shape[0]):
+        for ee in range(gi.shape[0] if live is None else live[4][3]):
+            e = ee if live is None else live[5][0][ee]
             q, k = np.uint64(gi[e]), np.uint64(gblock[e])  # (checked: no wraparound needed)
-            if live is not None and not live[0][q]:
-                continue
             F[q, 0] += mass[q] * gg[k, 0]
             F[q, 1] += mass[q] * gg[k, 1]
         ci, cf = const
-        for e in range(ci.shape[0]):
+        for ee in range(ci.shape[0] if live is None else live[4][4]):
+            e = ee if live is None else live[5][1][ee]
             q = ci[e]
-            if live is not None and not live[0][q]:
-                continue
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
         si, sj, srest, sks, skd = spring
         if live is None:
             _springs(x, v, F, si, sj, srest, sks, skd)
         else:
-            for e in range(si.shape[0]):
+            for ee in range(live[4][5]):
+                e = live[5][2][ee]
                 a, b = np.uint64(si[e]), np.uint64(sj[e])  # (checked: no wraparound needed)
-                if not live[0][a]:
-                    continue
                 fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
                                         v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], sks[e], skd[e],
                                         srest[e])
@@ -589,10 +582,9 @@ if _kernels.ENABLED:
                 F[b, 0] -= fx
                 F[b, 1] -= fy
         aa, ab, ac, arest, ak, akd = ang
-        for e in range(aa.shape[0]):
+        for ee in range(aa.shape[0] if live is None else live[4][6]):
+            e = ee if live is None else live[5][3][ee]
             a, b, c = aa[e], ab[e], ac[e]
-            if live is not None and not live[0][a]:
-                continue
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
                 v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
@@ -603,27 +595,24 @@ if _kernels.ENABLED:
             F[c, 0] += fcx
             F[c, 1] += fcy
         di, dkd = drag
-        for e in range(di.shape[0]):
+        for ee in range(di.shape[0] if live is None else live[4][7]):
+            e = ee if live is None else live[5][4][ee]
             q = di[e]
-            if live is not None and not live[0][q]:
-                continue
             F[q, 0] -= dkd[e] * v[q, 0]
             F[q, 1] -= dkd[e] * v[q, 1]
         wi, wblock, wn, wpar = wall
-        for e in range(wi.shape[0]):
+        for ee in range(wi.shape[0] if live is None else live[4][8]):
+            e = ee if live is None else live[5][5][ee]
             q, k = wi[e], wblock[e]
-            if live is not None and not live[0][q]:
-                continue
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
             F[q, 1] += fy
         mi, manchor, mact, mks, mkd = mouse
-        for e in range(mi.shape[0]):
+        for ee in range(mi.shape[0] if live is None else live[4][9]):
+            e = ee if live is None else live[5][6][ee]
             if mact[e]:
                 q = mi[e]
-                if live is not None and not live[0][q]:
-                    continue
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
                                        manchor[e, 1], mks[e], mkd[e])
                 F[q, 0] += fx
@@ -635,38 +624,34 @@ if _kernels.ENABLED:
         """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
         that are not ``live`` are skipped; None: all live)."""
         cp, cc, cr, crow = circ
-        for e in range(cp.shape[0]):
+        for ee in range(cp.shape[0] if live is None else live[4][10]):
+            e = ee if live is None else live[5][7][ee]
             q, r = cp[e], crow[e]
-            if live is not None and not live[0][q]:
-                continue
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
             Jv[r, 0], Jv[r, 1] = dx, dy
             Jdv[r, 0], Jdv[r, 1] = v[q, 0], v[q, 1]
         ra, rb, rl, rrow = rod
-        for e in range(ra.shape[0]):
+        for ee in range(ra.shape[0] if live is None else live[4][11]):
+            e = ee if live is None else live[5][8][ee]
             a, b, r = ra[e], rb[e], rrow[e]
-            if live is not None and not live[0][a]:
-                continue
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
             C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
             Jv[r, 0], Jv[r, 1], Jv[r, 2], Jv[r, 3] = dx, dy, -dx, -dy
             Jdv[r, 0], Jdv[r, 1], Jdv[r, 2], Jdv[r, 3] = dvx, dvy, -dvx, -dvy
         lp, ln, lpt, lrow = line
-        for e in range(lp.shape[0]):
+        for ee in range(lp.shape[0] if live is None else live[4][12]):
+            e = ee if live is None else live[5][9][ee]
             q, r = lp[e], lrow[e]
-            if live is not None and not live[0][q]:
-                continue
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
             Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
         fp, fpt, frow = fixed
-        for e in range(fp.shape[0]):
+        for ee in range(fp.shape[0] if live is None else live[4][13]):
+            e = ee if live is None else live[5][10][ee]
             q, r = fp[e], frow[e]
-            if live is not None and not live[0][q]:
-                continue
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fpt[e, axis]
                 Cdot[r + axis] = v[q, axis]
@@ -679,34 +664,30 @@ if _kernels.ENABLED:
         any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
         worst = 0.0
         cp, cc, cr, _ = circ
-        for e in range(cp.shape[0]):
+        for ee in range(cp.shape[0] if live is None else live[4][10]):
+            e = ee if live is None else live[5][7][ee]
             q = cp[e]
-            if live is not None and not live[0][q]:
-                continue
             d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
             if not d <= worst:
                 worst = d
         ra, rb, rl, _ = rod
-        for e in range(ra.shape[0]):
+        for ee in range(ra.shape[0] if live is None else live[4][11]):
+            e = ee if live is None else live[5][8][ee]
             a, b = ra[e], rb[e]
-            if live is not None and not live[0][a]:
-                continue
             d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
             if not d <= worst:
                 worst = d
         lp, ln, lpt, _ = line
-        for e in range(lp.shape[0]):
+        for ee in range(lp.shape[0] if live is None else live[4][12]):
+            e = ee if live is None else live[5][9][ee]
             q = lp[e]
-            if live is not None and not live[0][q]:
-                continue
             d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
             if not d <= worst:
                 worst = d
         fp, fpt, _ = fixed
-        for e in range(fp.shape[0]):
+        for ee in range(fp.shape[0] if live is None else live[4][13]):
+            e = ee if live is None else live[5][10][ee]
             q = fp[e]
-            if live is not None and not live[0][q]:
-                continue
             for axis in range(2):
                 d = abs(x[q, axis] - fpt[e, axis])
                 if not d <= worst:
@@ -968,11 +949,37 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _gate(step, counts, cols, comp_rows, comp_ptr, live):  # pragma: no cover - compiled
+    def _firsts(idx, mask, out):  # pragma: no cover - compiled
+        """The elements whose particle ``idx[e]`` is live, into ``out``; their number."""
+        k = 0
+        for e in range(idx.shape[0]):
+            if mask[idx[e]]:
+                out[k] = e
+                k += 1
+        return k
+
+    @njit
+    def _element_lists_fit(lists, grav, const, spring, ang, drag, wall, mouse, circ, rod, line,
+                           fixed):  # pragma: no cover - compiled
+        """True if each live-element list has room for every element of its type."""
+        return (lists[0].shape[0] >= grav[0].shape[0] and lists[1].shape[0] >= const[0].shape[0]
+                and lists[2].shape[0] >= spring[0].shape[0]
+                and lists[3].shape[0] >= ang[0].shape[0] and lists[4].shape[0] >= drag[0].shape[0]
+                and lists[5].shape[0] >= wall[0].shape[0]
+                and lists[6].shape[0] >= mouse[0].shape[0]
+                and lists[7].shape[0] >= circ[0].shape[0] and lists[8].shape[0] >= rod[0].shape[0]
+                and lists[9].shape[0] >= line[0].shape[0]
+                and lists[10].shape[0] >= fixed[0].shape[0])
+
+    @njit
+    def _gate(step, counts, cols, comp_rows, comp_ptr, firsts, mouse_active, live):
+        # pragma: no cover - compiled
         """Which particles take step ``step`` (those with ``counts`` above it): the mask
         ``live[0]`` and, when it changed, the lists of live particles, rows and components
-        (``live[1:4]``, their lengths in ``live[4]``)."""
-        mask, plist, rlist, clist, sizes = live
+        (``live[1:4]``) and of the live elements of each block type (``live[5]``, in the order
+        of :data:`_ELEMENT_TYPES`; ``firsts`` holds each type's first-particle array), with
+        their lengths in ``live[4]``."""
+        mask, plist, rlist, clist, sizes, elements = live
         changed = step == 0
         for q in range(mask.shape[0]):
             now = step < counts[q]
@@ -999,43 +1006,37 @@ if _kernels.ENABLED:
                 clist[k] = c
                 k += 1
         sizes[2] = k
+        sizes[3] = _firsts(firsts[0], mask, elements[0])
+        sizes[4] = _firsts(firsts[1], mask, elements[1])
+        sizes[5] = _firsts(firsts[2], mask, elements[2])
+        sizes[6] = _firsts(firsts[3], mask, elements[3])
+        sizes[7] = _firsts(firsts[4], mask, elements[4])
+        sizes[8] = _firsts(firsts[5], mask, elements[5])
+        k = 0  # mouse springs: only active ones have a particle to ask about
+        mi = firsts[6]
+        for e in range(mi.shape[0]):
+            if mouse_active[e] and mask[mi[e]]:
+                elements[6][k] = e
+                k += 1
+        sizes[9] = k
+        sizes[10] = _firsts(firsts[7], mask, elements[7])
+        sizes[11] = _firsts(firsts[8], mask, elements[8])
+        sizes[12] = _firsts(firsts[9], mask, elements[9])
+        sizes[13] = _firsts(firsts[10], mask, elements[10])
 
     @njit
-    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
-                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
-                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
-                     ws_q, ws_A, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
-        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
-        every step), particle q takes ``counts[q]`` steps (``steps`` = the largest count): a
-        particle that has taken its steps waits, and the elements and constraint rows of waiting
-        particles are skipped, so each independent group of particles is stepped exactly as it
-        would be alone."""
+    def _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd,
+               tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ, rod,
+               line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A,
+               live):  # pragma: no cover - compiled
+        """The step loop of :func:`_fused_steps` (inputs checked, ``ws_q`` prepared by it):
+        ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty; with ``live`` (the workspace of :func:`_gate`), particle q takes only
+        ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only."""
         n = x0.shape[0]
         m = lam.shape[0]
         per_particle = hp.shape[0] > 0
-        if per_particle and (method == 4 or hp.shape[0] != n):
-            return FALLBACK, 0
-        if live is not None and (not per_particle or counts.shape[0] != n
-                                 or live[0].shape[0] != n or live[1].shape[0] != n
-                                 or live[2].shape[0] != m
-                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
-                                 or live[4].shape[0] != 3):
-            return FALLBACK, 0
-        if live is None and counts.shape[0] != 0:
-            return FALLBACK, 0
-        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                             cols, nnz, n, m, lam, counts):
-            return FALLBACK, 0
-        if (ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n):
-            return FALLBACK, 0
         w2, tmp = ws_q[0], ws_q[1]
-        for q in range(n):
-            w2[2 * q] = inv_mass[q]
-            w2[2 * q + 1] = inv_mass[q]
-            tmp[2 * q] = 0.0
-            tmp[2 * q + 1] = 0.0
         Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
         C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
         work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
@@ -1050,7 +1051,9 @@ if _kernels.ENABLED:
             if step == steps - 1:
                 xs, vs = x_out, v_out
             if live is not None:  # particles done with their steps wait where they are
-                _gate(step, counts, cols, comp_rows, comp_ptr, live)
+                _gate(step, counts, cols, comp_rows, comp_ptr,
+                      (grav[0], const[0], spring[0], ang[0], drag[0], wall[0], mouse[0], circ[0],
+                       rod[0], line[0], fixed[0]), mouse[2], live)
                 mask = live[0]
                 for q in range(n):
                     if not mask[q]:
@@ -1167,3 +1170,63 @@ if _kernels.ENABLED:
             x_out[:, :] = x0
             v_out[:, :] = v0
         return OK, steps
+
+
+    @njit
+    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
+                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
+                     ws_q, ws_A, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
+        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
+        every step), particle q takes ``counts[q]`` steps instead (``steps`` is ignored): the
+        steps every particle takes run first, without the mask; in the rest a particle that has
+        taken its steps waits, and the elements, constraint rows and components of waiting
+        particles are skipped, so each independent group of particles is stepped exactly as it
+        would be alone. Returns ``(status, steps done)``."""
+        n = x0.shape[0]
+        m = lam.shape[0]
+        per_particle = hp.shape[0] > 0
+        if per_particle and (method == 4 or hp.shape[0] != n):
+            return FALLBACK, 0
+        if live is not None and (not per_particle or counts.shape[0] != n
+                                 or live[0].shape[0] != n or live[1].shape[0] != n
+                                 or live[2].shape[0] != m
+                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
+                                 or live[4].shape[0] != 3 + len(_ELEMENT_TYPES)
+                                 or not _element_lists_fit(live[5], grav, const, spring, ang,
+                                                           drag, wall, mouse, circ, rod, line,
+                                                           fixed)):
+            return FALLBACK, 0
+        if live is None and counts.shape[0] != 0:
+            return FALLBACK, 0
+        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                             cols, nnz, n, m, lam, counts):
+            return FALLBACK, 0
+        if (ws_n.shape[0] < 12 or ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
+                or ws_q.shape[1] != 2 * n):
+            return FALLBACK, 0
+        w2, tmp = ws_q[0], ws_q[1]
+        for q in range(n):
+            w2[2 * q] = inv_mass[q]
+            w2[2 * q + 1] = inv_mass[q]
+            tmp[2 * q] = 0.0
+            tmp[2 * q + 1] = 0.0
+        args = (ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
+                circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
+                ws_A)
+        if live is None or n == 0:
+            return _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
+                          v_out, *args, None)
+        first, total = counts.min(), counts.max()
+        if first == total:  # every particle takes every step
+            return _steps(method, total, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
+                          v_out, *args, None)
+        x_mid, v_mid = ws_n[10], ws_n[11]
+        status, done = _steps(method, first, h, hp, counts, x0, v0, mass, inv_mass, lam, x_mid,
+                              v_mid, *args, None)
+        if status != OK:
+            return status, done
+        status, done = _steps(method, total - first, h, hp, counts - first, x_mid, v_mid, mass,
+                              inv_mass, lam, x_out, v_out, *args, live)
+        return status, done + first

@@ -416,6 +416,8 @@ class ParticleSystem:
             raise ValueError(f"pieces must be an int64 array of shape ({self.n},) with entries "
                              f">= 1, got {pieces!r}")
         dt = check_dt(dt)
+        if type(steps) is not int or not 1 <= steps <= 10**9:
+            raise ValueError(f"steps must be an int in [1, 1e9], got {steps!r}")
         get_method(method)
         self.check_arrays()
         if method == "rattle" or self.project_each_step:

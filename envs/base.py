@@ -29,10 +29,19 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from constrained_particles import ConstantForce, MouseSpring, ParticleSystem, Shape, _kernels
+from constrained_particles import (
+    ConstantForce,
+    MouseSpring,
+    ParticleSystem,
+    Shape,
+    Wall,
+    _kernels,
+)
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
 from constrained_particles.terms import ArgumentTypeError
+
+from . import _measure
 
 #: Valid values of the ``action_mode`` argument.
 ACTION_MODES = ("force", "spring")
@@ -181,6 +190,10 @@ class ParticleTask:
         xmin, ymin, xmax, ymax = self.view
         self.center = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2])
         self.half = np.array([(xmax - xmin) / 2, (ymax - ymin) / 2])
+        #: The default ``stepped`` and ``blocked`` masks of :meth:`_measures`: no copy.
+        self._no_copies = np.zeros(self.num_envs, bool)
+        self._scale: tuple[float, float, float, float] | None = None
+        self._track: tuple[np.ndarray, float] | None = None
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
         self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (4 * n + 1,), np.float32)
 
@@ -205,13 +218,30 @@ class ParticleTask:
         """A starting state of one copy: positions (n, 2) m, velocities (n, 2) m/s, goal (m)."""
         raise NotImplementedError
 
+    #: Particles (indices within one copy) whose mean x is the coordinate driven to the goal
+    #: (see :meth:`tracked`). Subclasses set it, or override :meth:`tracked` and leave it None
+    #: (the measures then take the numpy reference path); a subclass that does both must
+    #: compute that same mean (the compiled measures use this attribute, the reference
+    #: :meth:`tracked`).
+    tracked_particles: np.ndarray | None = None
+
     def tracked(self, x: np.ndarray) -> np.ndarray:
-        """The x coordinate (m) driven to the goal, per copy, from positions (num_envs, n, 2)."""
-        raise NotImplementedError
+        """The x coordinate (m) driven to the goal, per copy, from positions (num_envs, n, 2):
+        the mean x of :attr:`tracked_particles`."""
+        idx = self.tracked_particles
+        if idx is None:
+            raise NotImplementedError
+        return x[:, idx, 0].sum(axis=1) * (1.0 / len(idx))
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """Reward per copy from the measures of :meth:`measure`."""
         raise NotImplementedError
+
+    def reward_one(self, m: dict[str, np.ndarray], values: dict[str, Any]) -> float:
+        """The reward of a task with one copy from its measures ``m`` (arrays) or the same as
+        Python numbers (``values``): :meth:`reward` here; tasks may compute it from ``values``
+        faster, with the same bits."""
+        return float(self.reward(m)[0])
 
     # ------------------------------------------------------------------ state
     @property
@@ -240,17 +270,25 @@ class ParticleTask:
         return (p - self.center) / self.half
 
     def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
-        """Write starting states into the slices of copies ``envs`` only."""
-        for i, (x, v, goal) in zip(envs, starts, strict=True):
-            sl = self.copy_slice(i)
-            self.system.x[sl] = x
-            self.system.v[sl] = v
-            self.goal[i] = goal
-            self.hold[i] = 0
-            self.action[i] = 0.0
-            self._actuate_rows(i, None)
-            # the multiplier solve's warm start, so that a seed fixes the episode bit for bit
-            self._lam()[self._row_env == i] = 0.0
+        """Write starting states ``(x, v, goal)`` into the slices of copies ``envs`` only
+        (all of them in a few whole-array operations)."""
+        envs = np.asarray(envs, dtype=np.int64).reshape(-1)
+        if len(envs) != len(starts):
+            raise ValueError(f"write_start: {len(envs)} copies but {len(starts)} starts")
+        if not len(envs):
+            return
+        n = self.n
+        rows = (envs[:, None] * n + np.arange(n)).reshape(-1)
+        self.system.x[rows] = np.concatenate([x for x, _, _ in starts]).reshape(-1, 2)
+        self.system.v[rows] = np.concatenate([v for _, v, _ in starts]).reshape(-1, 2)
+        self.goal[envs] = [goal for _, _, goal in starts]
+        self.hold[envs] = 0
+        self.action[envs] = 0.0
+        self._actuate(envs, None)
+        # the multiplier solve's warm start, so that a seed fixes the episode bit for bit
+        chosen = np.zeros(self.num_envs, bool)
+        chosen[envs] = True
+        self._lam()[chosen[self._row_env]] = 0.0
 
     def reset_envs(self, envs: Sequence[int], rngs: Sequence[np.random.Generator]) -> None:
         """Draw a starting state for each copy in ``envs`` from its generator and write it."""
@@ -346,6 +384,11 @@ class ParticleTask:
         shape = (self.action_dim,) if single else (self.num_envs, self.action_dim)
         if (type(actions) is np.ndarray and actions.dtype.kind == "f"
                 and actions.shape == shape):  # the usual case, checked in a few operations
+            if _measure.ENABLED and actions.flags.c_contiguous and actions.dtype.char in "fd":
+                a = np.empty((self.num_envs, self.action_dim))
+                if not _measure.clip_actions(actions, a):
+                    raise ValueError(f"action must be finite, got {actions!r}")
+                return a
             a = actions.astype(np.float64).reshape(self.num_envs, self.action_dim)
             if not np.isfinite(a).all():
                 raise ValueError(f"action must be finite, got {actions!r}")
@@ -382,6 +425,13 @@ class ParticleTask:
                                self.force_vectors(action, self.positions()[envs]).reshape(-1, 2))
         elif action is None:
             act.set(envs, active=np.zeros(len(envs), bool))
+        elif _measure.ENABLED:  # the spring action, compiled (the reference is below)
+            particles = np.empty(len(envs), np.int64)
+            c, h = self.center, self.half
+            if _measure.grab(self.system.x, self.n, envs, action, c[0], c[1], h[0], h[1],
+                             self.grab_radius**2, act.particle, particles, act.anchor,
+                             act.active):  # anchors and flags are written in place
+                act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
         else:
             # the spring action: the nearest particle within grab_radius of the grab point
             x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]
@@ -576,11 +626,19 @@ class ParticleTask:
     def observe(self) -> np.ndarray:
         """Observations (num_envs, 4 n + 1) float32: normalized positions, velocities, goal.
 
-        Written straight into one float32 array (a handful of whole-array operations, no
-        per-copy Python), then clipped to [-OBS_LIMIT, OBS_LIMIT] in place."""
+        Each entry is computed in float64 (``(x - c) / h`` as ``(x - c) * (1 / h)``), rounded to
+        float32 and clipped to [-OBS_LIMIT, OBS_LIMIT]: in one compiled pass
+        (:func:`envs._measure.observe`), or by the numpy reference below, a handful of
+        whole-array operations with no per-copy Python."""
         N, n = self.num_envs, self.n
         s = self.system
         obs = np.empty((N, 4 * n + 1), np.float32)
+        if _measure.ENABLED:
+            if self._scale is None:
+                self._scale = (float(self.center[0]), float(self.center[1]),
+                               float(1.0 / self.half[0]), float(1.0 / self.half[1]))
+            _measure.observe(s.x, s.v, n, self.goal, *self._scale, OBS_LIMIT, obs)
+            return obs
         inv_half = 1.0 / self.half
         pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
         np.multiply((s.x - self.center).reshape(N, n, 2), inv_half, out=pos, casting="same_kind")
@@ -598,8 +656,42 @@ class ParticleTask:
         ``stepped`` masks the copies that just took an env step: their count of consecutive
         steps at the goal and at rest advances (or restarts at 0).
         """
+        return self._measures(stepped)[0]
+
+    def _tracking(self) -> tuple[np.ndarray, float] | None:
+        """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
+        None if it is not set (a subclass computes :meth:`tracked` its own way)."""
+        if self._track is None and self.tracked_particles is not None:
+            idx = np.ascontiguousarray(self.tracked_particles, dtype=np.int64).reshape(-1)
+            if len(idx) and idx.min() >= 0 and idx.max() < self.n:
+                self._track = (idx, 1.0 / len(idx))
+        return self._track
+
+    def _measures(self, stepped: np.ndarray | None = None, blocked: np.ndarray | None = None,
+                  walls: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The measures of :meth:`measure` and the walls' total contact force per copy (N,
+        the sum over particles of ``|F_x|``; zeros unless ``walls``).
+
+        The hold count of a ``stepped`` copy advances if it is within ``goal_tolerance`` of
+        the goal, slower than ``rest_speed``, not ``blocked`` and (with ``walls``) touching no
+        wall; otherwise it restarts at 0. Computed in one compiled pass
+        (:func:`envs._measure.measures`) when the system's blocks allow it, else by the numpy
+        reference below.
+        """
         N, n = self.num_envs, self.n
         s = self.system
+        track = self._tracking() if _measure.ENABLED else None
+        p = None if track is None else _measure.packed(s)
+        if p is not None:
+            out = np.empty((5, N))
+            success = np.empty(N, bool)
+            _measure.measures(
+                s.x, s.v, s.mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
+                p.fixed, p.wall, walls, self.hold, self._no_copies if stepped is None else stepped,
+                self._no_copies if blocked is None else blocked, self.goal_tolerance,
+                self.rest_speed, self.hold_steps, out, success)
+            return {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
+                    "constraint_residual": out[3], "is_success": success}, out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
         residual = np.zeros(N)
@@ -609,13 +701,24 @@ class ParticleTask:
                 np.maximum(residual, err.reshape(N, -1).max(axis=1), out=residual)
         distance = np.abs(self.tracked(self.positions()) - self.goal)
         speed = np.sqrt(v2.sum(axis=1) * (1.0 / n))
+        wall_force = np.zeros(N)
+        if walls:
+            found = [w for w in s.forces if isinstance(w, Wall)]
+            if any(w.penetration(s.x).max(initial=0.0) > 0 for w in found):  # else no contact
+                F = np.zeros_like(s.x)
+                for wall in found:
+                    wall.accumulate(s.x, s.v, s.mass, F)
+                wall_force = np.abs(F[:, 0]).reshape(N, n).sum(axis=1)
         if stepped is not None:
             settled = (distance < self.goal_tolerance) & (speed < self.rest_speed)
+            settled &= ~(wall_force > 0)  # resting against a wall is not rest
+            if blocked is not None:
+                settled &= ~blocked
             self.hold[stepped] = np.where(settled[stepped], self.hold[stepped] + 1, 0)
         return {"distance": distance, "speed": speed,
                 "kinetic_energy": 0.5 * (s.mass.reshape(N, n) * v2).sum(axis=1),
                 "constraint_residual": residual,
-                "is_success": self.hold >= self.hold_steps}
+                "is_success": self.hold >= self.hold_steps}, wall_force
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` as a drawable single system, its goal marker and a status line."""
@@ -678,8 +781,10 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, Any]]:
         m = self.task.measure(stepped)
-        info = {k: v[0].item() for k, v in _info(m, diverged).items()}
-        self._last = m
+        values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
+        info = {k: v for k, v in values.items() if k != "speed"}
+        info["diverged"] = diverged.item()
+        self._last, self._values = m, values
         return self.task.observe()[0], info
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -699,11 +804,11 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         self.task.apply(a)
         diverged = self.task.simulate()
         obs, info = self._result(diverged, ~diverged)
-        reward = float(self.task.reward(self._last)[0])
-        terminated = bool(info["is_success"]) and not info["diverged"]
+        reward = self.task.reward_one(self._last, self._values)
+        terminated = info["is_success"] and not info["diverged"]
         if self.render_mode == "human":
             self.render()
-        return obs, reward, terminated, bool(info["diverged"]), info
+        return obs, reward, terminated, info["diverged"], info
 
     def get_state(self) -> dict[str, Any]:
         """The full simulation state, for planning: restore it with :meth:`set_state`.
@@ -819,7 +924,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
         m = self.task.measure(stepped)
         info = _info(m, diverged)
-        info.update({f"_{k}": np.ones(self.num_envs, bool) for k in list(info)})
+        masks = np.ones((len(info), self.num_envs), bool)  # one allocation, a row per key
+        info.update({f"_{k}": mask for k, mask in zip(list(info), masks, strict=True)})
         return self.task.observe(), info, m
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
@@ -848,13 +954,15 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         a = self.task.check_actions(actions)
         resetting = self._autoreset.copy()
         envs = np.flatnonzero(resetting)
-        starts = [self.task.sample_start(self._rngs[i]) for i in envs]
-        self.task.write_start(envs, starts)
+        if len(envs):
+            starts = [self.task.sample_start(self._rngs[i]) for i in envs]
+            self.task.write_start(envs, starts)
         self.task.apply(a, idle=resetting)
         diverged = self.task.simulate()
-        # the resetting copies were stepped along (no actuation); put their first state back
-        self.task.write_start(envs, starts)
-        diverged[resetting] = False
+        if len(envs):
+            # the resetting copies were stepped along (no actuation); put their first state back
+            self.task.write_start(envs, starts)
+            diverged[resetting] = False
         obs, info, m = self._result(diverged, ~resetting & ~diverged)
         reward = self.task.reward(m)
         self.steps += 1

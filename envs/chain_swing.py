@@ -97,6 +97,8 @@ class ChainSwing(ParticleTask):
         self.goal_height = -self.length if lateral else self.length
         reach = self.length + 0.2
         self.view = (-self.travel - 0.3, -reach, self.travel + 0.3, reach)
+        #: The tracked coordinate is the tip's x (m).
+        self.tracked_particles = np.array([self.links])
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -161,10 +163,6 @@ class ChainSwing(ParticleTask):
         goal = uniform_away(rng, low, high, x0, self.min_distance)
         x, v = self.chain(x0, angles)
         return x, v, goal
-
-    def tracked(self, x: np.ndarray) -> np.ndarray:
-        """The tip's x (m)."""
-        return x[:, -1, 0].copy()
 
     def tip_distance(self, x: np.ndarray) -> np.ndarray:
         """Distance (m) from the tip to the target point ``(goal, goal_height)``, per copy."""

@@ -65,6 +65,8 @@ class ClothPin(ParticleTask):
         if nx < 2 or ny < 2 or (nx, ny) != tuple(cloth_size):
             raise ValueError(f"cloth_size must be two integers >= 2, got {cloth_size!r}")
         self.nx, self.ny, self.cloth_n = nx, ny, nx * ny
+        #: The tracked coordinate is the cloth's centre of mass x (m): see :meth:`tracked`.
+        self.tracked_particles = np.arange(self.cloth_n)
         self.spacing = check_positive("spacing", spacing)
         self.particle_mass = check_positive("particle_mass", particle_mass)
         self.cloth_ks = check_positive("cloth_ks", cloth_ks)

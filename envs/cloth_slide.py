@@ -78,6 +78,9 @@ class ClothSlide(ShapedTask, ParticleTask):
                          rest_speed=rest_speed, hold_steps=hold_steps,
                          residual_limit=residual_limit)
         self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
+        #: The tracked coordinate is the cloth's centre of mass x (m), the mean x of every
+        #: particle (all have the same mass): see :meth:`tracked`.
+        self.tracked_particles = np.arange(self.n)
         self.weight = float(np.sum(self.single.mass) * scenes.G)
 
     def build_scene(self) -> ParticleSystem:
@@ -117,26 +120,19 @@ class ClothSlide(ShapedTask, ParticleTask):
         return x, np.zeros_like(x), goal
 
     def tracked(self, x: np.ndarray) -> np.ndarray:
-        """The cloth's centre of mass x (m) (all particles have the same mass)."""
+        """The cloth's centre of mass x (m) (all particles have the same mass): the mean x of
+        :attr:`tracked_particles`, summed along the strided axis so that the numpy reference
+        gives every copy the same bits whatever the number of copies."""
         return x[:, :, 0].sum(axis=1) * (1.0 / x.shape[1])
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``wall_force``: both walls' total contact force (N; the
-        success test also needs it to be 0), and
+        success test also needs it to be 0: resting against a wall is not rest, so a step
+        touching it restarts the success count), and
         ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
         action (positive pushes the corners together; 0 in spring mode)."""
-        m = super().measure(stepped)
-        s = self.system
-        m["wall_force"] = np.zeros(self.num_envs)
-        walls = [w for w in s.forces if isinstance(w, Wall)]
-        if any(w.penetration(s.x).max(initial=0.0) > 0 for w in walls):  # else no contact
-            F = np.zeros_like(s.x)
-            for wall in walls:
-                wall.accumulate(s.x, s.v, s.mass, F)
-            m["wall_force"] = np.abs(F[:, 0]).reshape(self.num_envs, self.n).sum(axis=1)
-        if stepped is not None:  # resting against a wall is not rest: a step touching it
-            self.hold[stepped & (m["wall_force"] > 0)] = 0  # restarts the success count
-            m["is_success"] = self.hold >= self.hold_steps
+        m, wall_force = self._measures(stepped, walls=True)
+        m["wall_force"] = wall_force
         m["squeeze"] = (0.5 * self.max_force * (self.action[:, 0] - self.action[:, 1])
                         if self.action_mode == "force" else np.zeros(self.num_envs))
         return m
@@ -145,11 +141,11 @@ class ClothSlide(ShapedTask, ParticleTask):
         """Cost to go ``Phi = d + s``: distance to the goal (m) plus RMS particle speed (m/s)."""
         return m["distance"] + m["speed"]
 
-    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
+    def penalties(self, m: dict[str, Any]) -> Any:
         """``SQUEEZE_COST q^2`` (q the squeeze in action units) plus ``wall_penalty F_wall /
-        (M g)``."""
+        (M g)``, per copy (arrays) or for one copy (numbers: see ``reward_one``)."""
         q = m["squeeze"] / self.max_force
-        return SQUEEZE_COST * q**2 + self.wall_penalty * m["wall_force"] / self.weight
+        return SQUEEZE_COST * (q * q) + self.wall_penalty * m["wall_force"] / self.weight
 
 
 def _hanging_equilibrium(s: ParticleSystem, top: np.ndarray) -> np.ndarray:

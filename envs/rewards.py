@@ -42,13 +42,18 @@ class ShapedTask:
     num_envs: int
     measure: Any  # ParticleTask.measure
 
-    def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """The cost to go ``Phi`` (num_envs,) >= 0 from measures ``m``; 0 at the goal at rest."""
+    def potential(self, m: dict[str, Any]) -> Any:
+        """The cost to go ``Phi`` (num_envs,) >= 0 from measures ``m``; 0 at the goal at rest.
+        Written with arithmetic alone, so that it also takes one copy's measures as numbers
+        (:meth:`reward_one`) and gives the same bits."""
         raise NotImplementedError
 
-    def penalties(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """Non-negative per-step penalties (num_envs,) subtracted from the reward."""
-        return np.zeros(self.num_envs)
+    def penalties(self, m: dict[str, Any]) -> Any:
+        """Non-negative per-step penalties subtracted from the reward: (num_envs,) for measures
+        ``m`` of arrays, a number for one copy's measures as numbers (see :meth:`reward_one`);
+        none here."""
+        distance = m["distance"]
+        return 0.0 if isinstance(distance, float) else np.zeros(np.shape(distance))
 
     def _phi(self) -> np.ndarray:
         if getattr(self, "_last_potential", None) is None:
@@ -70,10 +75,21 @@ class ShapedTask:
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """``k (Phi_before - Phi_after) - TIME_COST - penalties + SUCCESS_BONUS * success``
-        (called once per env step, after the physics)."""
+        per copy (called once per env step, after the physics)."""
         phi = self.potential(m)
         before = self._phi()
         shaping = self.shaping_scale * (before - phi)
         self._last_potential = phi.copy()
-        return (shaping - TIME_COST - self.penalties(m)
-                + SUCCESS_BONUS * m["is_success"].astype(float))
+        return shaping - TIME_COST - self.penalties(m) + SUCCESS_BONUS * m["is_success"]
+
+    def reward_one(self, m: dict[str, np.ndarray], values: dict[str, Any]) -> float:
+        """:meth:`reward` of a task with one copy, from its measures as Python numbers
+        (``values``; ``m`` holds the same as arrays). The same formula in the same order on
+        IEEE doubles, so the same bits as :meth:`reward`, without a dozen array operations
+        on arrays of one element."""
+        phi = self.potential(values)
+        last = self._phi()
+        before = float(last[0])
+        last[0] = phi
+        return float(self.shaping_scale * (before - phi) - TIME_COST - self.penalties(values)
+                     + SUCCESS_BONUS * values["is_success"])

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from constrained_particles import Drag, ParticleSystem, scenes
 
+from . import _measure
 from .base import (
     ParticleEnv,
     ParticleTask,
@@ -53,6 +55,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         self.step_travel = 0.4 * r
         self.view = (-r - 0.15, -r - 0.15, L + r + 0.15, r + 0.15)
         self.goal_height = 0.0
+        #: The tracked coordinate is the slider's x (m).
+        self.tracked_particles = np.array([1])
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -74,6 +78,10 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``action * max_force`` (N) along the crank's counter-clockwise tangent."""
+        if _measure.ENABLED and len(x) == len(action):  # compiled; the reference is below
+            f = np.empty((len(action), 1, 2))
+            _measure.crank_push(x, action, self.max_force, f)
+            return f
         crank = x[:, 0, :]
         tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
@@ -83,11 +91,11 @@ class SliderCrank(ShapedTask, ParticleTask):
         """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
         counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
         r, L = self.radius, self.rod
-        c, s = np.cos(angle), np.sin(angle)
-        reach = np.sqrt(L**2 - (r * s) ** 2)
+        c, s = math.cos(angle), math.sin(angle)
+        reach = math.sqrt(L**2 - (r * s) ** 2)
         x = np.array([[r * c, r * s], [r * c + reach, 0.0]])
         dslider = -r * s - (r * s) * (r * c) / reach  # d(slider x)/d(angle)
-        v = omega * np.array([[-r * s, r * c], [dslider, 0.0]])
+        v = np.array([[omega * (-r * s), omega * (r * c)], [omega * dslider, 0.0]])
         return x, v
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
@@ -99,26 +107,27 @@ class SliderCrank(ShapedTask, ParticleTask):
         low, high = self.goal_range
         return x, v, uniform_away(rng, low, high, float(x[1, 0]), self.min_distance)
 
-    def tracked(self, x: np.ndarray) -> np.ndarray:
-        """The slider's x (m)."""
-        return x[:, 1, 0].copy()
-
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``crank_height``: the crank's y (m; the success test also
-        needs the crank above the slider's wire, ``crank_height > 0``), and ``crank_to_go``: the
-        arc length (m) along the crank's wire, the short way round, from the crank to the point
-        above the wire that puts the slider at the goal."""
-        crank = self.positions()[:, 0]
-        up = crank[:, 1] > 0
-        m = super().measure(stepped)
-        if stepped is not None:  # a step held at the goal and at rest, but below, does not count
-            self.hold[stepped & ~up] = 0
-        m["crank_height"] = crank[:, 1].copy()
+        needs the crank above the slider's wire, ``crank_height > 0``: a step held at the goal
+        and at rest, but below, does not count), and ``crank_to_go``: the arc length (m) along
+        the crank's wire, the short way round, from the crank to the point above the wire that
+        puts the slider at the goal."""
+        N = self.num_envs
         r, L, g = self.radius, self.rod, self.goal
-        target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
-        theta = np.arctan2(crank[:, 1], crank[:, 0])
-        m["crank_to_go"] = r * np.abs(np.angle(np.exp(1j * (target - theta))))
-        m["is_success"] = self.hold >= self.hold_steps
+        if _measure.ENABLED:
+            height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
+            _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below)
+        else:
+            crank = self.positions()[:, 0]
+            height = crank[:, 1].copy()
+            below = ~(height > 0)
+            target = np.arccos(np.clip((g**2 + r**2 - L**2) / (2 * g * r), -1.0, 1.0))
+            theta = np.arctan2(crank[:, 1], crank[:, 0])
+            to_go = r * np.abs(np.angle(np.exp(1j * (target - theta))))
+        m, _ = self._measures(stepped, blocked=below)
+        m["crank_height"] = height
+        m["crank_to_go"] = to_go
         return m
 
     def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:

@@ -330,6 +330,10 @@ def test_per_copy_pieces_refuse_what_they_cannot_do():
     for bad in [np.ones(3, np.int64), np.zeros(4, np.int64), np.ones(4), [1, 1, 1, 1]]:
         with pytest.raises(ValueError, match="pieces"):
             s._step_pieces(1e-3, "rk4", 1, bad)
+    for steps in [0, -2, 1.5]:
+        with pytest.raises(ValueError, match="steps"):
+            s._step_pieces(1e-3, "rk4", steps, np.ones(4, np.int64))
+    assert s.x.tobytes() == x0.tobytes() and s.t == 0.0
 
 
 def test_per_copy_pieces_divergence_keeps_the_state():

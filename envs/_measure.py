@@ -1,0 +1,246 @@
+"""Compiled per-step bookkeeping of the environments (Numba): measures and observations.
+
+One env step of a small scene costs little physics once the step is compiled; what is left is
+the bookkeeping around it. The kernels here do that bookkeeping for every copy of a tiled task
+in one call each, with no Python between:
+
+- :func:`measures`: per copy, the RMS particle speed (m/s), kinetic energy (J), the largest
+  geometric constraint residual (m, see ``Constraint.distance_error``), the distance (m) from
+  the tracked x coordinate (the mean x of some particles) to the goal, optionally the walls'
+  total contact force (N), and the update of the count of consecutive steps at the goal;
+- :func:`observe`: the float32 observation (normalized positions, velocities, goal), clipped.
+
+They read the system's blocks through :func:`constrained_particles.fused.pack`, so they see
+exactly the blocks (and the in-place edits) the compiled step sees, and the wall formula is the
+shared compiled element ``_kernels.wall_element``. The numpy code in :mod:`envs.base` stays the
+reference implementation: it runs when ``CPARTICLES_NUMBA=0`` (``ENABLED`` is then False) or a
+system holds blocks the compiled step does not know, and the tests tie the two together.
+
+Copies are independent: every value of copy ``i`` is computed from copy ``i``'s particles
+alone, in the same order whatever the number of copies, so a vector env's copy ``i`` still
+reproduces a single env bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from constrained_particles import _kernels
+
+ENABLED = _kernels.ENABLED  #: True when the compiled bookkeeping is in use
+
+
+def packed(system: Any) -> Any:
+    """The system's compiled description (``fused.Packed``), or None when the compiled
+    bookkeeping is off or does not cover the system (then the numpy reference runs)."""
+    if not ENABLED:
+        return None
+    from constrained_particles import fused
+
+    p = fused.pack(system)
+    if not p.valid:
+        return None
+    if p._refresh:  # several blocks of one type: bring their joined parameters up to date
+        p.refresh()
+    return p
+
+
+measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is False)
+observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
+grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is False)
+clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
+crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
+crank_push: Any = None  #: the compiled SliderCrank force action (None when ``ENABLED`` is False)
+
+if ENABLED:
+    import numba
+
+    from constrained_particles._kernels import wall_element
+
+    njit = numba.njit(cache=True)
+
+    @njit
+    def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
+        """``residual[i] = max(residual[i], d)``, NaN winning (as ``np.maximum``)."""
+        if not d <= residual[i]:
+            residual[i] = d
+
+    @njit
+    def _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
+                  walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps,
+                  out, success):  # pragma: no cover - compiled
+        """Fill ``out`` (5, N) with distance (m), speed (m/s), kinetic energy (J), constraint
+        residual (m) and wall force (N) per copy, advance ``hold`` of the ``stepped`` copies
+        and write ``success = hold >= hold_steps``.
+
+        ``track`` holds the particles (within a copy) whose mean x, ``track_scale`` times their
+        sum, is driven to ``goal``. ``walls``: compute the walls' contact force and let a step
+        touching a wall restart the count; ``blocked`` copies restart it too.
+        """
+        N = goal.shape[0]
+        distance, speed, energy, residual, wall_force = out[0], out[1], out[2], out[3], out[4]
+        for i in range(N):
+            s2 = 0.0
+            e2 = 0.0
+            for k in range(i * n, (i + 1) * n):
+                w = v[k, 0] * v[k, 0] + v[k, 1] * v[k, 1]
+                s2 += w
+                e2 += mass[k] * w
+            speed[i] = math.sqrt(s2 * (1.0 / n))
+            energy[i] = 0.5 * e2
+            t = 0.0
+            for j in range(track.shape[0]):
+                t += x[i * n + track[j], 0]
+            distance[i] = abs(t * track_scale - goal[i])
+            residual[i] = 0.0
+            wall_force[i] = 0.0
+        cp, cc, cr, _ = circ
+        for e in range(cp.shape[0]):
+            q = cp[e]
+            dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
+            _worse(residual, q // n, abs(math.sqrt(dx * dx + dy * dy) - cr[e]))
+        ra, rb, rl, _ = rod
+        for e in range(ra.shape[0]):
+            a, b = ra[e], rb[e]
+            dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
+            _worse(residual, a // n, abs(math.sqrt(dx * dx + dy * dy) - rl[e]))
+        lp, ln, lpt, _ = line
+        for e in range(lp.shape[0]):
+            q = lp[e]
+            _worse(residual, q // n, abs((x[q, 0] - lpt[e, 0]) * ln[e, 0]
+                                         + (x[q, 1] - lpt[e, 1]) * ln[e, 1]))
+        fp, fpt, _ = fixed
+        for e in range(fp.shape[0]):
+            q = fp[e]
+            _worse(residual, q // n, abs(x[q, 0] - fpt[e, 0]))
+            _worse(residual, q // n, abs(x[q, 1] - fpt[e, 1]))
+        if walls:
+            wi, wk, wn, wp = wall
+            fx = np.zeros(x.shape[0])
+            touching = False
+            for e in range(wi.shape[0]):
+                q, k = wi[e], wk[e]
+                f, _ = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
+                                    wp[k, 0], wp[k, 1], wp[k, 2])
+                if f != 0.0:
+                    fx[q] += f
+                    touching = True
+            if touching:
+                for i in range(N):
+                    f = 0.0
+                    for k in range(i * n, (i + 1) * n):
+                        f += abs(fx[k])
+                    wall_force[i] = f
+        for i in range(N):
+            if stepped[i]:
+                if (distance[i] < tolerance and speed[i] < rest_speed and not blocked[i]
+                        and not wall_force[i] > 0.0):
+                    hold[i] += 1
+                else:
+                    hold[i] = 0
+            success[i] = hold[i] >= hold_steps
+
+    @njit
+    def _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+        """Write ``obs`` (N, 4 n + 1) float32: ``(x - c) / h``, ``v / h``, the goal's
+        ``(goal - c_x) / h_x``, each computed in float64 (``ix, iy`` = 1 / h), rounded to
+        float32 and clipped to ``[-limit, limit]``."""
+        N = goal.shape[0]
+        hi = np.float32(limit)
+        lo = np.float32(-limit)
+        for i in range(N):
+            for k in range(n):
+                p = i * n + k
+                obs[i, 2 * k] = min(max(np.float32((x[p, 0] - cx) * ix), lo), hi)
+                obs[i, 2 * k + 1] = min(max(np.float32((x[p, 1] - cy) * iy), lo), hi)
+                obs[i, 2 * n + 2 * k] = min(max(np.float32(v[p, 0] * ix), lo), hi)
+                obs[i, 2 * n + 2 * k + 1] = min(max(np.float32(v[p, 1] * iy), lo), hi)
+            obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
+
+    @njit
+    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, current, particles, anchors, active):
+        # pragma: no cover - compiled
+        """The spring action of copies ``envs``: for each, the particle of the copy nearest the
+        grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
+        the target ``c + h * action[2:]`` (``anchors[envs]``, m) and whether the particle is
+        within ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and
+        ``active`` are the mouse-spring block's own arrays, written in place; True if some
+        copy's particle differs from its entry of ``current`` (the block's particle array),
+        which the caller must then replace."""
+        changed = False
+        for e in range(envs.shape[0]):
+            i = envs[e]
+            gx = cx + hx * action[e, 0]
+            gy = cy + hy * action[e, 1]
+            best = i * n
+            d2 = math.inf
+            for k in range(i * n, (i + 1) * n):
+                dx = x[k, 0] - gx
+                dy = x[k, 1] - gy
+                dk = dx * dx + dy * dy
+                if dk < d2:
+                    d2 = dk
+                    best = k
+            particles[e] = best
+            changed |= current[i] != best
+            anchors[i, 0] = cx + hx * action[e, 2]
+            anchors[i, 1] = cy + hy * action[e, 3]
+            active[i] = d2 <= r2
+        return changed
+
+    @njit
+    def _clip_actions(a, out):  # pragma: no cover - compiled
+        """``out = clip(a, -1, 1)`` as float64 (same shape, C order); False, with ``out``
+        unspecified, if any entry of ``a`` is NaN or infinite."""
+        flat = a.reshape(-1)
+        dst = out.reshape(-1)
+        for k in range(flat.shape[0]):
+            u = np.float64(flat[k])
+            if not math.isfinite(u):
+                return False
+            dst[k] = min(max(u, -1.0), 1.0)
+        return True
+
+    @njit
+    def _crank(x, n, goal, r, r2, rod2, height, to_go, below):  # pragma: no cover - compiled
+        """SliderCrank's crank measures per copy (particle 0 of each copy is the crank, on a
+        circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is ``rod2``):
+        ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
+        ``to_go`` the arc length (m) the short way round to the point above the wire that puts
+        the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``, the
+        difference wrapped into [-pi, pi] by a whole turn (the reference takes the angle of
+        ``exp(i d)``: the same to rounding)."""
+        for i in range(goal.shape[0]):
+            px, py = x[i * n, 0], x[i * n, 1]
+            g = goal[i]
+            target = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
+            d = target - math.atan2(py, px)  # in [-pi, 2 pi]: one turn at most to wrap
+            if d > math.pi:
+                d -= 2.0 * math.pi
+            elif d < -math.pi:
+                d += 2.0 * math.pi
+            height[i] = py
+            below[i] = not py > 0.0
+            to_go[i] = r * abs(d)
+
+    @njit
+    def _crank_push(x, action, max_force, out):  # pragma: no cover - compiled
+        """SliderCrank's force action: ``out[i, 0] = action[i, 0] max_force t`` (N), ``t`` the
+        unit counter-clockwise tangent ``(-y, x) / |(x, y)|`` at copy ``i``'s crank ``x[i, 0]``
+        (positions (copies, n, 2), m)."""
+        for i in range(action.shape[0]):
+            px, py = x[i, 0, 0], x[i, 0, 1]
+            norm = math.sqrt(py * py + px * px)
+            f = action[i, 0] * max_force
+            out[i, 0, 0] = f * (-py / norm)
+            out[i, 0, 1] = f * (px / norm)
+
+    measures = _measures
+    observe = _observe
+    grab = _grab
+    clip_actions = _clip_actions
+    crank = _crank
+    crank_push = _crank_push
