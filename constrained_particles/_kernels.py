@@ -110,6 +110,18 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
             ``J = n^T``, ``Jdot = 0``."""
             return nx * (px - ox) + ny * (py - oy), nx * vx + ny * vy
 
+        @njit
+        def add_spring(x: np.ndarray, v: np.ndarray, F: np.ndarray, a: int, b: int, ks: float,
+                       kd: float, rest: float) -> None:  # pragma: no cover - compiled
+            """Add one damped spring's force (N) between particles ``a`` and ``b`` (indices
+            already checked) into ``F``: :func:`spring_element` on ``a``, its opposite on ``b``."""
+            fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], v[a, 0] - v[b, 0],
+                                    v[a, 1] - v[b, 1], ks, kd, rest)
+            F[a, 0] += fx
+            F[a, 1] += fy
+            F[b, 0] -= fx
+            F[b, 1] -= fy
+
         # ------------------------------------------------------------------ block kernels
         @njit
         def _spring_forces(x: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray,
@@ -120,13 +132,7 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                 a, b = i[s], j[s]
                 if a < 0 or a >= n or b < 0 or b >= n:
                     raise IndexError("DampedSpring: particle index out of range")
-                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
-                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], ks[s], kd[s],
-                                        rest[s])
-                F[a, 0] += fx
-                F[a, 1] += fy
-                F[b, 0] -= fx
-                F[b, 1] -= fy
+                add_spring(x, v, F, a, b, ks[s], kd[s], rest[s])
 
         def spring_forces(x: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray,
                           ks: np.ndarray, kd: np.ndarray, rest: np.ndarray,

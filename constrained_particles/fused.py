@@ -359,6 +359,7 @@ if _kernels.ENABLED:
     import numba
 
     from ._kernels import (
+        add_spring,
         angular_element,
         circle_row,
         line_row,
@@ -478,14 +479,8 @@ if _kernels.ENABLED:
         k = si.shape[0]
         if k < 2 * SPRING_BLOCK:  # few springs: the plain loop (no allocation)
             for e in range(k):
-                a, b = np.uint64(si[e]), np.uint64(sj[e])
-                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
-                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], sks[e], skd[e],
-                                        srest[e])
-                F[a, 0] += fx
-                F[a, 1] += fy
-                F[b, 0] -= fx
-                F[b, 1] -= fy
+                add_spring(x, v, F, np.uint64(si[e]), np.uint64(sj[e]), sks[e], skd[e],
+                           srest[e])
             return
         ws = np.empty((6, SPRING_BLOCK))
         lx, ly, ux, uy, fx, fy = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5]
@@ -573,14 +568,9 @@ if _kernels.ENABLED:
         else:
             for ee in range(live[4][5]):
                 e = live[5][2][ee]
-                a, b = np.uint64(si[e]), np.uint64(sj[e])  # (checked: no wraparound needed)
-                fx, fy = spring_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
-                                        v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], sks[e], skd[e],
-                                        srest[e])
-                F[a, 0] += fx
-                F[a, 1] += fy
-                F[b, 0] -= fx
-                F[b, 1] -= fy
+                # (checked indices read as unsigned: no wraparound needed)
+                add_spring(x, v, F, np.uint64(si[e]), np.uint64(sj[e]), sks[e], skd[e],
+                           srest[e])
         aa, ab, ac, arest, ak, akd = ang
         for ee in range(aa.shape[0] if live is None else live[4][6]):
             e = ee if live is None else live[5][3][ee]
