@@ -51,6 +51,9 @@ METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rat
 RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
 #: Springs per block of the compiled spring loop (see ``_springs``).
 SPRING_BLOCK = 128
+#: Shortest run of springs ``(a + t, b + t)`` that the spring loop takes as a run (contiguous
+#: reads and writes instead of gathers and scatters), and the run loop's block size.
+RUN_MIN, RUN_BLOCK = 32, 256
 #: Particles from which the compiled per-particle loops run over flat views (a view costs
 #: about as much as the loop saves on a few dozen particles).
 FLAT_MIN = 256
@@ -104,6 +107,22 @@ def _bool(a: Any) -> tuple[np.ndarray, bool]:
             and a.flags.writeable):
         return a, True
     return np.ascontiguousarray(np.asarray(a, dtype=bool).ravel()), False
+
+
+def spring_runs(i: np.ndarray, j: np.ndarray, minimum: int = RUN_MIN) -> np.ndarray:
+    """The runs in a spring list ``(i, j)``: spans ``[lo, hi)`` of at least ``minimum`` springs
+    whose ends both step by one (``i[e] = i[lo] + e - lo``, ``j[e] = j[lo] + e - lo``) and
+    differ (``i != j``), as a read-only (runs, 2) int64 array. A cloth's rows, columns and
+    diagonals are such runs; the compiled spring loop reads and writes them contiguously."""
+    k = len(i)
+    if k < minimum:
+        return _ro(np.zeros((0, 2), np.int64))
+    step = (np.diff(i) != 1) | (np.diff(j) != 1)
+    starts = np.flatnonzero(np.r_[True, step])
+    ends = np.r_[starts[1:], k]
+    keep = (ends - starts >= minimum) & (i[starts] != j[starts])
+    return _ro(np.ascontiguousarray(np.stack([starts[keep], ends[keep]], axis=1),
+                                    dtype=np.int64))
 
 
 class Packed:
@@ -176,9 +195,10 @@ class Packed:
         self.grav = join(grav, (_I0, _I0, _F02))
         self.const = join([(idx_of(c, "particles"), f64(c, "force", 2))
                            for c in by_type.get(ConstantForce, [])], (_I0, _F02))
-        self.spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
-                             f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
-                           (_I0, _I0, _F0, _F0, _F0))
+        spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
+                        f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
+                      (_I0, _I0, _F0, _F0, _F0))
+        self.spring = (*spring, spring_runs(spring[0], spring[1]))
         self.ang = join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"), f64(a, "rest", 1),
                           f64(a, "k", 1), f64(a, "kd", 1))
                          for a in by_type.get(AngularSpring, [])],
@@ -382,6 +402,24 @@ if _kernels.ENABLED:
         return bad == 0
 
     @njit
+    def _runs_hold(si, sj, runs):  # pragma: no cover - compiled
+        """True if every run ``[lo, hi)`` of ``runs`` (in order, not overlapping, within the
+        spring list) has both ends stepping by one and ``si != sj`` (see :func:`spring_runs`),
+        so that the spring loop may read it through contiguous slices."""
+        end = 0
+        for r in range(runs.shape[0]):
+            lo, hi = runs[r, 0], runs[r, 1]
+            if lo < end or hi <= lo or hi > si.shape[0] or si[lo] == sj[lo]:
+                return False
+            bad = 0
+            for e in range(lo, hi):
+                bad += (si[e] - si[lo] != e - lo) | (sj[e] - sj[lo] != e - lo)
+            if bad:
+                return False
+            end = hi
+        return True
+
+    @njit
     def _same_count(counts, a, b):  # pragma: no cover - compiled
         """True if particles a[e] and b[e] take the same number of steps, for every e."""
         for e in range(a.shape[0]):
@@ -410,7 +448,7 @@ if _kernels.ENABLED:
                 return False
         k = spring[0].shape[0]
         if (spring[1].shape[0] != k or spring[2].shape[0] != k or spring[3].shape[0] != k
-                or spring[4].shape[0] != k):
+                or spring[4].shape[0] != k or not _runs_hold(spring[0], spring[1], spring[5])):
             return False
         k = ang[0].shape[0]
         if (ang[1].shape[0] != k or ang[2].shape[0] != k or ang[3].shape[0] != k
@@ -465,7 +503,91 @@ if _kernels.ENABLED:
         return True
 
     @njit
-    def _springs(x, v, F, si, sj, srest, sks, skd):  # pragma: no cover - compiled
+    def _springs(x, v, F, si, sj, srest, sks, skd, runs):  # pragma: no cover - compiled
+        """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
+        ``F``, in spring order: the ``runs`` (see :func:`spring_runs`, checked by
+        :func:`_check_inputs`) by :func:`_spring_run`, the springs between them by
+        :func:`_scattered_springs`. Bitwise the plain loop's result either way."""
+        k = si.shape[0]
+        if runs.shape[0] == 0:
+            _scattered_springs(x, v, F, si, sj, srest, sks, skd)
+            return
+        xf, vf, Ff = x.reshape(-1), v.reshape(-1), F.reshape(-1)
+        ws = np.empty((6, RUN_BLOCK))
+        e = 0
+        for r in range(runs.shape[0] + 1):
+            stop = runs[r, 0] if r < runs.shape[0] else k
+            if stop > e:
+                _scattered_springs(x, v, F, si[e:stop], sj[e:stop], srest[e:stop],
+                                   sks[e:stop], skd[e:stop])
+            if r == runs.shape[0]:
+                break
+            lo, hi = runs[r, 0], runs[r, 1]
+            a0, d = si[lo], sj[lo] - si[lo]
+            for c in range(lo, hi, RUN_BLOCK):
+                m = min(RUN_BLOCK, hi - c)
+                _spring_run(xf, vf, Ff, a0 + (c - lo), d, srest[c:c + m], sks[c:c + m],
+                            skd[c:c + m], ws)
+            e = hi
+
+    @njit
+    def _spring_run(xf, vf, Ff, a, d, rest, ks, kd, ws):  # pragma: no cover - compiled
+        """The springs ``(a + t, a + d + t)``, t < m = len(rest) (d != 0, all in range), on
+        flat views of x, v and F: the ends' differences are read from contiguous slices, the
+        :func:`spring_element` loop runs over the block, and each particle's sums are written
+        in one pass in the plain loop's order (a particle that ends two springs of the run
+        takes the earlier spring's force first), so the result is bitwise the plain loop's."""
+        m = rest.shape[0]
+        b = a + d
+        lx, ly, ux, uy, fx, fy = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5]
+        xa, xb = xf[2 * a:2 * (a + m)], xf[2 * b:2 * (b + m)]
+        va, vb = vf[2 * a:2 * (a + m)], vf[2 * b:2 * (b + m)]
+        for t in range(m):
+            lx[t] = xa[2 * t] - xb[2 * t]
+            ly[t] = xa[2 * t + 1] - xb[2 * t + 1]
+            ux[t] = va[2 * t] - vb[2 * t]
+            uy[t] = va[2 * t + 1] - vb[2 * t + 1]
+        for t in range(m):
+            fx[t], fy[t] = spring_element(lx[t], ly[t], ux[t], uy[t], ks[t], kd[t], rest[t])
+        if d >= m or -d >= m:  # the two ends' ranges are disjoint
+            Fa = Ff[2 * a:2 * (a + m)]
+            for t in range(m):
+                Fa[2 * t] += fx[t]
+                Fa[2 * t + 1] += fy[t]
+            Fb = Ff[2 * b:2 * (b + m)]
+            for t in range(m):
+                Fb[2 * t] -= fx[t]
+                Fb[2 * t + 1] -= fy[t]
+        elif d > 0:  # [a, b): end i only; [b, a + m): j of spring t, then i of t + d; then j
+            Fa = Ff[2 * a:2 * b]
+            for t in range(d):
+                Fa[2 * t] += fx[t]
+                Fa[2 * t + 1] += fy[t]
+            Fm = Ff[2 * b:2 * (a + m)]
+            for t in range(m - d):
+                Fm[2 * t] = (Fm[2 * t] - fx[t]) + fx[t + d]
+                Fm[2 * t + 1] = (Fm[2 * t + 1] - fy[t]) + fy[t + d]
+            Fb = Ff[2 * (a + m):2 * (b + m)]
+            for t in range(d):
+                Fb[2 * t] -= fx[m - d + t]
+                Fb[2 * t + 1] -= fy[m - d + t]
+        else:  # [b, a): end j only; [a, b + m): i of spring t, then j of t - d; then i
+            g = -d
+            Fb = Ff[2 * b:2 * a]
+            for t in range(g):
+                Fb[2 * t] -= fx[t]
+                Fb[2 * t + 1] -= fy[t]
+            Fm = Ff[2 * a:2 * (b + m)]
+            for t in range(m - g):
+                Fm[2 * t] = (Fm[2 * t] + fx[t]) - fx[t + g]
+                Fm[2 * t + 1] = (Fm[2 * t + 1] + fy[t]) - fy[t + g]
+            Fa = Ff[2 * (b + m):2 * (a + m)]
+            for t in range(g):
+                Fa[2 * t] += fx[m - g + t]
+                Fa[2 * t + 1] += fy[m - g + t]
+
+    @njit
+    def _scattered_springs(x, v, F, si, sj, srest, sks, skd):  # pragma: no cover - compiled
         """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
         ``F``. Indices were checked by :func:`_check_inputs`; read as unsigned, they are used
         without the negative-index wraparound.
@@ -562,9 +684,9 @@ if _kernels.ENABLED:
             q = ci[e]
             F[q, 0] += cf[e, 0]
             F[q, 1] += cf[e, 1]
-        si, sj, srest, sks, skd = spring
+        si, sj, srest, sks, skd, sruns = spring
         if live is None:
-            _springs(x, v, F, si, sj, srest, sks, skd)
+            _springs(x, v, F, si, sj, srest, sks, skd, sruns)
         else:
             for ee in range(live[4][5]):
                 e = live[5][2][ee]

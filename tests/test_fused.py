@@ -355,7 +355,7 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     i[5] = j[5]  # zero length: no force
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     blocks = np.zeros((n, 2))
-    fused._springs(x, v, blocks, i, j, rest, ks, kd)
+    fused._springs(x, v, blocks, i, j, rest, ks, kd, fused.spring_runs(i, j))
     plain = np.zeros((n, 2))
     _kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert blocks.tobytes() == plain.tobytes()
@@ -368,6 +368,51 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     np.add.at(expected, i, f)
     np.add.at(expected, j, -f)
     close(blocks, expected)
+
+
+def test_runs_of_springs_are_bitwise_the_plain_loop():
+    """Runs of springs (both ends stepping by one: a cloth's rows, columns and diagonals) go
+    through contiguous slices; with runs whose ends overlap either way round (offsets +-1,
+    +-3), ends far apart, runs longer than a block, springs between runs and a run at the end,
+    the forces are bit for bit the block kernel's plain loop."""
+    rng = np.random.default_rng(7)
+    n = 2000
+    parts = [(np.arange(100, 100 + 700), 1),      # overlapping ends, offset +1, > 2 blocks
+             (rng.integers(0, n, 50), None),      # scattered
+             (np.arange(900, 900 + 300), -3),     # overlapping, negative offset
+             (np.arange(10, 10 + 40), 1000),      # disjoint ends
+             (rng.integers(0, n, 5), None),
+             (np.arange(1500, 1500 + 257), -1),
+             (np.arange(1300, 1300 + fused.RUN_MIN - 1), 2),   # one short of a run
+             (np.arange(40, 40 + 600), 64)]
+    i = np.concatenate([a for a, _ in parts])
+    j = np.concatenate([a + d if d is not None else rng.integers(0, n, len(a)) for a, d in parts])
+    runs = fused.spring_runs(i, j)
+    assert len(runs) == 5 and runs[-1, 1] == len(i)
+    assert not runs.flags.writeable
+    k = len(i)
+    x, v = rng.uniform(-1, 1, (n, 2)), rng.normal(size=(n, 2))
+    ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
+    got, plain = rng.normal(size=(n, 2)), np.zeros((n, 2))
+    plain[:] = got  # forces add to what F holds
+    fused._springs(x, v, got, i, j, rest, ks, kd, runs)
+    _kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
+    assert got.tobytes() == plain.tobytes()
+
+
+def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
+    """The kernel checks the runs against the index arrays on every call: a packed run that
+    the spring list does not hold sends the step to the reference path."""
+    s = scenes.cloth(40, 3, wall_x=None)
+    p = fused.pack(s)
+    assert len(p.spring[5]) > 0
+    si, sj, *rest, runs = p.spring
+    bad = np.array(runs)
+    bad[0, 1] += 1  # one spring too many
+    p.spring = (si, sj, *rest, fused._ro(bad))
+    p.args = (p.grav, p.const, p.spring, *p.args[3:])
+    status, *_ = fused.run(s, 1e-3, "symplectic_euler", 1, np.zeros(p.m), np.inf)
+    assert status == fused.FALLBACK
 
 
 @pytest.mark.parametrize("method", ["symplectic_euler", "rk4"])
