@@ -262,7 +262,7 @@ class Packed:
                   self.mouse, self.circ, self.rod, self.line, self.fixed)
         self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
                         np.zeros(len(self.comp_ptr) - 1, np.int64),
-                        np.zeros(3 + len(_ELEMENT_TYPES), np.int64),
+                        np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
                         tuple(np.zeros(len(b[0]), np.int64) for b in blocks))
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
@@ -670,8 +670,15 @@ if _kernels.ENABLED:
         # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
-        all live), elements on particles that are not live are skipped (they get zero force)."""
-        F[:, :] = 0.0
+        all live), elements on particles that are not live are skipped, and so are those
+        particles' rows of F (nothing reads them)."""
+        if live is None:
+            F[:, :] = 0.0
+        else:
+            for i in range(live[4][0]):
+                q = live[1][i]
+                F[q, 0] = 0.0
+                F[q, 1] = 0.0
         gi, gblock, gg = grav
         for ee in range(gi.shape[0] if live is None else live[4][3]):
             e = ee if live is None else live[5][0][ee]
@@ -1090,15 +1097,22 @@ if _kernels.ENABLED:
         ``live[0]`` and, when it changed, the lists of live particles, rows and components
         (``live[1:4]``) and of the live elements of each block type (``live[5]``, in the order
         of :data:`_ELEMENT_TYPES`; ``firsts`` holds each type's first-particle array), with
-        their lengths in ``live[4]``."""
+        their lengths in ``live[4]``, whose last entry keeps the next step at which the mask
+        changes (until then nothing is scanned)."""
         mask, plist, rlist, clist, sizes, elements = live
-        changed = step == 0
+        last = sizes.shape[0] - 1  # the next step at which the mask changes
+        if step > 0 and step < sizes[last]:
+            return
+        flips = 0
+        upcoming = np.iinfo(np.int64).max
         for q in range(mask.shape[0]):
-            now = step < counts[q]
-            if now != mask[q] or step == 0:
-                changed = True
+            c = counts[q]
+            now = step < c
+            flips += now != mask[q]
             mask[q] = now
-        if not changed:
+            upcoming = min(upcoming, c if now else upcoming)
+        sizes[last] = upcoming
+        if step > 0 and flips == 0:
             return
         k = 0
         for q in range(mask.shape[0]):
@@ -1305,7 +1319,7 @@ if _kernels.ENABLED:
                                  or live[0].shape[0] != n or live[1].shape[0] != n
                                  or live[2].shape[0] != m
                                  or live[3].shape[0] != comp_ptr.shape[0] - 1
-                                 or live[4].shape[0] != 3 + len(_ELEMENT_TYPES)
+                                 or live[4].shape[0] != 4 + len(_ELEMENT_TYPES)
                                  or not _element_lists_fit(live[5], grav, const, spring, ang,
                                                            drag, wall, mouse, circ, rod, line,
                                                            fixed)):

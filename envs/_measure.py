@@ -205,19 +205,24 @@ if ENABLED:
         return True
 
     @njit
-    def _crank(x, n, goal, r, r2, rod2, height, to_go, below):  # pragma: no cover - compiled
+    def _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target):
+        # pragma: no cover - compiled
         """SliderCrank's crank measures per copy (particle 0 of each copy is the crank, on a
         circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is ``rod2``):
         ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
         ``to_go`` the arc length (m) the short way round to the point above the wire that puts
         the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``, the
         difference wrapped into [-pi, pi] by a whole turn (the reference takes the angle of
-        ``exp(i d)``: the same to rounding)."""
+        ``exp(i d)``: the same to rounding). The goal's angle is kept in ``target`` and
+        recomputed only where ``goal`` differs from ``seen`` (the goals it was computed for;
+        NaN: never)."""
         for i in range(goal.shape[0]):
             px, py = x[i * n, 0], x[i * n, 1]
             g = goal[i]
-            target = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
-            d = target - math.atan2(py, px)  # in [-pi, 2 pi]: one turn at most to wrap
+            if not seen[i] == g:
+                target[i] = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
+                seen[i] = g
+            d = target[i] - math.atan2(py, px)  # in [-pi, 2 pi]: one turn at most to wrap
             if d > math.pi:
                 d -= 2.0 * math.pi
             elif d < -math.pi:

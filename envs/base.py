@@ -180,6 +180,12 @@ class ParticleTask:
         self.system = scene.tile(self.num_envs)
         #: The tiled actuator: copy ``i``'s action is written into its rows only.
         self.actuator: ConstantForce | MouseSpring = self.system.forces[-1]
+        # (the force actuator's particles, if none repeats, and a force array that is zero
+        # elsewhere: pieces() writes the actuator's forces into it instead of accumulating)
+        self._pushed: tuple[np.ndarray, np.ndarray] | None = None
+        act = self.actuator
+        if isinstance(act, ConstantForce) and len(np.unique(act.particles)) == len(act):
+            self._pushed = (act.particles, np.zeros_like(self.system.x))
         self.rows_per_copy = len(scene.forces[-1])
         self.goal = np.zeros(self.num_envs)
         self.hold = np.zeros(self.num_envs, dtype=np.int64)
@@ -472,8 +478,14 @@ class ParticleTask:
         copies = s.n // self.n
         if self.step_travel == math.inf:
             return np.ones(copies, np.int64)
-        F = np.zeros_like(s.x)
-        s.forces[-1].accumulate(s.x, s.v, s.mass, F)
+        act = s.forces[-1]
+        if (system is None and isinstance(act, ConstantForce) and self._pushed is not None
+                and act.particles is self._pushed[0]):
+            F = self._pushed[1]  # zero but on the pushed particles, each pushed once
+            F[act.particles] = act.force
+        else:
+            F = np.zeros_like(s.x)
+            act.accumulate(s.x, s.v, s.mass, F)
         horizon = self.substeps * self.dt
         if _kernels.group_pieces is not None:  # the same formula, compiled
             out = np.empty(copies, np.int64)
@@ -562,7 +574,10 @@ class ParticleTask:
             if need is self._one_piece or need.max() == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
-            if s._step_pieces(self.dt, self.integrator, self.substeps, np.repeat(need, self.n)):
+            # (the counts are this task's own, >= 1: the kernel is called without re-checking)
+            if (self.integrator != "rattle" and not s.project_each_step
+                    and s._fused_step(self.dt, self.integrator, self.substeps, False,
+                                      np.repeat(need, self.n))):
                 return np.zeros(self.num_envs, bool)
         except SimulationDiverged:
             pass

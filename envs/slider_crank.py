@@ -57,6 +57,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         self.goal_height = 0.0
         #: The tracked coordinate is the slider's x (m).
         self.tracked_particles = np.array([1])
+        #: (goals, their crank angles) last used by the compiled measure (see _measure.crank)
+        self._goal_angle: tuple[np.ndarray, np.ndarray] | None = None
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -117,7 +119,10 @@ class SliderCrank(ShapedTask, ParticleTask):
         r, L, g = self.radius, self.rod, self.goal
         if _measure.ENABLED:
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below)
+            if self._goal_angle is None or len(self._goal_angle[0]) != N:
+                self._goal_angle = (np.full(N, np.nan), np.zeros(N))
+            _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below,
+                           *self._goal_angle)
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()
