@@ -275,19 +275,42 @@ class ParticleTask:
         """Metres (..., 2) to normalized scene coordinates."""
         return (p - self.center) / self.half
 
+    def sample_starts(self, rngs: Sequence[np.random.Generator]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`sample_start` from each generator, stacked: positions and velocities
+        (len(rngs), n, 2) and goals (len(rngs),). A subclass may draw them in one pass; each
+        copy's draws must stay those of :meth:`sample_start` from its generator, bit for bit."""
+        n = self.n
+        x, v, goal = np.empty((len(rngs), n, 2)), np.empty((len(rngs), n, 2)), \
+            np.empty(len(rngs))
+        for k, rng in enumerate(rngs):
+            x[k], v[k], goal[k] = self.sample_start(rng)
+        return x, v, goal
+
     def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
-        """Write starting states ``(x, v, goal)`` into the slices of copies ``envs`` only
-        (all of them in a few whole-array operations)."""
+        """Write starting states ``(x, v, goal)`` into the slices of copies ``envs`` only."""
+        if len(np.asarray(envs).reshape(-1)) != len(starts):
+            raise ValueError(f"write_start: {len(np.asarray(envs).reshape(-1))} copies but "
+                             f"{len(starts)} starts")
+        n = self.n
+        self.write_starts(envs, np.array([np.reshape(x, (n, 2)) for x, _, _ in starts],
+                                         dtype=float).reshape(-1, n, 2),
+                          np.array([np.reshape(v, (n, 2)) for _, v, _ in starts],
+                                   dtype=float).reshape(-1, n, 2),
+                          np.array([goal for _, _, goal in starts], dtype=float))
+
+    def write_starts(self, envs: Sequence[int], x: np.ndarray, v: np.ndarray,
+                     goal: np.ndarray) -> None:
+        """Write starting positions and velocities (len(envs), n, 2) and goals (len(envs),)
+        into the slices of copies ``envs`` only (in a few whole-array operations)."""
         envs = np.asarray(envs, dtype=np.int64).reshape(-1)
-        if len(envs) != len(starts):
-            raise ValueError(f"write_start: {len(envs)} copies but {len(starts)} starts")
         if not len(envs):
             return
         n = self.n
         rows = (envs[:, None] * n + np.arange(n)).reshape(-1)
-        self.system.x[rows] = np.concatenate([x for x, _, _ in starts]).reshape(-1, 2)
-        self.system.v[rows] = np.concatenate([v for _, v, _ in starts]).reshape(-1, 2)
-        self.goal[envs] = [goal for _, _, goal in starts]
+        self.system.x[rows] = x.reshape(-1, 2)
+        self.system.v[rows] = v.reshape(-1, 2)
+        self.goal[envs] = goal
         self.hold[envs] = 0
         self.action[envs] = 0.0
         self._actuate(envs, None)
@@ -298,7 +321,7 @@ class ParticleTask:
 
     def reset_envs(self, envs: Sequence[int], rngs: Sequence[np.random.Generator]) -> None:
         """Draw a starting state for each copy in ``envs`` from its generator and write it."""
-        self.write_start(envs, [self.sample_start(rng) for rng in rngs])
+        self.write_starts(envs, *self.sample_starts(rngs))
 
     def get_state(self, i: int) -> dict[str, Any]:
         """Copy ``i``'s full simulation state (positions, velocities, goal, steps held at the goal,
@@ -479,7 +502,7 @@ class ParticleTask:
         if self.step_travel == math.inf:
             return np.ones(copies, np.int64)
         act = s.forces[-1]
-        if (system is None and isinstance(act, ConstantForce) and self._pushed is not None
+        if (s is self.system and isinstance(act, ConstantForce) and self._pushed is not None
                 and act.particles is self._pushed[0]):
             F = self._pushed[1]  # zero but on the pushed particles, each pushed once
             F[act.particles] = act.force
@@ -970,13 +993,13 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         resetting = self._autoreset.copy()
         envs = np.flatnonzero(resetting)
         if len(envs):
-            starts = [self.task.sample_start(self._rngs[i]) for i in envs]
-            self.task.write_start(envs, starts)
+            starts = self.task.sample_starts([self._rngs[i] for i in envs])
+            self.task.write_starts(envs, *starts)
         self.task.apply(a, idle=resetting)
         diverged = self.task.simulate()
         if len(envs):
             # the resetting copies were stepped along (no actuation); put their first state back
-            self.task.write_start(envs, starts)
+            self.task.write_starts(envs, *starts)
             diverged[resetting] = False
         obs, info, m = self._result(diverged, ~resetting & ~diverged)
         reward = self.task.reward(m)

@@ -281,9 +281,9 @@ class ClothPin(ParticleTask):
             self.placed_now[drawing] = self.place(envs[drawing], actions[drawing])
         super().apply(actions, idle)
 
-    def write_start(self, envs: Any, starts: Any) -> None:
+    def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray) -> None:
         """Write starting states and clear the copies' springs."""
-        super().write_start(envs, starts)
+        super().write_starts(envs, x, v, goal)
         self._clear_springs(np.asarray(envs, dtype=np.int64).reshape(-1))
 
     def _put(self, copies: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:

@@ -65,8 +65,9 @@ class ShapedTask:
         if envs.size:
             self._phi()[envs] = self.potential(self.measure())[envs]
 
-    def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
-        super().write_start(envs, starts)  # type: ignore[misc]
+    def write_starts(self, envs: Sequence[int], x: np.ndarray, v: np.ndarray,
+                     goal: np.ndarray) -> None:
+        super().write_starts(envs, x, v, goal)  # type: ignore[misc]
         self._record_potential(envs)
 
     def set_state(self, i: int, state: dict[str, Any]) -> None:

@@ -89,25 +89,45 @@ class SliderCrank(ShapedTask, ParticleTask):
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
         return (action * self.max_force)[:, :, None] * tangent[:, None, :]
 
-    def linkage(self, angle: float, omega: float) -> tuple[np.ndarray, np.ndarray]:
-        """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
-        counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
+    def _linkage(self, angle: float, omega: float, x: Any, v: Any) -> None:
+        """:meth:`linkage` written into ``x``, ``v`` ((2, 2) each)."""
         r, L = self.radius, self.rod
         c, s = math.cos(angle), math.sin(angle)
         reach = math.sqrt(L**2 - (r * s) ** 2)
-        x = np.array([[r * c, r * s], [r * c + reach, 0.0]])
+        x[0, 0], x[0, 1], x[1, 0], x[1, 1] = r * c, r * s, r * c + reach, 0.0
         dslider = -r * s - (r * s) * (r * c) / reach  # d(slider x)/d(angle)
-        v = np.array([[omega * (-r * s), omega * (r * c)], [omega * dslider, 0.0]])
+        v[0, 0], v[0, 1], v[1, 0], v[1, 1] = omega * (-r * s), omega * (r * c), \
+            omega * dslider, 0.0
+
+    def linkage(self, angle: float, omega: float) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
+        counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
+        x, v = np.empty((2, 2)), np.empty((2, 2))
+        self._linkage(angle, omega, x, v)
         return x, v
+
+    def _draw(self, rng: np.random.Generator, x: Any, v: Any) -> float:
+        """One start's draws from ``rng``: the linkage into ``x``, ``v``; returns the goal."""
+        angle = float(rng.uniform(-np.pi, np.pi))
+        omega = float(rng.uniform(-1.0, 1.0)) * self.max_start_speed / self.radius
+        self._linkage(angle, omega, x, v)
+        low, high = self.goal_range
+        return uniform_away(rng, low, high, float(x[1, 0]), self.min_distance)
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
         """Crank angle ~ U(-pi, pi), angular speed ~ U(+-max_start_speed / radius); the goal
         uniform over goal_range at least ``min_distance`` from the slider's start."""
-        angle = float(rng.uniform(-np.pi, np.pi))
-        omega = float(rng.uniform(-1.0, 1.0)) * self.max_start_speed / self.radius
-        x, v = self.linkage(angle, omega)
-        low, high = self.goal_range
-        return x, v, uniform_away(rng, low, high, float(x[1, 0]), self.min_distance)
+        x, v = np.empty((2, 2)), np.empty((2, 2))
+        return x, v, self._draw(rng, x, v)
+
+    def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`sample_start` for each generator, written straight into the stacked arrays
+        (the same draws and arithmetic, so bit for bit the same starts)."""
+        x, v, goal = np.empty((len(rngs), 2, 2)), np.empty((len(rngs), 2, 2)), \
+            np.empty(len(rngs))
+        for k, rng in enumerate(rngs):
+            goal[k] = self._draw(rng, x[k], v[k])
+        return x, v, goal
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``crank_height``: the crank's y (m; the success test also

@@ -484,3 +484,18 @@ def test_slider_crank_vector_copies_equal_single_envs_bit_for_bit(mode):
         o2, r2, te2, tr2, _ = sync.step(a)
         assert o1.tobytes() == o2.tobytes() and r1.tobytes() == r2.tobytes()
         np.testing.assert_array_equal(te1 | tr1, te2 | tr2)
+
+
+@pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0",
+                                    "ClothPin-v0"])
+def test_batched_starts_are_the_single_starts(env_id):
+    """``sample_starts`` (one pass over many generators, as the vector env's resets use it)
+    draws bit for bit what ``sample_start`` draws from each generator alone."""
+    task = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point").unwrapped.task
+    x, v, goal = task.sample_starts([np.random.default_rng(s) for s in range(5)])
+    assert x.shape == v.shape == (5, task.n, 2) and goal.shape == (5,)
+    for s in range(5):
+        x1, v1, g1 = task.sample_start(np.random.default_rng(s))
+        assert x[s].tobytes() == np.asarray(x1, float).reshape(task.n, 2).tobytes()
+        assert v[s].tobytes() == np.asarray(v1, float).reshape(task.n, 2).tobytes()
+        assert goal[s] == g1
