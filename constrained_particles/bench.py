@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -59,6 +60,7 @@ SMALL_ENVS = (("ClothSlide-v0", "force"), ("ClothSlide-v0", "spring"),
 VECTOR_COPIES = (1, 8, 64, 512, 4096)
 VECTOR_ENVS = ("ClothSlide-v0", "SliderCrank-v0")
 MIN_REPEATS = 5
+WORK_STEPS = 400  #: untimed env steps over which integrator steps per physics step are counted
 
 
 # ---------------------------------------------------------------- the cloth in both engines
@@ -307,13 +309,51 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
         vec.close()
         particle_steps = count * task.n * task.substeps
         env_t, bare_t = median(times["env"]), median(times["bare"])
+        over = median_ratio(times["env"], times["bare"])
+        work = work_factor(env_id, count, rng_seed=0, steps=WORK_STEPS)
         out[count] = {
             "env_steps_per_s": count / env_t,
             "us_per_particle_step": 1e6 * env_t / particle_steps,
             "bare_us_per_particle_step": 1e6 * bare_t / particle_steps,
-            "env_over_bare": median_ratio(times["env"], times["bare"]),
+            "env_over_bare": over,
+            "integrator_steps_per_physics_step": work,
+            "env_over_bare_per_step_taken": None if over is None else over / work,
         }
     return out
+
+
+def work_factor(env_id: str, count: int, rng_seed: int = 0, steps: int = 400) -> float:
+    """Integrator steps the native vector env of ``env_id`` takes per nominal physics step,
+    averaged over copies and ``steps`` env steps under the random actions of
+    :func:`bench_vector` (the same seed, so the same rollout, untimed): 1 unless copies split
+    their steps into pieces (``ParticleTask.pieces``), as fast ones do under random actions;
+    the bare system at rest never does."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the ids)
+
+    vec = gym.make_vec(env_id, num_envs=count, vectorization_mode="vector_entry_point")
+    vec.reset(seed=0)
+    task = vec.unwrapped.task
+    rng = np.random.default_rng(rng_seed)
+    batches = itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape))
+                              .astype(np.float32))
+    if task.step_travel == math.inf:
+        vec.close()
+        return 1.0
+    decided: list[float] = []
+    pieces = task.pieces
+
+    def recorded(system: Any = None) -> np.ndarray:  # the counts each env step uses
+        need = pieces(system)
+        decided.append(float(need.mean()))
+        return need
+
+    task.pieces = recorded
+    for _ in range(steps):
+        vec.step(next(batches))
+    vec.close()
+    return float(np.mean(decided)) if decided else 1.0
 
 
 # ---------------------------------------------------------------- (d) the rest
@@ -442,9 +482,12 @@ def markdown(r: dict[str, Any]) -> str:
               for name, us in s["us_per_step"].items()]
     for env_id, rows in r["vector_scaling"].items():
         lines += ["", f"| {env_id} native vector env: copies | env-steps/s | us per particle-step"
-                  " | bare system | env / bare |", "|---|---|---|---|---|"]
+                  " | bare system | env / bare | integrator steps per step | env / bare per "
+                  "step taken |", "|---|---|---|---|---|---|---|"]
         lines += [f"| {c} | {v['env_steps_per_s']:.4g} | {v['us_per_particle_step']:.3g} | "
-                  f"{v['bare_us_per_particle_step']:.3g} | {v['env_over_bare']:.2f} |"
+                  f"{v['bare_us_per_particle_step']:.3g} | {v['env_over_bare']:.2f} | "
+                  f"{v.get('integrator_steps_per_physics_step', 1.0):.3f} | "
+                  f"{v.get('env_over_bare_per_step_taken', v['env_over_bare']):.2f} |"
                   for c, v in rows.items()]
     c = r["scaling"]
     lines += ["", f"Cost per particle-step ({c['method']}): " + ", ".join(

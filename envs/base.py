@@ -944,6 +944,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self._rngs: list[np.random.Generator] | None = None
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._all_copies = np.ones(self.num_envs, dtype=bool)  # (read only by the measures)
 
     def _seed_copies(self, seed: int | Sequence[int | None] | None) -> None:
         N = self.num_envs
@@ -990,13 +991,28 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         if self._rngs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         a = self.task.check_actions(actions)
-        resetting = self._autoreset.copy()
-        envs = np.flatnonzero(resetting)
-        if len(envs):
-            starts = self.task.sample_starts([self._rngs[i] for i in envs])
-            self.task.write_starts(envs, *starts)
-        self.task.apply(a, idle=resetting)
-        diverged = self.task.simulate()
+        if not self._autoreset.any():
+            # the usual step: no copy resets; unless one diverges, every copy was stepped
+            self.task.apply(a)
+            diverged = self.task.simulate()
+            if not diverged.any():
+                obs, info, m = self._result(diverged, self._all_copies)
+                reward = self.task.reward(m)
+                self.steps += 1
+                terminated = m["is_success"].copy()
+                truncated = self.steps >= self.max_episode_steps
+                self._autoreset = terminated | truncated
+                return obs, reward, terminated, truncated, info
+            resetting = self._autoreset.copy()
+            envs = np.flatnonzero(resetting)
+        else:
+            resetting = self._autoreset.copy()
+            envs = np.flatnonzero(resetting)
+            if len(envs):
+                starts = self.task.sample_starts([self._rngs[i] for i in envs])
+                self.task.write_starts(envs, *starts)
+            self.task.apply(a, idle=resetting)
+            diverged = self.task.simulate()
         if len(envs):
             # the resetting copies were stepped along (no actuation); put their first state back
             self.task.write_starts(envs, *starts)

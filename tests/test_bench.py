@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from constrained_particles import SimulationDiverged
 from constrained_particles import bench as B
@@ -67,3 +68,17 @@ def test_json_carries_the_headline_keys(monkeypatch):
         for row in rows.values():
             assert row["env_steps_per_s"] > 0 and row["env_over_bare"] > 0
             assert row["us_per_particle_step"] > 0 and row["bare_us_per_particle_step"] > 0
+            assert row["integrator_steps_per_physics_step"] >= 1.0
+            assert row["env_over_bare_per_step_taken"] == pytest.approx(
+                row["env_over_bare"] / row["integrator_steps_per_physics_step"])
+
+
+def test_work_factor_counts_the_pieces_the_env_decides():
+    """Under random actions some SliderCrank copies split their steps: more than one
+    integrator step per physics step on average, at most MAX_PIECES; ClothSlide never
+    splits (no step_travel), so exactly one."""
+    from envs.base import MAX_PIECES
+
+    w = B.work_factor("SliderCrank-v0", 16, steps=60)
+    assert 1.0 < w <= MAX_PIECES
+    assert B.work_factor("ClothSlide-v0", 2, steps=3) == 1.0
