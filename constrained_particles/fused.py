@@ -1104,13 +1104,15 @@ if _kernels.ENABLED:
         if step > 0 and step < sizes[last]:
             return
         flips = 0
+        for q in range(mask.shape[0]):  # (branch-free: the loop vectorizes)
+            now = step < counts[q]
+            flips += now != mask[q]
+            mask[q] = now
         upcoming = np.iinfo(np.int64).max
         for q in range(mask.shape[0]):
             c = counts[q]
-            now = step < c
-            flips += now != mask[q]
-            mask[q] = now
-            upcoming = min(upcoming, c if now else upcoming)
+            if c > step and c < upcoming:
+                upcoming = c
         sizes[last] = upcoming
         if step > 0 and flips == 0:
             return
