@@ -20,6 +20,7 @@ tries 1/15 and 1/30 s). The wall (and CPU) time of 1 s at that dt is the best of
 Prints a table and then the results as JSON.
 
     python benchmarks/bench_implicit.py [--tol 0.01] [--repeats 5] [--shear-full]
+    python benchmarks/bench_implicit.py --scaling   # cost per particle-step at 15, 30, 60
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import json
 import platform
 import time
 from fractions import Fraction
+from typing import Any
 
 import numpy as np
 
@@ -171,6 +173,63 @@ def table(result: dict, tol: float) -> str:
     return "\n".join(lines)
 
 
+SCALING_SIZES = (15, 30, 60)
+
+
+def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[dict]:
+    """implicit_euler's cost per particle-step on the pushed stiff cloth at n x n particles
+    (h = 1/60 s), next to the LU factors' fill per unknown of the KKT system, with the
+    fill-reducing ordering kept from the first step (the default) and searched at every step
+    (the time ratio is searched / kept). Medians of ``repeats`` alternated batches."""
+    from scipy.sparse import linalg as spla
+
+    from constrained_particles import implicit
+
+    out = []
+    for n in sizes:
+        systems = []
+        for keep in (True, False):
+            s = scenes.cloth(n, n, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None,
+                             drag=0.0, push=0.05)
+            s.step(float(FRAME), "implicit_euler")
+            asm = implicit._assembly(s)
+            if not keep:  # back to the unpermuted structure, never reordered again
+                asm.order = None
+                asm.reorder = lambda order: None
+                asm._structure(asm._R, asm._C)
+            systems.append(s)
+        k = max(2, 20_000 // (n * n))
+        times: list[list[float]] = [[], []]
+        for _ in range(repeats):
+            for which, s in enumerate(systems):
+                t0 = time.perf_counter()
+                for _ in range(k):
+                    s.step(float(FRAME), "implicit_euler")
+                times[which].append((time.perf_counter() - t0) / k)
+        kept, searched = (float(np.median(t)) for t in times)
+        seen: list = []
+        solve = implicit._solve
+
+        def spy(A: Any, *args: Any, seen: list = seen, solve: Any = solve, **kwargs: Any
+                ) -> np.ndarray:
+            seen.append(A)  # the KKT matrix of a step, in the kept ordering
+            return solve(A, *args, **kwargs)
+
+        implicit._solve = spy
+        try:
+            systems[0].step(float(FRAME), "implicit_euler")
+        finally:
+            implicit._solve = solve
+        asm = implicit._assembly(systems[0])
+        lu = spla.splu(seen[0], **implicit._LU_ORDERED)
+        out.append({"n": n, "particles": n * n, "kkt_size": asm.size,
+                    "ms_per_step": 1e3 * kept, "us_per_particle_step": 1e6 * kept / (n * n),
+                    "fill_per_unknown": (lu.L.nnz + lu.U.nnz) / asm.size,
+                    "searched_over_kept": float(np.median(np.array(times[1])
+                                                          / np.array(times[0])))})
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tol", type=float, default=0.01, help="visual tolerance in metres")
@@ -179,7 +238,20 @@ def main() -> None:
                         help="shear springs of 2000 N/m instead of scenes.cloth's ks/2")
     parser.add_argument("--scenarios", nargs="+", default=["hanging", "pushed"],
                         choices=["hanging", "pushed"])
+    parser.add_argument("--scaling", action="store_true",
+                        help="instead: cost per particle-step and LU fill of implicit_euler "
+                        f"at {', '.join(f'{n}x{n}' for n in SCALING_SIZES)}")
     args = parser.parse_args()
+    if args.scaling:
+        rows = scaling(repeats=args.repeats)
+        print("| cloth | KKT unknowns | ms per step | us per particle-step | LU fill per unknown "
+              "| ordering searched each step / kept |\n|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['n']}x{r['n']} | {r['kkt_size']} | {r['ms_per_step']:.2f} | "
+                  f"{r['us_per_particle_step']:.1f} | {r['fill_per_unknown']:.0f} | "
+                  f"{r['searched_over_kept']:.2f}x |")
+        print(json.dumps(rows, indent=1))
+        return
     results = {"machine": platform.processor() or platform.machine(),
                "python": platform.python_version(), "tolerance_m": args.tol,
                "shear_ks": 2000.0 if args.shear_full else 1000.0, "scenarios": []}

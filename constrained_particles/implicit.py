@@ -157,9 +157,17 @@ class _Assembly:
         diag = np.arange(nf)
         jr, jc = nf + jr[self.keep_J], reduced[jc[self.keep_J]]
         lam = nf + np.arange(m)
-        R = np.concatenate([diag, reduced[fr[self.keep_force]], jr, jc, lam])
-        C = np.concatenate([diag, reduced[fc[self.keep_force]], jc, jr, lam])
-        self.size = N = nf + m
+        self._R = np.concatenate([diag, reduced[fr[self.keep_force]], jr, jc, lam])
+        self._C = np.concatenate([diag, reduced[fc[self.keep_force]], jc, jr, lam])
+        self.size = nf + m
+        #: The fill-reducing ordering (new index -> old) SuperLU found at the first solve, or
+        #: None: once known, the matrix is assembled already permuted and factorised without
+        #: searching for an ordering again.
+        self.order: np.ndarray | None = None
+        self._structure(self._R, self._C)
+
+    def _structure(self, R: np.ndarray, C: np.ndarray) -> None:
+        """The CSC structure of the entries at rows ``R``, columns ``C`` (repeats summed)."""
         order = np.lexsort((R, C))
         Rs, Cs = R[order], C[order]
         first = np.ones(len(R), dtype=bool)
@@ -168,12 +176,21 @@ class _Assembly:
         self.slot[order] = np.cumsum(first) - 1
         self.nnz = int(first.sum())
         self.indices = Rs[first]
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(Cs[first], minlength=N))])
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(Cs[first],
+                                                                   minlength=self.size))])
+
+    def reorder(self, order: np.ndarray) -> None:
+        """Assemble from now on the symmetrically permuted matrix ``A[order][:, order]``."""
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        self._structure(rank[self._R], rank[self._C])
+        self.order = order
 
     def matrix(self, mass2: np.ndarray, A_force: np.ndarray, J_data: np.ndarray,
                compliance: float) -> sp.csc_matrix:
         """The KKT matrix for per-coordinate masses, force entries ``-h D - h^2 K`` (in pattern
-        order), the values of J and the compliance term ``-c/h^2``."""
+        order), the values of J and the compliance term ``-c/h^2``; permuted by
+        :attr:`order` once it is known."""
         Jf = J_data[self.keep_J]
         vals = np.concatenate([mass2[self.free], A_force[self.keep_force], Jf, Jf,
                                np.full(self.m, compliance)])
@@ -194,29 +211,46 @@ def _assembly(system: ParticleSystem) -> _Assembly:
 
 
 #: SuperLU settings, tried in order: a fill-reducing ordering of the KKT's symmetric structure
-#: with threshold pivoting (fast), then COLAMD with full partial pivoting (robust).
+#: with threshold pivoting (fast), then COLAMD with full partial pivoting (robust). A matrix
+#: already assembled in the ordering found at its topology's first solve tries
+#: :data:`_LU_ORDERED` first (no ordering search: the structure is the same every step).
 _LU_OPTIONS = (dict(permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1,
                     options={"SymmetricMode": True}),
                dict(permc_spec="COLAMD", diag_pivot_thresh=1.0))
+_LU_ORDERED = dict(permc_spec="NATURAL", diag_pivot_thresh=0.1, options={"SymmetricMode": True})
 
 
-def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float, J: sp.csr_matrix, free: np.ndarray
-           ) -> np.ndarray:
+def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float, J: sp.csr_matrix, free: np.ndarray,
+           asm: _Assembly | None = None) -> np.ndarray:
     """Solve the KKT system by sparse LU, accepting only a small backward error: relative
     (:data:`SOLVE_TOLERANCE`) or below the absolute :data:`SOLVE_FLOOR`. The constraint
-    Jacobian ``J`` and the mask ``free`` of free coordinates only serve to explain a failure."""
+    Jacobian ``J`` and the mask ``free`` of free coordinates only serve to explain a failure.
+
+    With ``asm``: ``A`` and ``rhs`` are in its ordering if it has one (the solution is
+    returned in the original order), and a first solve that succeeds with the fill-reducing
+    ordering records that ordering for the following steps."""
+    ordered = asm is not None and asm.order is not None
+    if ordered:
+        rhs = rhs[asm.order]
     scale_rhs = np.max(np.abs(rhs), initial=0.0)
     scale_A = np.max(np.abs(A.data), initial=0.0)
     problem = "it was not attempted"
-    for options in _LU_OPTIONS:
+    for options in ((_LU_ORDERED, *_LU_OPTIONS) if ordered else _LU_OPTIONS):
         try:
-            sol = spla.splu(A, **options).solve(rhs)
+            lu = spla.splu(A, **options)
+            sol = lu.solve(rhs)
         except RuntimeError as err:
             problem = f"the matrix is singular ({err})"
             continue
         residual = np.max(np.abs(A @ sol - rhs), initial=0.0)
         scale = scale_A * np.max(np.abs(sol), initial=0.0) + scale_rhs
         if np.all(np.isfinite(sol)) and residual <= SOLVE_TOLERANCE * scale + SOLVE_FLOOR:
+            if ordered:
+                out = np.empty_like(sol)
+                out[asm.order] = sol
+                return out
+            if asm is not None and options is _LU_OPTIONS[0]:
+                asm.reorder(np.argsort(lu.perm_c))  # A Pc = A[:, argsort(perm_c)]
             return sol
         problem = f"the relative residual is {residual / scale if scale > 0 else np.inf:.3g}"
     dependent = _dependent_rows(J[:, free])
@@ -281,7 +315,7 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
                    -compliance / (h * h))
     rhs = np.concatenate([(h * (f0 + h * Kv))[asm.free],
                           -(beta / h) * solver.C - solver.J @ qdot])
-    sol = _solve(A, rhs, t, solver.J, asm.free)
+    sol = _solve(A, rhs, t, solver.J, asm.free, asm)
     dv = np.zeros_like(qdot)
     dv[asm.free] = sol[:asm.nf]
     v1 = (qdot + dv).reshape(v.shape)
