@@ -20,9 +20,10 @@ import numpy as np
 
 from constrained_particles.integrators import METHODS
 
-from . import ENV_IDS
+from . import ALL_ENV_IDS, ENV_IDS
 from .agents import AGENTS, make_agent
 from .base import ACTION_MODES
+from .cloth_pin import DRAW_MODES
 
 #: Largest batch of episodes run as one vector env.
 BATCH = 64
@@ -32,14 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
     from constrained_particles.cli import int_at_least, output_file, time_step
 
-    parser.add_argument("--env", default=ENV_IDS[0], choices=ENV_IDS, help="environment id")
+    parser.add_argument("--env", default=ENV_IDS[0], choices=ALL_ENV_IDS, help="environment id")
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
                         help="number of episodes")
     parser.add_argument("--seed", type=int_at_least(0), default=0,
                         help="seed of episode 0 (then +1 each)")
-    parser.add_argument("--action-mode", default="force", choices=ACTION_MODES,
-                        help="force on handles, or spring placement")
+    parser.add_argument("--action-mode", choices=(*ACTION_MODES, *DRAW_MODES),
+                        help="force on handles or spring placement (ClothSlide, SliderCrank, "
+                        "ChainSwing; default force); ClothPin draws springs (draw)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
                         help="save episode 0 as an animated GIF (needs the render extra)")
@@ -59,6 +61,11 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     from constrained_particles.extras import require
     from constrained_particles.viewer import display_problem
 
+    pin = args.env == "ClothPin-v0"
+    if args.action_mode is not None and (args.action_mode in DRAW_MODES) != pin:
+        modes = DRAW_MODES if pin else ACTION_MODES
+        parser.error(f"--action-mode: {args.env} takes one of {', '.join(modes)}, "
+                     f"got {args.action_mode!r}")
     if args.watch or args.save_gif:
         require("pygame", "PIL", command="cparticles demo --watch/--save-gif")
     problem = display_problem() if args.watch else None
@@ -67,11 +74,14 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 
 def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
-                 action_mode: str = "force", **env_kwargs: Any) -> dict[str, np.ndarray]:
+                 action_mode: str | None = None, **env_kwargs: Any) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes (seeds ``seed .. seed + episodes - 1``) in native vector envs
-    made with ``env_kwargs``. Returns per-episode arrays ``return``, ``length``, ``success`` and
-    ``diverged`` (the episode ended because its simulation diverged).
+    made with ``env_kwargs`` (and ``action_mode``; None: the environment's default). Returns
+    per-episode arrays ``return``, ``length``, ``success`` and ``diverged`` (the episode ended
+    because its simulation diverged).
     """
+    if action_mode is not None:
+        env_kwargs = {**env_kwargs, "action_mode": action_mode}
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     out: dict[str, list[np.ndarray]] = {"return": [], "length": [], "success": [],
@@ -79,7 +89,7 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
     for start in range(0, episodes, BATCH):
         n = min(BATCH, episodes - start)
         env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
-                           action_mode=action_mode, **env_kwargs)
+                           **env_kwargs)
         policy = make_agent(agent, env, seed=seed + start)
         obs, _ = env.reset(seed=seed + start)
         ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
@@ -101,11 +111,13 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
     return {key: np.concatenate(v) for key, v in out.items()}
 
 
-def record_episode(env_id: str, agent: str, seed: int, action_mode: str,
+def record_episode(env_id: str, agent: str, seed: int, action_mode: str | None,
                    render_mode: str = "rgb_array", **env_kwargs: Any
                    ) -> tuple[list[np.ndarray], dict[str, Any]]:
     """Run one episode in a single env; returns its frames (``rgb_array``) and last info."""
-    env = gym.make(env_id, action_mode=action_mode, render_mode=render_mode, **env_kwargs)
+    if action_mode is not None:
+        env_kwargs = {**env_kwargs, "action_mode": action_mode}
+    env = gym.make(env_id, render_mode=render_mode, **env_kwargs)
     policy = make_agent(agent, env, seed=seed)
     obs, info = env.reset(seed=seed)
     frames = [env.render()] if render_mode == "rgb_array" else []
@@ -133,6 +145,8 @@ def main(args: argparse.Namespace) -> int:
     """``cparticles demo``: a table (or JSON) of return, length and success per episode."""
     physics = {k: getattr(args, k) for k in ("integrator", "dt", "substeps")
                if getattr(args, k) is not None}
+    if args.action_mode is None:  # each environment's default
+        args.action_mode = "draw" if args.env == "ClothPin-v0" else "force"
     if args.watch:
         record_episode(args.env, args.agent, args.seed, args.action_mode, render_mode="human",
                        **physics)

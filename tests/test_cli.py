@@ -89,6 +89,8 @@ def test_dt_equal_to_seconds_runs_one_step(capsys):
     (["demo", "--substeps", "0"], "--substeps"),
     (["demo", "--save-gif", "/nonexistent/x.gif"], "--save-gif"),
     (["demo", "--save-gif", "episode.png"], "--save-gif"),
+    (["demo", "--env", "ClothPin-v0", "--action-mode", "spring"], "--action-mode"),
+    (["demo", "--env", "SliderCrank-v0", "--action-mode", "draw"], "--action-mode"),
     (["verify", "report", "--out", "/proc/x"], "--out"),
     (["view", "pendulum", "--headless", "--fps", "0"], "--fps"),
     (["view", "pendulum", "--headless", "--dt", "1e-310"], "--dt"),
@@ -244,3 +246,16 @@ def test_demo_reports_diverged_episodes(capsys):
     assert data["success_rate"] == 0.0
     assert cli.main(["demo", "--env", "SliderCrank-v0", "--episodes", "2", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["diverged_episodes"] == 0
+
+
+@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "force"), ("ClothPin-v0", "draw")])
+def test_demo_runs_every_registered_environment(env_id, mode, capsys):
+    """The two newer environments run in ``cparticles demo`` too, each in its default action
+    mode (ClothPin draws springs), with the scripted agent reaching the goal."""
+    import json
+
+    assert cli.main(["demo", "--env", env_id, "--episodes", "2", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["env"] == env_id and data["action_mode"] == mode
+    assert len(data["returns"]) == 2 and data["diverged_episodes"] == 0
+    assert data["success_rate"] == 1.0
