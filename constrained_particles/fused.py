@@ -26,6 +26,14 @@ environment writing its actions into ``ConstantForce.force`` are seen); where se
 one type are joined, their parameter arrays are copied into the joined ones before every call.
 The pack is rebuilt when a block's attribute is reassigned (``Term.generation``). Every particle
 index is checked against ``n`` inside the kernel before any array is read.
+
+**The spring loop.** Springs go in blocks: the ends' differences are gathered into scratch
+arrays, the element runs over the block (its square roots and divisions vectorize), and the
+forces are added in spring order. Runs of springs whose ends both step by one (a cloth's rows,
+columns and diagonals: :func:`spring_runs`, found once per topology and checked against the
+index arrays on every call) are read through contiguous slices instead, and each particle's two
+sums from a run are written in one pass in the order the plain loop adds them, so every path
+gives the plain loop's forces bit for bit.
 """
 
 from __future__ import annotations
