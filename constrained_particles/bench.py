@@ -324,29 +324,32 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
 
 def work_factor(env_id: str, count: int, rng_seed: int = 0, steps: int = 400) -> float:
     """Integrator steps the native vector env of ``env_id`` takes per nominal physics step,
-    averaged over copies and ``steps`` env steps under the random actions of
-    :func:`bench_vector` (the same seed, so the same rollout, untimed): 1 unless copies split
-    their steps into pieces (``ParticleTask.pieces``), as fast ones do under random actions;
-    the bare system at rest never does."""
+    averaged over copies and the first ``steps`` env steps of the rollout :func:`bench_vector`
+    times (the same seed and random actions; untimed, and the timed run may go on longer): 1
+    unless copies split their steps into pieces (``ParticleTask.pieces``), as fast ones do
+    under random actions; the bare system at rest never does."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the ids)
 
+    probe = gym.make_vec(env_id, num_envs=1, vectorization_mode="vector_entry_point")
+    splits = probe.unwrapped.task.step_travel != math.inf
+    probe.close()
+    if not splits:
+        return 1.0
     vec = gym.make_vec(env_id, num_envs=count, vectorization_mode="vector_entry_point")
     vec.reset(seed=0)
     task = vec.unwrapped.task
     rng = np.random.default_rng(rng_seed)
     batches = itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape))
                               .astype(np.float32))
-    if task.step_travel == math.inf:
-        vec.close()
-        return 1.0
     decided: list[float] = []
     pieces = task.pieces
 
-    def recorded(system: Any = None) -> np.ndarray:  # the counts each env step uses
-        need = pieces(system)
-        decided.append(float(need.mean()))
+    def recorded(system: Any = None) -> np.ndarray:  # the counts each env step uses (not
+        need = pieces(system)                         # those of a diverged copy's probe)
+        if system is None or system is task.system:
+            decided.append(float(need.mean()))
         return need
 
     task.pieces = recorded

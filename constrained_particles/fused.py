@@ -414,6 +414,8 @@ if _kernels.ENABLED:
         """True if every run ``[lo, hi)`` of ``runs`` (in order, not overlapping, within the
         spring list) has both ends stepping by one and ``si != sj`` (see :func:`spring_runs`),
         so that the spring loop may read it through contiguous slices."""
+        if runs.shape[0] and runs.shape[1] != 2:
+            return False
         end = 0
         for r in range(runs.shape[0]):
             lo, hi = runs[r, 0], runs[r, 1]

@@ -179,6 +179,11 @@ class _Assembly:
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(Cs[first],
                                                                    minlength=self.size))])
 
+    def forget(self) -> None:
+        """Back to the unpermuted structure (the next solve searches for an ordering again)."""
+        self._structure(self._R, self._C)
+        self.order = None
+
     def reorder(self, order: np.ndarray) -> None:
         """Assemble from now on the symmetrically permuted matrix ``A[order][:, order]``."""
         rank = np.empty_like(order)
@@ -248,6 +253,8 @@ def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float, J: sp.csr_matrix, free: 
             if ordered:
                 out = np.empty_like(sol)
                 out[asm.order] = sol
+                if options is not _LU_ORDERED:  # the kept order failed: search again next step
+                    asm.forget()
                 return out
             if asm is not None and options is _LU_OPTIONS[0]:
                 asm.reorder(np.argsort(lu.perm_c))  # A Pc = A[:, argsort(perm_c)]

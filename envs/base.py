@@ -284,7 +284,8 @@ class ParticleTask:
         x, v, goal = np.empty((len(rngs), n, 2)), np.empty((len(rngs), n, 2)), \
             np.empty(len(rngs))
         for k, rng in enumerate(rngs):
-            x[k], v[k], goal[k] = self.sample_start(rng)
+            xk, vk, goal[k] = self.sample_start(rng)
+            x[k], v[k] = np.reshape(xk, (n, 2)), np.reshape(vk, (n, 2))
         return x, v, goal
 
     def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
@@ -597,7 +598,9 @@ class ParticleTask:
             if need is self._one_piece or need.max() == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
-            # (the counts are this task's own, >= 1: the kernel is called without re-checking)
+            # (the counts are this task's own, >= 1: the kernel is called without re-checking
+            # them; the state arrays are checked as step() checks them)
+            s.check_arrays()
             if (self.integrator != "rattle" and not s.project_each_step
                     and s._fused_step(self.dt, self.integrator, self.substeps, False,
                                       np.repeat(need, self.n))):

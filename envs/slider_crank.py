@@ -57,8 +57,9 @@ class SliderCrank(ShapedTask, ParticleTask):
         self.goal_height = 0.0
         #: The tracked coordinate is the slider's x (m).
         self.tracked_particles = np.array([1])
-        #: (goals, their crank angles) last used by the compiled measure (see _measure.crank)
-        self._goal_angle: tuple[np.ndarray, np.ndarray] | None = None
+        #: ((copies, radius, rod), goals, their crank angles) last used by the compiled measure
+        #: (see _measure.crank); rebuilt when the copies or the geometry change
+        self._goal_angle: tuple[tuple, np.ndarray, np.ndarray] | None = None
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -122,7 +123,11 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`sample_start` for each generator, written straight into the stacked arrays
-        (the same draws and arithmetic, so bit for bit the same starts)."""
+        (the same draws and arithmetic, so bit for bit the same starts). A subclass that
+        redefines ``sample_start`` or ``linkage`` gets the base version, which calls them."""
+        if (type(self).sample_start is not SliderCrank.sample_start
+                or type(self).linkage is not SliderCrank.linkage):
+            return super().sample_starts(rngs)
         x, v, goal = np.empty((len(rngs), 2, 2)), np.empty((len(rngs), 2, 2)), \
             np.empty(len(rngs))
         for k, rng in enumerate(rngs):
@@ -139,10 +144,10 @@ class SliderCrank(ShapedTask, ParticleTask):
         r, L, g = self.radius, self.rod, self.goal
         if _measure.ENABLED:
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            if self._goal_angle is None or len(self._goal_angle[0]) != N:
-                self._goal_angle = (np.full(N, np.nan), np.zeros(N))
+            if self._goal_angle is None or self._goal_angle[0] != (N, r, L):
+                self._goal_angle = ((N, r, L), np.full(N, np.nan), np.zeros(N))
             _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below,
-                           *self._goal_angle)
+                           *self._goal_angle[1:])
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()

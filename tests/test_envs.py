@@ -499,3 +499,17 @@ def test_batched_starts_are_the_single_starts(env_id):
         assert x[s].tobytes() == np.asarray(x1, float).reshape(task.n, 2).tobytes()
         assert v[s].tobytes() == np.asarray(v1, float).reshape(task.n, 2).tobytes()
         assert goal[s] == g1
+
+
+def test_a_subclass_start_is_used_by_batched_resets():
+    """A SliderCrank subclass that redefines ``sample_start`` gets it in vector resets too."""
+    from envs.slider_crank import SliderCrank
+
+    class Still(SliderCrank):
+        def sample_start(self, rng):
+            x, v, goal = super().sample_start(rng)
+            return x, np.zeros_like(v), goal
+
+    task = Still(3)
+    _, v, _ = task.sample_starts([np.random.default_rng(s) for s in range(3)])
+    assert not v.any()

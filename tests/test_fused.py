@@ -413,6 +413,10 @@ def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
     p.args = (p.grav, p.const, p.spring, *p.args[3:])
     status, *_ = fused.run(s, 1e-3, "symplectic_euler", 1, np.zeros(p.m), np.inf)
     assert status == fused.FALLBACK
+    p.spring = (si, sj, *rest, fused._ro(np.ascontiguousarray(runs[:, :1])))  # no ends column
+    p.args = (p.grav, p.const, p.spring, *p.args[3:])
+    status, *_ = fused.run(s, 1e-3, "symplectic_euler", 1, np.zeros(p.m), np.inf)
+    assert status == fused.FALLBACK
 
 
 @pytest.mark.parametrize("method", ["symplectic_euler", "rk4"])

@@ -509,3 +509,31 @@ def test_scaling_report_runs_on_a_tiny_cloth():
     assert row["particles"] == 16 and row["kkt_size"] > 0
     assert row["ms_per_step"] > 0 and row["us_per_particle_step"] > 0
     assert row["fill_per_unknown"] >= 1 and row["searched_over_kept"] > 0
+
+
+def test_a_kept_ordering_that_fails_is_searched_again(monkeypatch):
+    """If the factorisation in the kept ordering fails, the step still succeeds by a fresh
+    search (the same result to rounding), the kept ordering is dropped, and the next step finds
+    and keeps one again."""
+    from constrained_particles import implicit
+
+    s, ref = scenes.cloth(5, 4, wall_x=None, push=0.3), scenes.cloth(5, 4, wall_x=None, push=0.3)
+    for system in (s, ref):
+        system.step(1 / 60, "implicit_euler")
+    asm = implicit._assembly(s)
+    assert asm.order is not None
+    splu = implicit.spla.splu
+
+    def failing(A, **options):
+        if options.get("permc_spec") == "NATURAL":
+            raise RuntimeError("Factor is exactly singular")
+        return splu(A, **options)
+
+    monkeypatch.setattr(implicit.spla, "splu", failing)
+    s.step(1 / 60, "implicit_euler")
+    monkeypatch.setattr(implicit.spla, "splu", splu)
+    ref.step(1 / 60, "implicit_euler")
+    np.testing.assert_allclose(s.x, ref.x, rtol=0, atol=1e-13)
+    assert asm.order is None
+    s.step(1 / 60, "implicit_euler")
+    assert implicit._assembly(s).order is not None
