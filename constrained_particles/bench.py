@@ -515,7 +515,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from .cli import int_at_least
 
     parser.add_argument("--quick", action="store_true",
-                        help="shorter batches, fewer sizes (about a minute)")
+                        help="shorter batches, fewer sizes (under a minute)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     parser.add_argument("--repeats", type=int_at_least(MIN_REPEATS), default=MIN_REPEATS,
                         help=f"timed batches per figure, alternated (at least {MIN_REPEATS})")
