@@ -162,12 +162,15 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
         @njit
         def group_pieces(v: np.ndarray, F: np.ndarray, inv_mass: np.ndarray, size: int,
                          horizon: float, dt: float, travel: float, max_pieces: int,
-                         out: np.ndarray) -> None:  # pragma: no cover - compiled
+                         out: np.ndarray, rows: np.ndarray) -> int:  # pragma: no cover
             """For each group of ``size`` consecutive particles, into how many pieces a step of
             ``dt`` (s) must be split so that no particle moves more than ``travel`` (m) per
             piece, bounding its speed over the next ``horizon`` seconds by ``|v| + |F| horizon /
             m`` (m/s): ``ceil(dt max_speed / travel)``, or 1 where that is below 1, above
-            ``max_pieces`` or not finite. Writes one count per group into ``out``."""
+            ``max_pieces`` or not finite. Writes one count per group into ``out`` and, if
+            ``rows`` has one entry per particle, each particle's group count into it; returns
+            the largest count."""
+            largest = 1
             for g in range(out.shape[0]):
                 worst = 0.0
                 finite = True
@@ -180,5 +183,11 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                     elif speed > worst:
                         worst = speed
                 need = np.ceil(worst * dt / travel)
-                out[g] = int(need) if finite and 1.0 <= need <= max_pieces else 1
+                count = int(need) if finite and 1.0 <= need <= max_pieces else 1
+                out[g] = count
+                largest = max(largest, count)
+                if rows.shape[0] == v.shape[0]:
+                    for q in range(g * size, (g + 1) * size):
+                        rows[q] = count
+            return largest
 

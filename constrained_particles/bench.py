@@ -344,15 +344,15 @@ def work_factor(env_id: str, count: int, rng_seed: int = 0, steps: int = 400) ->
     batches = itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape))
                               .astype(np.float32))
     decided: list[float] = []
-    pieces = task.pieces
+    decide = task._decide
 
-    def recorded(system: Any = None) -> np.ndarray:  # the counts each env step uses (not
-        need = pieces(system)                         # those of a diverged copy's probe)
-        if system is None or system is task.system:
-            decided.append(float(need.mean()))
-        return need
+    def recorded(system: Any) -> tuple:  # the counts each env step uses (not those of a
+        out = decide(system)              # diverged copy's probe)
+        if system is task.system:
+            decided.append(float(out[0].mean()))
+        return out
 
-    task.pieces = recorded
+    task._decide = recorded
     for _ in range(steps):
         vec.step(next(batches))
     vec.close()

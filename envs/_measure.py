@@ -54,6 +54,7 @@ grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is F
 clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
 crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
 crank_push: Any = None  #: the compiled SliderCrank force action (None when ``ENABLED`` is False)
+shaped_reward: Any = None  #: the compiled shaped reward (None when ``ENABLED`` is False)
 
 if ENABLED:
     import numba
@@ -246,6 +247,21 @@ if ENABLED:
     measures = _measures
     observe = _observe
     grab = _grab
+    @njit
+    def _shaped_reward(before, phi, success, penalty, scale, time_cost, bonus, out):
+        # pragma: no cover - compiled
+        """``out = ((before - phi) * scale - time_cost [- penalty]) + bonus * success`` per
+        copy, in that order (the numpy reference's operations, so the same bits; ``penalty``
+        empty: none), then ``before = phi`` (the potentials for the next step)."""
+        with_penalty = penalty.shape[0] == out.shape[0]
+        for i in range(out.shape[0]):
+            r = (before[i] - phi[i]) * scale - time_cost
+            if with_penalty:
+                r = r - penalty[i]
+            out[i] = r + bonus * (1.0 if success[i] else 0.0)
+            before[i] = phi[i]
+
     clip_actions = _clip_actions
     crank = _crank
     crank_push = _crank_push
+    shaped_reward = _shaped_reward

@@ -498,10 +498,14 @@ class ParticleTask:
         physics step by that times dt. A copy that would need more than :data:`MAX_PIECES` is
         beyond help and gets 1: the divergence check catches it.
         """
-        s = self.system if system is None else system
+        return self._decide(self.system if system is None else system)[0]
+
+    def _decide(self, s: ParticleSystem) -> tuple[np.ndarray, np.ndarray, int]:
+        """:meth:`pieces` for the tiled ``s``, with each particle's count (the array the kernel
+        takes) and the largest count."""
         copies = s.n // self.n
         if self.step_travel == math.inf:
-            return np.ones(copies, np.int64)
+            return np.ones(copies, np.int64), np.ones(s.n, np.int64), 1
         act = s.forces[-1]
         if (s is self.system and isinstance(act, ConstantForce) and self._pushed is not None
                 and act.particles is self._pushed[0]):
@@ -512,16 +516,17 @@ class ParticleTask:
             act.accumulate(s.x, s.v, s.mass, F)
         horizon = self.substeps * self.dt
         if _kernels.group_pieces is not None:  # the same formula, compiled
-            out = np.empty(copies, np.int64)
-            _kernels.group_pieces(s.v, F, s.inv_mass, self.n, horizon, self.dt,
-                                  self.step_travel, MAX_PIECES, out)
-            return out
+            out, rows = np.empty(copies, np.int64), np.empty(s.n, np.int64)
+            largest = _kernels.group_pieces(s.v, F, s.inv_mass, self.n, horizon, self.dt,
+                                            self.step_travel, MAX_PIECES, out, rows)
+            return out, rows, largest
         with np.errstate(invalid="ignore", over="ignore"):
             speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
                 s.inv_mass * horizon)
             need = np.ceil(speed.reshape(copies, self.n).max(axis=1) * self.dt
                            / self.step_travel)
-            return np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
+            need = np.where((need >= 1) & (need <= MAX_PIECES), need, 1).astype(np.int64)
+            return need, np.repeat(need, self.n), int(need.max(initial=1))
 
     def _physics_step(self, system: ParticleSystem, need: np.ndarray | None = None) -> None:
         """One physics step of ``dt`` for every copy of ``system``, each in its own number of
@@ -589,21 +594,23 @@ class ParticleTask:
         so that it cannot drag the other copies down; no NaN ever leaves this method.
         """
         s = self.system
-        need = self._one_piece if self.step_travel == math.inf else self.pieces(s)
+        if self.step_travel == math.inf:
+            need, rows, largest = self._one_piece, None, 1
+        else:
+            need, rows, largest = self._decide(s)
         # the usual case: every substep of every copy in one compiled call (bit for bit the same
         # as stepping them one by one; copies that need their steps split take their own pieces
         # in the same call); a divergence leaves the state as it was and the careful path below
         # finds the copy and parks it
         try:
-            if need is self._one_piece or need.max() == 1:
+            if largest == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
             # (the counts are this task's own, >= 1: the kernel is called without re-checking
             # them; the state arrays are checked as step() checks them)
             s.check_arrays()
             if (self.integrator != "rattle" and not s.project_each_step
-                    and s._fused_step(self.dt, self.integrator, self.substeps, False,
-                                      np.repeat(need, self.n))):
+                    and s._fused_step(self.dt, self.integrator, self.substeps, False, rows)):
                 return np.zeros(self.num_envs, bool)
         except SimulationDiverged:
             pass
@@ -775,7 +782,8 @@ class ParticleTask:
 
 
 def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
-    out = {k: v for k, v in m.items() if k != "speed"}
+    out = m.copy()
+    out.pop("speed", None)
     out["diverged"] = diverged
     return out
 
@@ -948,6 +956,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
         self._all_copies = np.ones(self.num_envs, dtype=bool)  # (read only by the measures)
+        self._info_keys: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
 
     def _seed_copies(self, seed: int | Sequence[int | None] | None) -> None:
         N = self.num_envs
@@ -966,8 +975,11 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
         m = self.task.measure(stepped)
         info = _info(m, diverged)
-        masks = np.ones((len(info), self.num_envs), bool)  # one allocation, a row per key
-        info.update({f"_{k}": mask for k, mask in zip(list(info), masks, strict=True)})
+        keys = tuple(info)
+        if keys != self._info_keys[0]:  # the mask names, made once per set of keys
+            self._info_keys = (keys, tuple(f"_{k}" for k in keys))
+        masks = np.ones((len(keys), self.num_envs), bool)  # one allocation, a row per key
+        info.update(zip(self._info_keys[1], masks, strict=True))
         return self.task.observe(), info, m
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,

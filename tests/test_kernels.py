@@ -88,13 +88,14 @@ def test_group_pieces_matches_the_numpy_rule():
     F = rng.normal(0, 2, (size * groups, 2))
     inv_mass = rng.uniform(0.5, 20, size * groups)
     v[5, 0], v[40, 1], F[77, 0] = np.nan, np.inf, -np.inf
-    out = np.empty(groups, np.int64)
-    _kernels.group_pieces(v, F, inv_mass, size, horizon, dt, travel, cap, out)
+    out, rows = np.empty(groups, np.int64), np.empty(size * groups, np.int64)
+    largest = _kernels.group_pieces(v, F, inv_mass, size, horizon, dt, travel, cap, out, rows)
     with np.errstate(invalid="ignore"):
         speed = (np.sqrt(np.sum(v * v, axis=1))
                  + np.sqrt(np.sum(F * F, axis=1)) * (inv_mass * horizon))
         need = np.ceil(speed.reshape(groups, size).max(axis=1) * dt / travel)
     expected = np.where((need >= 1) & (need <= cap), need, 1).astype(np.int64)
     assert np.array_equal(out, expected)
+    assert np.array_equal(rows, np.repeat(expected, size)) and largest == expected.max()
     assert set(out[[1, 13, 25]]) == {1}  # the groups holding the non-finite entries
     assert 1 < len(np.unique(out)) and out.max() <= cap
