@@ -194,9 +194,8 @@ def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[di
             s.step(float(FRAME), "implicit_euler")
             asm = implicit._assembly(s)
             if not keep:  # back to the unpermuted structure, never reordered again
-                asm.order = None
-                asm.reorder = lambda order: None
-                asm._structure(asm._R, asm._C)
+                asm.keep_order = False
+                asm.forget()
             systems.append(s)
         k = max(2, 20_000 // (n * n))
         times: list[list[float]] = [[], []]

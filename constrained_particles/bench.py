@@ -38,7 +38,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -279,6 +279,12 @@ def bench_small_envs(repeats: int, seconds: float, progress: Progress | None = N
 
 
 # ---------------------------------------------------------------- (c) vector scaling
+def _random_batches(vec: Any, seed: int) -> Iterator[np.ndarray]:
+    """16 batches of uniform random actions for the vector env ``vec``, cycled."""
+    rng = np.random.default_rng(seed)
+    return itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape)).astype(np.float32))
+
+
 def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: float,
                  progress: Progress | None = None) -> dict[str, Any]:
     """The native vector env of ``env_id`` at each number of copies: env-steps per second and
@@ -294,9 +300,7 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
         vec.reset(seed=0)
         task = vec.unwrapped.task
         bare = task.system.copy()
-        rng = np.random.default_rng(0)
-        batches = itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape))
-                                  .astype(np.float32))
+        batches = _random_batches(vec, 0)
 
         def bare_step(bare: ParticleSystem = bare, task: Any = task) -> None:
             bare.step(task.dt, task.integrator, steps=task.substeps)
@@ -340,9 +344,7 @@ def work_factor(env_id: str, count: int, rng_seed: int = 0, steps: int = 400) ->
     vec = gym.make_vec(env_id, num_envs=count, vectorization_mode="vector_entry_point")
     vec.reset(seed=0)
     task = vec.unwrapped.task
-    rng = np.random.default_rng(rng_seed)
-    batches = itertools.cycle(rng.uniform(-1, 1, (16, *vec.action_space.shape))
-                              .astype(np.float32))
+    batches = _random_batches(vec, rng_seed)
     decided: list[float] = []
     decide = task._decide
 

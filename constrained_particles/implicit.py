@@ -164,6 +164,9 @@ class _Assembly:
         #: None: once known, the matrix is assembled already permuted and factorised without
         #: searching for an ordering again.
         self.order: np.ndarray | None = None
+        #: Whether a successful search records its ordering (False: search at every step, as a
+        #: benchmark's baseline does).
+        self.keep_order = True
         self._structure(self._R, self._C)
 
     def _structure(self, R: np.ndarray, C: np.ndarray) -> None:
@@ -256,7 +259,7 @@ def _solve(A: sp.csc_matrix, rhs: np.ndarray, t: float, J: sp.csr_matrix, free: 
                 if options is not _LU_ORDERED:  # the kept order failed: search again next step
                     asm.forget()
                 return out
-            if asm is not None and options is _LU_OPTIONS[0]:
+            if asm is not None and asm.keep_order and options is _LU_OPTIONS[0]:
                 asm.reorder(np.argsort(lu.perm_c))  # A Pc = A[:, argsort(perm_c)]
             return sol
         problem = f"the relative residual is {residual / scale if scale > 0 else np.inf:.3g}"

@@ -244,9 +244,6 @@ if ENABLED:
             out[i, 0, 0] = f * (-py / norm)
             out[i, 0, 1] = f * (px / norm)
 
-    measures = _measures
-    observe = _observe
-    grab = _grab
     @njit
     def _shaped_reward(before, phi, success, penalty, scale, time_cost, bonus, out):
         # pragma: no cover - compiled
@@ -261,6 +258,9 @@ if ENABLED:
             out[i] = r + bonus * (1.0 if success[i] else 0.0)
             before[i] = phi[i]
 
+    measures = _measures
+    observe = _observe
+    grab = _grab
     clip_actions = _clip_actions
     crank = _crank
     crank_push = _crank_push

@@ -290,9 +290,9 @@ class ParticleTask:
 
     def write_start(self, envs: Sequence[int], starts: Sequence[tuple]) -> None:
         """Write starting states ``(x, v, goal)`` into the slices of copies ``envs`` only."""
-        if len(np.asarray(envs).reshape(-1)) != len(starts):
-            raise ValueError(f"write_start: {len(np.asarray(envs).reshape(-1))} copies but "
-                             f"{len(starts)} starts")
+        copies = len(np.asarray(envs).reshape(-1))
+        if copies != len(starts):
+            raise ValueError(f"write_start: {copies} copies but {len(starts)} starts")
         n = self.n
         self.write_starts(envs, np.array([np.reshape(x, (n, 2)) for x, _, _ in starts],
                                          dtype=float).reshape(-1, n, 2),
@@ -1006,39 +1006,34 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         if self._rngs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         a = self.task.check_actions(actions)
-        if not self._autoreset.any():
-            # the usual step: no copy resets; unless one diverges, every copy was stepped
+        if not self._autoreset.any():  # the usual step: no copy resets
             self.task.apply(a)
             diverged = self.task.simulate()
-            if not diverged.any():
-                obs, info, m = self._result(diverged, self._all_copies)
-                reward = self.task.reward(m)
-                self.steps += 1
-                terminated = m["is_success"].copy()
-                truncated = self.steps >= self.max_episode_steps
-                self._autoreset = terminated | truncated
-                return obs, reward, terminated, truncated, info
-            resetting = self._autoreset.copy()
-            envs = np.flatnonzero(resetting)
+            calm = not diverged.any()  # then every copy was stepped (no masks to apply)
+            resetting = self._autoreset  # (all False; not written below)
         else:
+            calm = False
             resetting = self._autoreset.copy()
             envs = np.flatnonzero(resetting)
-            if len(envs):
-                starts = self.task.sample_starts([self._rngs[i] for i in envs])
-                self.task.write_starts(envs, *starts)
+            starts = self.task.sample_starts([self._rngs[i] for i in envs])
+            self.task.write_starts(envs, *starts)
             self.task.apply(a, idle=resetting)
             diverged = self.task.simulate()
-        if len(envs):
             # the resetting copies were stepped along (no actuation); put their first state back
             self.task.write_starts(envs, *starts)
             diverged[resetting] = False
-        obs, info, m = self._result(diverged, ~resetting & ~diverged)
+        obs, info, m = self._result(diverged,
+                                    self._all_copies if calm else ~resetting & ~diverged)
         reward = self.task.reward(m)
         self.steps += 1
-        self.steps[resetting] = 0
-        terminated = m["is_success"] & ~diverged & ~resetting
-        truncated = ((self.steps >= self.max_episode_steps) | diverged) & ~resetting
-        reward[resetting] = 0.0
+        if calm:
+            terminated = m["is_success"].copy()
+            truncated = self.steps >= self.max_episode_steps
+        else:
+            self.steps[resetting] = 0
+            terminated = m["is_success"] & ~diverged & ~resetting
+            truncated = ((self.steps >= self.max_episode_steps) | diverged) & ~resetting
+            reward[resetting] = 0.0
         self._autoreset = terminated | truncated
         return obs, reward, terminated, truncated, info
 
