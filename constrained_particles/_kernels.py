@@ -160,24 +160,31 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                            np.ascontiguousarray(rest, dtype=np.float64), F)
 
         @njit
-        def group_pieces(v: np.ndarray, F: np.ndarray, inv_mass: np.ndarray, size: int,
-                         horizon: float, dt: float, travel: float, max_pieces: int,
+        def group_pieces(v: np.ndarray, F: np.ndarray, frow: np.ndarray, inv_mass: np.ndarray,
+                         size: int, horizon: float, dt: float, travel: float, max_pieces: int,
                          out: np.ndarray, rows: np.ndarray) -> int:  # pragma: no cover
             """For each group of ``size`` consecutive particles, into how many pieces a step of
             ``dt`` (s) must be split so that no particle moves more than ``travel`` (m) per
             piece, bounding its speed over the next ``horizon`` seconds by ``|v| + |F| horizon /
             m`` (m/s): ``ceil(dt max_speed / travel)``, or 1 where that is below 1, above
-            ``max_pieces`` or not finite. Writes one count per group into ``out`` and, if
-            ``rows`` has one entry per particle, each particle's group count into it; returns
-            the largest count."""
+            ``max_pieces`` or not finite. ``F`` holds each particle's force (N) or, if
+            ``frow`` has one entry per particle, a force block's rows: particle q's force is
+            then ``F[frow[q]]`` (zero where ``frow[q] < 0``). Writes one count per group into
+            ``out`` and, if ``rows`` has one entry per particle, each particle's group count
+            into it; returns the largest count."""
             largest = 1
+            mapped = frow.shape[0] == v.shape[0]
             for g in range(out.shape[0]):
                 worst = 0.0
                 finite = True
                 for q in range(g * size, (g + 1) * size):
+                    fx, fy = 0.0, 0.0
+                    if not mapped:
+                        fx, fy = F[q, 0], F[q, 1]
+                    elif frow[q] >= 0:
+                        fx, fy = F[frow[q], 0], F[frow[q], 1]
                     speed = (math.sqrt(v[q, 0] * v[q, 0] + v[q, 1] * v[q, 1])
-                             + math.sqrt(F[q, 0] * F[q, 0] + F[q, 1] * F[q, 1])
-                             * (inv_mass[q] * horizon))
+                             + math.sqrt(fx * fx + fy * fy) * (inv_mass[q] * horizon))
                     if not speed < math.inf:
                         finite = False
                     elif speed > worst:

@@ -236,10 +236,9 @@ class ParticleSystem:
         """The sparse assembly for the current topology: rebuilt when particles or constraint
         blocks are added, removed or replaced, or when ``solver`` or ``tol`` is changed."""
         built = self._solver
+        # (terms compare by identity: the list comparison asks whether they are the same)
         if (built is None or built.n != self.n or built.method != self.solver
-                or built.tol != self.tol or len(built.constraints) != len(self.constraints)
-                or any(a is not b for a, b in zip(built.constraints, self.constraints,
-                                                  strict=True))):
+                or built.tol != self.tol or built.constraints != self.constraints):
             if self.solver not in SOLVER_METHODS:
                 raise ValueError(f"solver must be one of {SOLVER_METHODS}, got {self.solver!r}")
             self._solver = ConstraintSolver(self.constraints, self.n, self.solver, self.tol)

@@ -55,6 +55,14 @@ clip_actions: Any = None  #: the compiled action check and clip (None when ``ENA
 crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
 crank_push: Any = None  #: the compiled SliderCrank force action (None when ``ENABLED`` is False)
 shaped_reward: Any = None  #: the compiled shaped reward (None when ``ENABLED`` is False)
+#: :func:`measures` then :func:`observe`, in one call (None when ``ENABLED`` is False)
+measures_observe: Any = None
+#: :func:`crank`, then :func:`measures` with the crank's ``below`` as ``blocked``, then
+#: :func:`observe`, in one call (None when ``ENABLED`` is False)
+crank_measures_observe: Any = None
+#: :func:`crank_measures_observe`, SliderCrank's shaped reward and the episode counters of a
+#: step every copy took, in one call (None when ``ENABLED`` is False)
+crank_finish: Any = None
 
 if ENABLED:
     import numba
@@ -258,8 +266,65 @@ if ENABLED:
             out[i] = r + bonus * (1.0 if success[i] else 0.0)
             before[i] = phi[i]
 
+    @njit
+    def _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
+                          walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps, out,
+                          success, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+        """:func:`_measures` then :func:`_observe` (one call from Python instead of two)."""
+        _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall, walls,
+                  hold, stepped, blocked, tolerance, rest_speed, hold_steps, out, success)
+        _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
+
+    @njit
+    def _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
+                                goal, track, track_scale, circ, rod, line, fixed, wall, walls,
+                                hold, stepped, tolerance, rest_speed, hold_steps, out, success,
+                                cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+        """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
+        slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
+        after a step in one call."""
+        _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target)
+        _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall, walls,
+                  hold, stepped, below, tolerance, rest_speed, hold_steps, out, success)
+        _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
+
+    @njit
+    def _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n, goal,
+                      track, track_scale, circ, rod, line, fixed, wall, hold, every, tolerance,
+                      rest_speed, hold_steps, out, success, cx, cy, ix, iy, limit, obs, before,
+                      scale, time_cost, bonus, reward, steps, max_steps, terminated, truncated,
+                      ended):  # pragma: no cover - compiled
+        """The end of a SliderCrank env step that ``every`` copy took: the measures and
+        observation (:func:`_crank_measures_observe`), the shaped reward
+        ``((Phi_before - Phi) * scale - time_cost) + bonus * success`` with the potential
+        ``Phi = crank_to_go + speed`` (``envs.rewards.ShapedTask.reward`` and
+        ``SliderCrank.potential``: the same operations in the same order, so the same bits;
+        ``before`` becomes ``Phi``), and the episode counters: ``steps`` advance, ``terminated
+        = success``, ``truncated = steps >= max_steps``, ``ended`` either. Returns how many
+        copies ended."""
+        _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
+                                goal, track, track_scale, circ, rod, line, fixed, wall, False,
+                                hold, every, tolerance, rest_speed, hold_steps, out, success,
+                                cx, cy, ix, iy, limit, obs)
+        speed = out[1]
+        count = 0
+        for i in range(goal.shape[0]):
+            phi = to_go[i] + speed[i]
+            reward[i] = ((before[i] - phi) * scale - time_cost) + bonus * (1.0 if success[i]
+                                                                          else 0.0)
+            before[i] = phi
+            steps[i] += 1
+            terminated[i] = success[i]
+            truncated[i] = steps[i] >= max_steps
+            ended[i] = terminated[i] or truncated[i]
+            count += ended[i]
+        return count
+
     measures = _measures
     observe = _observe
+    crank_finish = _crank_finish
+    measures_observe = _measures_observe
+    crank_measures_observe = _crank_measures_observe
     grab = _grab
     clip_actions = _clip_actions
     crank = _crank

@@ -180,12 +180,16 @@ class ParticleTask:
         self.system = scene.tile(self.num_envs)
         #: The tiled actuator: copy ``i``'s action is written into its rows only.
         self.actuator: ConstantForce | MouseSpring = self.system.forces[-1]
-        # (the force actuator's particles, if none repeats, and a force array that is zero
-        # elsewhere: pieces() writes the actuator's forces into it instead of accumulating)
-        self._pushed: tuple[np.ndarray, np.ndarray] | None = None
+        # (the force actuator's particles, if none repeats, with the split rule's buffers and
+        # each particle's row of the actuator, -1 for none: pieces() reads the actuator's
+        # forces through it instead of accumulating them)
+        self._pushed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         act = self.actuator
         if isinstance(act, ConstantForce) and len(np.unique(act.particles)) == len(act):
-            self._pushed = (act.particles, np.zeros_like(self.system.x))
+            frow = np.full(self.system.n, -1, np.int64)
+            frow[act.particles] = np.arange(len(act))
+            self._pushed = (act.particles, np.empty(self.num_envs, np.int64),
+                            np.empty(self.system.n, np.int64), frow)
         self.rows_per_copy = len(scene.forces[-1])
         self.goal = np.zeros(self.num_envs)
         self.hold = np.zeros(self.num_envs, dtype=np.int64)
@@ -198,6 +202,7 @@ class ParticleTask:
         self.half = np.array([(xmax - xmin) / 2, (ymax - ymin) / 2])
         #: The default ``stepped`` and ``blocked`` masks of :meth:`_measures`: no copy.
         self._no_copies = np.zeros(self.num_envs, bool)
+        self._every_copy = np.ones(self.num_envs, bool)  # (read only)
         self._scale: tuple[float, float, float, float] | None = None
         self._track: tuple[np.ndarray, float] | None = None
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
@@ -436,6 +441,11 @@ class ParticleTask:
             raise ValueError(f"action must be finite, got {actions!r}")
         return np.clip(a, -1.0, 1.0).reshape(self.num_envs, self.action_dim)
 
+    def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
+        """Write :meth:`force_vectors` of every copy's ``action`` into the tiled actuator's
+        force rows ``out`` (num_envs * rows per copy, 2), in newtons."""
+        out[:] = self.force_vectors(action, self.positions()).reshape(-1, 2)
+
     def _actuate_rows(self, i: int, action: np.ndarray | None) -> None:
         """Write copy ``i``'s action into the tiled actuator (None: no actuation)."""
         self._actuate(np.array([i]), None if action is None else action[None, :])
@@ -446,8 +456,10 @@ class ParticleTask:
         act = self.actuator
         if isinstance(act, ConstantForce):
             if len(envs) == self.num_envs:  # every copy (envs is then arange): no gathers
-                act.force[:] = (0.0 if action is None else
-                                self.force_vectors(action, self.positions()).reshape(-1, 2))
+                if action is None:
+                    act.force[:] = 0.0
+                else:
+                    self._write_forces(action, act.force)
                 return
             k = self.rows_per_copy
             rows = (envs[:, None] * k + np.arange(k)).ravel()
@@ -475,7 +487,7 @@ class ParticleTask:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
         actuation (their action is ignored)."""
         self.action[:] = actions
-        if idle is None or not idle.any():
+        if idle is None or not np.count_nonzero(idle):
             self._actuate(self._every, self.action)
             return
         envs = np.arange(self.num_envs)
@@ -498,7 +510,7 @@ class ParticleTask:
         physics step by that times dt. A copy that would need more than :data:`MAX_PIECES` is
         beyond help and gets 1: the divergence check catches it.
         """
-        return self._decide(self.system if system is None else system)[0]
+        return self._decide(self.system if system is None else system)[0].copy()
 
     def _decide(self, s: ParticleSystem) -> tuple[np.ndarray, np.ndarray, int]:
         """:meth:`pieces` for the tiled ``s``, with each particle's count (the array the kernel
@@ -507,18 +519,22 @@ class ParticleTask:
         if self.step_travel == math.inf:
             return np.ones(copies, np.int64), np.ones(s.n, np.int64), 1
         act = s.forces[-1]
-        if (s is self.system and isinstance(act, ConstantForce) and self._pushed is not None
-                and act.particles is self._pushed[0]):
-            F = self._pushed[1]  # zero but on the pushed particles, each pushed once
-            F[act.particles] = act.force
-        else:
-            F = np.zeros_like(s.x)
-            act.accumulate(s.x, s.v, s.mass, F)
         horizon = self.substeps * self.dt
+        if (_kernels.group_pieces is not None and s is self.system
+                and isinstance(act, ConstantForce) and self._pushed is not None
+                and act.particles is self._pushed[0]):
+            # the same formula, compiled, reading the actuator's rows through the row map
+            # (into buffers reused from step to step: only this step's caller reads them)
+            out, rows, frow = self._pushed[1:]
+            largest = _kernels.group_pieces(s.v, act.force, frow, s.inv_mass, self.n, horizon,
+                                            self.dt, self.step_travel, MAX_PIECES, out, rows)
+            return out, rows, largest
+        F = np.zeros_like(s.x)
+        act.accumulate(s.x, s.v, s.mass, F)
         if _kernels.group_pieces is not None:  # the same formula, compiled
             out, rows = np.empty(copies, np.int64), np.empty(s.n, np.int64)
-            largest = _kernels.group_pieces(s.v, F, s.inv_mass, self.n, horizon, self.dt,
-                                            self.step_travel, MAX_PIECES, out, rows)
+            largest = _kernels.group_pieces(s.v, F, _NO_ROWS, s.inv_mass, self.n, horizon,
+                                            self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
         with np.errstate(invalid="ignore", over="ignore"):
             speed = np.sqrt(np.sum(s.v * s.v, axis=1)) + np.sqrt(np.sum(F * F, axis=1)) * (
@@ -682,10 +698,7 @@ class ParticleTask:
         s = self.system
         obs = np.empty((N, 4 * n + 1), np.float32)
         if _measure.ENABLED:
-            if self._scale is None:
-                self._scale = (float(self.center[0]), float(self.center[1]),
-                               float(1.0 / self.half[0]), float(1.0 / self.half[1]))
-            _measure.observe(s.x, s.v, n, self.goal, *self._scale, OBS_LIMIT, obs)
+            _measure.observe(s.x, s.v, n, self.goal, *self._obs_scale(), OBS_LIMIT, obs)
             return obs
         inv_half = 1.0 / self.half
         pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
@@ -695,6 +708,52 @@ class ParticleTask:
         obs[:, -1] = (self.goal - self.center[0]) * inv_half[0]
         np.clip(obs, -OBS_LIMIT, OBS_LIMIT, out=obs)
         return obs
+
+    def _obs_scale(self) -> tuple[float, float, float, float]:
+        """The view box's centre and inverse half-sizes (1/m) as the compiled observation
+        takes them."""
+        if self._scale is None:
+            self._scale = (float(self.center[0]), float(self.center[1]),
+                           float(1.0 / self.half[0]), float(1.0 / self.half[1]))
+        return self._scale
+
+    def measure_observe(self, stepped: np.ndarray | None = None
+                        ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """:meth:`measure` (``stepped`` as there), then :meth:`observe`: what the envs need
+        after every step. In one compiled call (:func:`envs._measure.measures_observe`) when
+        a subclass redefines neither and the blocks allow it; the same values either way."""
+        if (type(self).measure is ParticleTask.measure
+                and type(self).observe is ParticleTask.observe):
+            post = self._compiled_post()
+            if post is not None:
+                p, track = post
+                N, s = self.num_envs, self.system
+                out, success = np.empty((5, N)), np.empty(N, bool)
+                obs = np.empty((N, 4 * self.n + 1), np.float32)
+                _measure.measures_observe(
+                    s.x, s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod,
+                    p.line, p.fixed, p.wall, False, self.hold,
+                    self._no_copies if stepped is None else stepped, self._no_copies,
+                    self.goal_tolerance, self.rest_speed, self.hold_steps, out, success,
+                    *self._obs_scale(), OBS_LIMIT, obs)
+                return _measured(out, success), obs
+        return self.measure(stepped), self.observe()
+
+    def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
+        """After an env step that every copy took: the measures and observation (as
+        :meth:`measure_observe` with every copy stepped), the reward and the episode counters
+        (``steps`` advanced in place; terminated on success, truncated at ``max_steps``), in
+        one go: ``(obs, measures, reward, terminated, truncated, ended, number ended)``. None
+        here: the vector env takes its general path; a task with a compiled version returns
+        exactly what that path would."""
+        return None
+
+    def _compiled_post(self) -> tuple[Any, tuple[np.ndarray, float]] | None:
+        """``(pack, tracking)`` for the compiled measures, or None where the numpy reference
+        must run (compiled bookkeeping off, no tracked particles, or blocks it does not know)."""
+        track = self._tracking() if _measure.ENABLED else None
+        p = None if track is None else _measure.packed(self.system)
+        return None if p is None else (p, track)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -728,9 +787,9 @@ class ParticleTask:
         """
         N, n = self.num_envs, self.n
         s = self.system
-        track = self._tracking() if _measure.ENABLED else None
-        p = None if track is None else _measure.packed(s)
-        if p is not None:
+        post = self._compiled_post()
+        if post is not None:
+            p, track = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
             _measure.measures(
@@ -738,8 +797,7 @@ class ParticleTask:
                 p.fixed, p.wall, walls, self.hold, self._no_copies if stepped is None else stepped,
                 self._no_copies if blocked is None else blocked, self.goal_tolerance,
                 self.rest_speed, self.hold_steps, out, success)
-            return {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
-                    "constraint_residual": out[3], "is_success": success}, out[4]
+            return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
         residual = np.zeros(N)
@@ -779,6 +837,15 @@ class ParticleTask:
 
     #: Height (m) at which the goal marker is drawn (subclasses set it).
     goal_height: float = 0.0
+
+
+_NO_ROWS = np.zeros(0, np.int64)  # group_pieces: the forces are given per particle
+
+
+def _measured(out: np.ndarray, success: np.ndarray) -> dict[str, np.ndarray]:
+    """The measures dict from the compiled measures' output rows (see ``_measure.measures``)."""
+    return {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
+            "constraint_residual": out[3], "is_success": success}
 
 
 def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
@@ -829,12 +896,12 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
 
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, Any]]:
-        m = self.task.measure(stepped)
+        m, obs = self.task.measure_observe(stepped)
         values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
         info = {k: v for k, v in values.items() if k != "speed"}
         info["diverged"] = diverged.item()
         self._last, self._values = m, values
-        return self.task.observe()[0], info
+        return obs[0], info
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -973,14 +1040,19 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
-        m = self.task.measure(stepped)
+        m, obs = self.task.measure_observe(stepped)
+        return obs, self._info(m, diverged), m
+
+    def _info(self, m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
+        """The info dict of measures ``m``: every measure but ``speed``, ``diverged``, and a
+        mask (all True) per key, as gymnasium's vector envs give them."""
         info = _info(m, diverged)
         keys = tuple(info)
         if keys != self._info_keys[0]:  # the mask names, made once per set of keys
             self._info_keys = (keys, tuple(f"_{k}" for k in keys))
         masks = np.ones((len(keys), self.num_envs), bool)  # one allocation, a row per key
         info.update(zip(self._info_keys[1], masks, strict=True))
-        return self.task.observe(), info, m
+        return info
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -1006,10 +1078,15 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         if self._rngs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         a = self.task.check_actions(actions)
-        if not self._autoreset.any():  # the usual step: no copy resets
+        # (count_nonzero: any() in a fraction of the time)
+        if not np.count_nonzero(self._autoreset):  # the usual step: no copy resets
             self.task.apply(a)
             diverged = self.task.simulate()
-            calm = not diverged.any()  # then every copy was stepped (no masks to apply)
+            calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks to apply
+            done = self.task._finish_step(self.steps, self.max_episode_steps) if calm else None
+            if done is not None:  # the task's compiled end of the step (the same values)
+                obs, m, reward, terminated, truncated, self._autoreset, _ = done
+                return obs, reward, terminated, truncated, self._info(m, diverged)
             resetting = self._autoreset  # (all False; not written below)
         else:
             calm = False

@@ -11,14 +11,16 @@ from constrained_particles import Drag, ParticleSystem, scenes
 
 from . import _measure
 from .base import (
+    OBS_LIMIT,
     ParticleEnv,
     ParticleTask,
     ParticleVectorEnv,
+    _measured,
     check_goal_range,
     check_positive,
     uniform_away,
 )
-from .rewards import ShapedTask
+from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 
 
 class SliderCrank(ShapedTask, ParticleTask):
@@ -90,6 +92,17 @@ class SliderCrank(ShapedTask, ParticleTask):
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
         return (action * self.max_force)[:, :, None] * tangent[:, None, :]
 
+    def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`force_vectors` written straight into the actuator's rows ``out`` (compiled),
+        unless a subclass redefines it."""
+        if (_measure.ENABLED and type(self).force_vectors is SliderCrank.force_vectors
+                and out.flags.c_contiguous and out.dtype == np.float64
+                and out.shape == (self.num_envs, 2) and action.shape == (self.num_envs, 1)):
+            _measure.crank_push(self.positions(), action, self.max_force,
+                                out.reshape(self.num_envs, 1, 2))
+            return
+        super()._write_forces(action, out)
+
     def _linkage(self, angle: float, omega: float, x: Any, v: Any) -> None:
         """:meth:`linkage` written into ``x``, ``v`` ((2, 2) each)."""
         r, L = self.radius, self.rod
@@ -144,10 +157,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         r, L, g = self.radius, self.rod, self.goal
         if _measure.ENABLED:
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            if self._goal_angle is None or self._goal_angle[0] != (N, r, L):
-                self._goal_angle = ((N, r, L), np.full(N, np.nan), np.zeros(N))
             _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below,
-                           *self._goal_angle[1:])
+                           *self._goal_angles())
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()
@@ -159,6 +170,75 @@ class SliderCrank(ShapedTask, ParticleTask):
         m["crank_height"] = height
         m["crank_to_go"] = to_go
         return m
+
+    def measure_observe(self, stepped: np.ndarray | None = None
+                        ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """:meth:`measure`, then :meth:`observe`: in one compiled call
+        (:func:`envs._measure.crank_measures_observe`) unless a subclass redefines either."""
+        post = (self._compiled_post() if type(self).measure is SliderCrank.measure
+                and type(self).observe is ParticleTask.observe else None)
+        if post is None:
+            return super().measure_observe(stepped)
+        p, track = post
+        N, s = self.num_envs, self.system
+        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
+        out, success = np.empty((5, N)), np.empty(N, bool)
+        obs = np.empty((N, 4 * self.n + 1), np.float32)
+        r = self.radius
+        _measure.crank_measures_observe(
+            r, r**2, self.rod**2, height, to_go, below, *self._goal_angles(), s.x, s.v, s.mass,
+            self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed, p.wall,
+            False, self.hold, self._no_copies if stepped is None else stepped,
+            self.goal_tolerance, self.rest_speed, self.hold_steps, out, success,
+            *self._obs_scale(), OBS_LIMIT, obs)
+        m = _measured(out, success)
+        m["crank_height"] = height
+        m["crank_to_go"] = to_go
+        return m, obs
+
+    def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
+        """After an env step that every copy took: :meth:`measure_observe` for all copies,
+        :meth:`reward` and the episode counters (``steps`` advanced in place), in one compiled
+        call (:func:`envs._measure.crank_finish`). Returns ``(obs, measures, reward,
+        terminated, truncated, ended, number ended)``, or None where the general path must run
+        (compiled bookkeeping off, or a subclass redefines a part of it)."""
+        cls = type(self)
+        if not (cls.measure is SliderCrank.measure and cls.observe is ParticleTask.observe
+                and cls.measure_observe is SliderCrank.measure_observe
+                and cls.potential is SliderCrank.potential
+                and cls.penalties is ShapedTask.penalties and cls.reward is ShapedTask.reward
+                and steps.dtype == np.int64 and steps.shape == (self.num_envs,)):
+            return None
+        post = self._compiled_post()
+        before = self._phi()
+        if post is None or before.dtype != np.float64 or before.shape != (self.num_envs,):
+            return None
+        p, track = post
+        N, s, r = self.num_envs, self.system, self.radius
+        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
+        out, success = np.empty((5, N)), np.empty(N, bool)
+        obs = np.empty((N, 4 * self.n + 1), np.float32)
+        reward = np.empty(N)
+        terminated, truncated, ended = np.empty(N, bool), np.empty(N, bool), np.empty(N, bool)
+        count = _measure.crank_finish(
+            r, r**2, self.rod**2, height, to_go, below, *self._goal_angles(), s.x, s.v, s.mass,
+            self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed, p.wall,
+            self.hold, self._every_copy, self.goal_tolerance, self.rest_speed, self.hold_steps,
+            out, success, *self._obs_scale(), OBS_LIMIT, obs, before, float(self.shaping_scale),
+            TIME_COST, SUCCESS_BONUS, reward, steps, int(max_steps), terminated, truncated,
+            ended)
+        m = _measured(out, success)
+        m["crank_height"] = height
+        m["crank_to_go"] = to_go
+        return obs, m, reward, terminated, truncated, ended, count
+
+    def _goal_angles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled crank measure's cache: the goals its angles were computed for (NaN:
+        none yet) and those angles (rad); made anew when the copies or the geometry change."""
+        key = (self.num_envs, self.radius, self.rod)
+        if self._goal_angle is None or self._goal_angle[0] != key:
+            self._goal_angle = (key, np.full(self.num_envs, np.nan), np.zeros(self.num_envs))
+        return self._goal_angle[1], self._goal_angle[2]
 
     def potential(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """Cost to go ``Phi = crank_to_go + s`` (m, m/s): zero only with the crank at rest at

@@ -486,6 +486,49 @@ def test_slider_crank_vector_copies_equal_single_envs_bit_for_bit(mode):
         np.testing.assert_array_equal(te1 | tr1, te2 | tr2)
 
 
+def test_compiled_end_of_step_equals_the_general_path():
+    """SliderCrank's compiled end of a calm vector step (measures, observation, reward and
+    episode counters in one call) gives exactly what the general path gives: observations,
+    rewards, ends, infos with their masks, hold counts and the potentials kept for the next
+    reward, over steps with successes, truncations and autoresets."""
+    def make():
+        env = gym.make_vec("SliderCrank-v0", num_envs=6, vectorization_mode="vector_entry_point",
+                           max_episode_steps=25, goal_tolerance=0.2, rest_speed=1.0,
+                           hold_steps=2)
+        env.reset(seed=3)
+        return env
+    fast, general = make(), make()
+    general.unwrapped.task._finish_step = lambda steps, max_steps: None
+    calls = []
+    finish = fast.unwrapped.task._finish_step
+
+    def counted(*a):
+        done = finish(*a)
+        calls.append(done is not None)
+        return done
+
+    fast.unwrapped.task._finish_step = counted
+    rng = np.random.default_rng(3)
+    ends = np.zeros(2, int)
+    for _ in range(120):
+        a = rng.uniform(-1, 1, fast.action_space.shape).astype(np.float32)
+        out1, out2 = fast.step(a), general.step(a)
+        for x, y in zip(out1[:4], out2[:4], strict=True):
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
+        i1, i2 = out1[4], out2[4]
+        assert list(i1) == list(i2)
+        for k in i1:
+            assert i1[k].dtype == i2[k].dtype and i1[k].tobytes() == i2[k].tobytes(), k
+        t1, t2 = fast.unwrapped.task, general.unwrapped.task
+        assert np.array_equal(t1.hold, t2.hold) and np.array_equal(fast.unwrapped.steps,
+                                                                   general.unwrapped.steps)
+        assert t1._phi().tobytes() == t2._phi().tobytes()
+        ends += [out1[2].sum(), out1[3].sum()]
+    assert ends[0] >= 2 and ends[1] >= 2  # both kinds of end, then autoresets
+    if envs._measure.ENABLED:  # (else both envs take the general path)
+        assert sum(calls) >= 60  # mostly calm steps, taken by the compiled end
+
+
 @pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0",
                                     "ClothPin-v0"])
 def test_batched_starts_are_the_single_starts(env_id):

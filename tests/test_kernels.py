@@ -89,7 +89,8 @@ def test_group_pieces_matches_the_numpy_rule():
     inv_mass = rng.uniform(0.5, 20, size * groups)
     v[5, 0], v[40, 1], F[77, 0] = np.nan, np.inf, -np.inf
     out, rows = np.empty(groups, np.int64), np.empty(size * groups, np.int64)
-    largest = _kernels.group_pieces(v, F, inv_mass, size, horizon, dt, travel, cap, out, rows)
+    largest = _kernels.group_pieces(v, F, np.zeros(0, np.int64), inv_mass, size, horizon, dt,
+                                    travel, cap, out, rows)
     with np.errstate(invalid="ignore"):
         speed = (np.sqrt(np.sum(v * v, axis=1))
                  + np.sqrt(np.sum(F * F, axis=1)) * (inv_mass * horizon))
@@ -99,3 +100,29 @@ def test_group_pieces_matches_the_numpy_rule():
     assert np.array_equal(rows, np.repeat(expected, size)) and largest == expected.max()
     assert set(out[[1, 13, 25]]) == {1}  # the groups holding the non-finite entries
     assert 1 < len(np.unique(out)) and out.max() <= cap
+
+
+def test_group_pieces_reads_a_force_block_through_its_row_map():
+    """Forces given as a block's rows and a per-particle row map (-1: not pushed) split the
+    steps exactly as the same forces written out per particle."""
+    if _kernels.group_pieces is None:
+        pytest.skip("compiled path disabled (CPARTICLES_NUMBA=0)")
+    rng = np.random.default_rng(1)
+    size, groups, dt, travel, horizon, cap = 2, 300, 0.025, 0.12, 0.05, 8
+    n = size * groups
+    v = rng.normal(0, 3, (n, 2))
+    inv_mass = rng.uniform(0.5, 20, n)
+    pushed = np.flatnonzero(rng.uniform(size=n) < 0.5)
+    block = rng.normal(0, 40, (len(pushed), 2))
+    frow = np.full(n, -1, np.int64)
+    frow[pushed] = np.arange(len(pushed))
+    dense = np.zeros((n, 2))
+    dense[pushed] = block
+    got, got_rows = np.empty(groups, np.int64), np.empty(n, np.int64)
+    want = np.empty(groups, np.int64)
+    largest = _kernels.group_pieces(v, block, frow, inv_mass, size, horizon, dt, travel, cap,
+                                    got, got_rows)
+    _kernels.group_pieces(v, dense, np.zeros(0, np.int64), inv_mass, size, horizon, dt, travel,
+                          cap, want, np.zeros(0, np.int64))
+    assert np.array_equal(got, want) and 1 < len(np.unique(want))
+    assert np.array_equal(got_rows, np.repeat(want, size)) and largest == want.max()
