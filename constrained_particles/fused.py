@@ -337,6 +337,32 @@ def pack(system: ParticleSystem) -> Packed:
     return packed
 
 
+def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float
+            ) -> tuple[Packed, tuple] | None:
+    """The system's :class:`Packed` form and the arguments :func:`_fused_steps` takes after
+    the state (``ks, kd, tol, divergence_limit, residual_limit`` and the packed blocks), or
+    None where the kernel cannot run: unsupported blocks, an index out of range, or state
+    arrays (and the warm start ``lam``) not C-ordered float64 of the packed sizes. The
+    kernel's memory safety rests on these checks."""
+    p = pack(system)
+    if not p.valid:  # unsupported blocks, or an index out of range
+        return None
+    if p._refresh:
+        p.refresh()
+    x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
+    nd, f64 = np.ndarray, np.float64
+    if not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
+            and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
+            and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
+            and v.flags.c_contiguous and mass.flags.c_contiguous
+            and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
+            and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
+            and mass.shape == inv_mass.shape == (p.n,)):
+        return None
+    return p, (float(system.ks), float(system.kd), float(system.tol),
+               float(system.divergence_limit), float(residual_limit), *p.args)
+
+
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
         residual_limit: float, pieces: np.ndarray | None = None
         ) -> tuple[int, np.ndarray, np.ndarray, int]:
@@ -352,24 +378,12 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     ``divergence_limit`` or off the constraints by more than ``residual_limit`` m) or
     :data:`FALLBACK` (use the reference path). ``lam`` (the warm start) is updated in place.
     """
-    p = pack(system)
-    if not p.valid:  # unsupported blocks, or an index out of range
+    ready = prepare(system, lam, residual_limit)
+    if ready is None:
         return FALLBACK, system.x, system.v, 0
-    if p._refresh:
-        p.refresh()
+    p, common = ready
     x, v, mass, inv_mass = system.x, system.v, system.mass, system.inv_mass
-    nd, f64 = np.ndarray, np.float64
-    if not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
-            and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
-            and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
-            and v.flags.c_contiguous and mass.flags.c_contiguous
-            and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
-            and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
-            and mass.shape == inv_mass.shape == (p.n,)):
-        return FALLBACK, system.x, system.v, 0
     code, h = METHOD_CODES[method], float(dt)
-    common = (float(system.ks), float(system.kd), float(system.tol),
-              float(system.divergence_limit), float(residual_limit), *p.args)
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
     if pieces is None:

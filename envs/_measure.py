@@ -63,6 +63,11 @@ crank_measures_observe: Any = None
 #: :func:`crank_measures_observe`, SliderCrank's shaped reward and the episode counters of a
 #: step every copy took, in one call (None when ``ENABLED`` is False)
 crank_finish: Any = None
+#: SliderCrank's whole env step with force actions, every copy stepping (actions, forces, step
+#: splitting, the fused physics and :func:`crank_finish`) in one call (None when ``ENABLED``
+#: is False)
+crank_step: Any = None
+NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 
 if ENABLED:
     import numba
@@ -320,8 +325,70 @@ if ENABLED:
             count += ended[i]
         return count
 
+    from constrained_particles._kernels import group_pieces as _group_pieces
+    from constrained_particles.fused import OK as _OK
+    from constrained_particles.fused import _fused_steps
+
+    @njit
+    def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
+                    hp, counts, code, substeps, dt, x, v, mass, inv_mass, lam, lam_saved, x_out,
+                    v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
+                    wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n,
+                    ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go, below, seen,
+                    target, n, goal, track, track_scale, hold, every, tolerance, rest_speed,
+                    hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs, before, scale,
+                    time_cost, bonus, reward, steps, max_steps, terminated, truncated, ended):
+        # pragma: no cover - compiled
+        """A SliderCrank env step with force actions in which every copy steps, as the
+        general path takes it, in one call: the ``raw`` actions checked (status
+        :data:`NONFINITE`, nothing written, if one is not finite) and clipped into ``action``;
+        the crank's push written into the actuator's ``force`` rows; each copy's step
+        splitting (``_kernels.group_pieces`` through the row map ``frow``); ``substeps``
+        fused steps of ``dt`` from ``(x, v)`` into ``(x_out, v_out)`` (``fused._fused_steps``;
+        split copies take their pieces); then :func:`_crank_finish` on the new state.
+        Returns ``(status, copies ended)``; a status other than ``fused.OK`` leaves the
+        state and the warm start ``lam`` as they were (the caller takes the general path,
+        which writes the same actions and forces again)."""
+        N = goal.shape[0]
+        flat = raw.reshape(-1)
+        for k in range(flat.shape[0]):  # every entry checked before anything is written
+            if not math.isfinite(np.float64(flat[k])):
+                return NONFINITE, 0
+        _clip_actions(raw, action)
+        _crank_push(x.reshape((N, n, 2)), action, max_force, force.reshape((N, 1, 2)))
+        largest = _group_pieces(v, force, frow, inv_mass, n, horizon, dt, travel, max_pieces,
+                                need, rows)
+        for i in range(lam.shape[0]):
+            lam_saved[i] = lam[i]
+        if largest == 1:
+            status, _ = _fused_steps(code, substeps, dt, hp[:0], counts[:0], x, v, mass,
+                                     inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
+                                     residual_limit, grav, const, spring, ang, drag, wall,
+                                     mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
+                                     comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, None)
+        else:
+            for q in range(rows.shape[0]):
+                hp[q] = dt / rows[q]
+                counts[q] = rows[q] * substeps
+            status, _ = _fused_steps(code, 0, dt, hp, counts, x, v, mass, inv_mass, lam, x_out,
+                                     v_out, ks, kd, tol, limit, residual_limit, grav, const,
+                                     spring, ang, drag, wall, mouse, circ, rod, line, fixed,
+                                     cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
+                                     ws_A, live)
+        if status != _OK:
+            for i in range(lam.shape[0]):
+                lam[i] = lam_saved[i]
+            return status, 0
+        return status, _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x_out,
+                                     v_out, mass, n, goal, track, track_scale, circ, rod, line,
+                                     fixed, wall, hold, every, tolerance, rest_speed,
+                                     hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs,
+                                     before, scale, time_cost, bonus, reward, steps, max_steps,
+                                     terminated, truncated, ended)
+
     measures = _measures
     observe = _observe
+    crank_step = _crank_step
     crank_finish = _crank_finish
     measures_observe = _measures_observe
     crank_measures_observe = _crank_measures_observe

@@ -739,6 +739,13 @@ class ParticleTask:
                 return _measured(out, success), obs
         return self.measure(stepped), self.observe()
 
+    def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
+        """A whole env step in which every copy steps (no reset pending) in one go, for a task
+        that has it compiled: raw ``actions`` checked as :meth:`check_actions` checks them,
+        then what :meth:`apply`, :meth:`simulate` and :meth:`_finish_step` do, returning what
+        the last returns. None here (and wherever it cannot): the general path runs."""
+        return None
+
     def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
         """After an env step that every copy took: the measures and observation (as
         :meth:`measure_observe` with every copy stepped), the reward and the episode counters
@@ -1077,9 +1084,16 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         """Step every copy; copies that ended on the previous step are reset instead."""
         if self._rngs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        a = self.task.check_actions(actions)
         # (count_nonzero: any() in a fraction of the time)
-        if not np.count_nonzero(self._autoreset):  # the usual step: no copy resets
+        calm_start = not np.count_nonzero(self._autoreset)  # the usual step: no copy resets
+        if calm_start:  # the task's compiled whole step, where it has one (the same values)
+            done = self.task._step_all(actions, self.steps, self.max_episode_steps)
+            if done is not None:
+                obs, m, reward, terminated, truncated, self._autoreset, _ = done
+                return obs, reward, terminated, truncated, self._info(
+                    m, np.zeros(self.num_envs, bool))
+        a = self.task.check_actions(actions)
+        if calm_start:
             self.task.apply(a)
             diverged = self.task.simulate()
             calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks to apply

@@ -7,10 +7,11 @@ from typing import Any
 
 import numpy as np
 
-from constrained_particles import Drag, ParticleSystem, scenes
+from constrained_particles import Drag, ParticleSystem, fused, scenes
 
 from . import _measure
 from .base import (
+    MAX_PIECES,
     OBS_LIMIT,
     ParticleEnv,
     ParticleTask,
@@ -227,6 +228,66 @@ class SliderCrank(ShapedTask, ParticleTask):
             out, success, *self._obs_scale(), OBS_LIMIT, obs, before, float(self.shaping_scale),
             TIME_COST, SUCCESS_BONUS, reward, steps, int(max_steps), terminated, truncated,
             ended)
+        m = _measured(out, success)
+        m["crank_height"] = height
+        m["crank_to_go"] = to_go
+        return obs, m, reward, terminated, truncated, ended, count
+
+    def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
+        """A whole env step with force actions in which every copy steps (no reset pending),
+        in one compiled call (:func:`envs._measure.crank_step`): what ``check_actions``,
+        ``apply``, ``simulate`` and :meth:`_finish_step` do one after another, with the same
+        results. Returns what :meth:`_finish_step` returns; raises ValueError, changing
+        nothing, for an action that is not finite; None (after at most writing the same
+        actions and forces the general path writes) where the general path must run: another
+        action mode, a subclass, actions not a C-ordered float array of shape (num_envs, 1),
+        arrays or blocks the fused kernel does not take, or a step that diverged."""
+        N, s, act = self.num_envs, self.system, self.actuator
+        if not (_measure.ENABLED and type(self) is SliderCrank and self.action_mode == "force"
+                and type(actions) is np.ndarray and actions.dtype.char in "fd"
+                and actions.shape == (N, 1) and actions.flags.c_contiguous
+                and self.integrator != "rattle" and not s.project_each_step
+                and s._fusable(self.integrator) and self._pushed is not None
+                and act.particles is self._pushed[0] and type(act.force) is np.ndarray
+                and act.force.dtype == np.float64 and act.force.shape == (N, 2)
+                and act.force.flags.c_contiguous and steps.dtype == np.int64
+                and steps.shape == (N,)):
+            return None
+        s.check_arrays()
+        lam = s.constraint_solver.lam
+        ready = fused.prepare(s, lam, s.residual_limit)
+        post = self._compiled_post()
+        before = self._phi()
+        if (ready is None or post is None or before.dtype != np.float64
+                or before.shape != (N,)):
+            return None
+        (p, common), (_, track) = ready, post
+        need, rows, frow = self._pushed[1:]
+        x_out, v_out = np.empty_like(s.x), np.empty_like(s.v)
+        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
+        out, success = np.empty((5, N)), np.empty(N, bool)
+        obs = np.empty((N, 4 * self.n + 1), np.float32)
+        reward = np.empty(N)
+        terminated, truncated, ended = np.empty(N, bool), np.empty(N, bool), np.empty(N, bool)
+        r = self.radius
+        status, count = _measure.crank_step(
+            actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
+            self.step_travel, MAX_PIECES, need, rows, np.empty(s.n), np.empty(s.n, np.int64),
+            fused.METHOD_CODES[self.integrator], self.substeps, self.dt, s.x, s.v, s.mass,
+            s.inv_mass, lam, np.empty_like(lam), x_out, v_out, *common, p.ws_live, r, r**2,
+            self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
+            track[0], track[1], self.hold, self._every_copy, self.goal_tolerance,
+            self.rest_speed, self.hold_steps, out, success, *self._obs_scale(), OBS_LIMIT, obs,
+            before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, reward, steps,
+            int(max_steps), terminated, truncated, ended)
+        if status == _measure.NONFINITE:
+            raise ValueError(f"action must be finite, got {actions!r}")
+        if status != fused.OK:
+            return None
+        t = s.t
+        for _ in range(self.substeps):  # (the clock as ParticleSystem.step advances it)
+            t = t + self.dt
+        s.x, s.v, s.t = x_out, v_out, t
         m = _measured(out, success)
         m["crank_height"] = height
         m["crank_to_go"] = to_go

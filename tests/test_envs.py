@@ -486,28 +486,35 @@ def test_slider_crank_vector_copies_equal_single_envs_bit_for_bit(mode):
         np.testing.assert_array_equal(te1 | tr1, te2 | tr2)
 
 
-def test_compiled_end_of_step_equals_the_general_path():
-    """SliderCrank's compiled end of a calm vector step (measures, observation, reward and
-    episode counters in one call) gives exactly what the general path gives: observations,
-    rewards, ends, infos with their masks, hold counts and the potentials kept for the next
-    reward, over steps with successes, truncations and autoresets."""
+@pytest.mark.parametrize("mode", ["force", "spring"])
+def test_compiled_steps_equal_the_general_path(mode):
+    """SliderCrank's compiled calm steps (force actions: the whole env step in one call; either
+    mode: the end of the step, measures to episode counters, in one call) give exactly what
+    the general path gives: observations, rewards, ends, infos with their masks, hold counts,
+    clocks and the potentials kept for the next reward, over steps with successes,
+    truncations and autoresets."""
     def make():
         env = gym.make_vec("SliderCrank-v0", num_envs=6, vectorization_mode="vector_entry_point",
-                           max_episode_steps=25, goal_tolerance=0.2, rest_speed=1.0,
-                           hold_steps=2)
+                           action_mode=mode, max_episode_steps=25, goal_tolerance=0.2,
+                           rest_speed=1.0, hold_steps=2)
         env.reset(seed=3)
         return env
     fast, general = make(), make()
+    general.unwrapped.task._step_all = lambda actions, steps, max_steps: None
     general.unwrapped.task._finish_step = lambda steps, max_steps: None
     calls = []
-    finish = fast.unwrapped.task._finish_step
 
-    def counted(*a):
-        done = finish(*a)
-        calls.append(done is not None)
-        return done
+    def counted(name):
+        hook = getattr(fast.unwrapped.task, name)
 
-    fast.unwrapped.task._finish_step = counted
+        def call(*a):
+            done = hook(*a)
+            calls.append(done is not None)
+            return done
+        return call
+
+    fast.unwrapped.task._step_all = counted("_step_all")
+    fast.unwrapped.task._finish_step = counted("_finish_step")
     rng = np.random.default_rng(3)
     ends = np.zeros(2, int)
     for _ in range(120):
@@ -522,11 +529,31 @@ def test_compiled_end_of_step_equals_the_general_path():
         t1, t2 = fast.unwrapped.task, general.unwrapped.task
         assert np.array_equal(t1.hold, t2.hold) and np.array_equal(fast.unwrapped.steps,
                                                                    general.unwrapped.steps)
-        assert t1._phi().tobytes() == t2._phi().tobytes()
+        assert t1._phi().tobytes() == t2._phi().tobytes() and t1.system.t == t2.system.t
+        assert t1.action.tobytes() == t2.action.tobytes()
         ends += [out1[2].sum(), out1[3].sum()]
     assert ends[0] >= 2 and ends[1] >= 2  # both kinds of end, then autoresets
     if envs._measure.ENABLED:  # (else both envs take the general path)
-        assert sum(calls) >= 60  # mostly calm steps, taken by the compiled end
+        assert sum(calls) >= 60  # mostly calm steps, taken by a compiled path
+
+
+def test_compiled_step_refuses_nonfinite_actions_and_changes_nothing():
+    """An action that is not finite raises ValueError from the compiled whole step, with the
+    state, the actions and the actuator as they were."""
+    env = gym.make_vec("SliderCrank-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    env.step(np.full((3, 1), 0.5, np.float32))
+    task = env.unwrapped.task
+    before = (task.system.x.copy(), task.system.v.copy(), task.action.copy(),
+              task.actuator.force.copy(), env.unwrapped.steps.copy(), task.system.t)
+    bad = np.array([[0.2], [np.nan], [0.1]], np.float32)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(bad)
+    after = (task.system.x, task.system.v, task.action, task.actuator.force,
+             env.unwrapped.steps)
+    for x, y in zip(before[:5], after, strict=True):
+        assert x.tobytes() == y.tobytes()
+    assert task.system.t == before[5]
 
 
 @pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0",
