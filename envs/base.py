@@ -98,6 +98,12 @@ def check_goal_range(goal_range: Any, min_distance: Any) -> tuple[tuple[float, f
     return (low, high), gap
 
 
+def uniform(rng: np.random.Generator, low: float, high: float) -> float:
+    """``float(rng.uniform(low, high))`` bit for bit (numpy computes ``low + (high - low) u``
+    from the same double ``u`` that ``rng.random()`` returns), in half the time."""
+    return low + (high - low) * rng.random()
+
+
 def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
                  gap: float) -> float:
     """One draw, uniform on ``[low, high]`` minus ``(x0 - gap, x0 + gap)``.
@@ -106,7 +112,7 @@ def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
     """
     left = max(0.0, min(x0 - gap, high) - low)
     right = max(0.0, high - max(x0 + gap, low))
-    u = float(rng.uniform(0.0, left + right))
+    u = uniform(rng, 0.0, left + right)
     return low + u if u < left else max(x0 + gap, low) + (u - left)
 
 

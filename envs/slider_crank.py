@@ -19,6 +19,7 @@ from .base import (
     _measured,
     check_goal_range,
     check_positive,
+    uniform,
     uniform_away,
 )
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
@@ -104,49 +105,48 @@ class SliderCrank(ShapedTask, ParticleTask):
             return
         super()._write_forces(action, out)
 
-    def _linkage(self, angle: float, omega: float, x: Any, v: Any) -> None:
-        """:meth:`linkage` written into ``x``, ``v`` ((2, 2) each)."""
+    def _linkage_values(self, angle: float, omega: float) -> tuple[float, ...]:
+        """:meth:`linkage` as eight numbers: crank x, y, slider x, y (m), then their
+        velocities (m/s)."""
         r, L = self.radius, self.rod
         c, s = math.cos(angle), math.sin(angle)
         reach = math.sqrt(L**2 - (r * s) ** 2)
-        x[0, 0], x[0, 1], x[1, 0], x[1, 1] = r * c, r * s, r * c + reach, 0.0
         dslider = -r * s - (r * s) * (r * c) / reach  # d(slider x)/d(angle)
-        v[0, 0], v[0, 1], v[1, 0], v[1, 1] = omega * (-r * s), omega * (r * c), \
-            omega * dslider, 0.0
+        return (r * c, r * s, r * c + reach, 0.0,
+                omega * (-r * s), omega * (r * c), omega * dslider, 0.0)
 
     def linkage(self, angle: float, omega: float) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities (2, 2) of crank and slider for crank ``angle`` (rad,
         counter-clockwise from +x) and angular speed ``omega`` (rad/s)."""
-        x, v = np.empty((2, 2)), np.empty((2, 2))
-        self._linkage(angle, omega, x, v)
-        return x, v
+        values = self._linkage_values(angle, omega)
+        return np.array(values[:4]).reshape(2, 2), np.array(values[4:]).reshape(2, 2)
 
-    def _draw(self, rng: np.random.Generator, x: Any, v: Any) -> float:
-        """One start's draws from ``rng``: the linkage into ``x``, ``v``; returns the goal."""
-        angle = float(rng.uniform(-np.pi, np.pi))
-        omega = float(rng.uniform(-1.0, 1.0)) * self.max_start_speed / self.radius
-        self._linkage(angle, omega, x, v)
+    def _draw(self, rng: np.random.Generator) -> tuple[tuple[float, ...], float]:
+        """One start's draws from ``rng``: the linkage's eight numbers (see
+        :meth:`_linkage_values`) and the goal (m)."""
+        angle = uniform(rng, -np.pi, np.pi)
+        omega = uniform(rng, -1.0, 1.0) * self.max_start_speed / self.radius
+        values = self._linkage_values(angle, omega)
         low, high = self.goal_range
-        return uniform_away(rng, low, high, float(x[1, 0]), self.min_distance)
+        return values, uniform_away(rng, low, high, values[2], self.min_distance)
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
         """Crank angle ~ U(-pi, pi), angular speed ~ U(+-max_start_speed / radius); the goal
         uniform over goal_range at least ``min_distance`` from the slider's start."""
-        x, v = np.empty((2, 2)), np.empty((2, 2))
-        return x, v, self._draw(rng, x, v)
+        values, goal = self._draw(rng)
+        return np.array(values[:4]).reshape(2, 2), np.array(values[4:]).reshape(2, 2), goal
 
     def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`sample_start` for each generator, written straight into the stacked arrays
-        (the same draws and arithmetic, so bit for bit the same starts). A subclass that
-        redefines ``sample_start`` or ``linkage`` gets the base version, which calls them."""
+        """:meth:`sample_start` for each generator, stacked (the same draws and arithmetic,
+        so bit for bit the same starts). A subclass that redefines ``sample_start`` or
+        ``linkage`` gets the base version, which calls them."""
         if (type(self).sample_start is not SliderCrank.sample_start
                 or type(self).linkage is not SliderCrank.linkage):
             return super().sample_starts(rngs)
-        x, v, goal = np.empty((len(rngs), 2, 2)), np.empty((len(rngs), 2, 2)), \
-            np.empty(len(rngs))
-        for k, rng in enumerate(rngs):
-            goal[k] = self._draw(rng, x[k], v[k])
-        return x, v, goal
+        draws = [self._draw(rng) for rng in rngs]
+        states = np.array([values for values, _ in draws]).reshape(len(rngs), 2, 2, 2)
+        return (np.ascontiguousarray(states[:, 0]), np.ascontiguousarray(states[:, 1]),
+                np.array([goal for _, goal in draws], dtype=np.float64))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures plus ``crank_height``: the crank's y (m; the success test also

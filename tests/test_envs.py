@@ -583,3 +583,17 @@ def test_a_subclass_start_is_used_by_batched_resets():
     task = Still(3)
     _, v, _ = task.sample_starts([np.random.default_rng(s) for s in range(3)])
     assert not v.any()
+
+
+def test_uniform_is_numpys_uniform_bit_for_bit():
+    """envs.base.uniform (the starts' scalar draws) returns exactly what Generator.uniform
+    returns from the same stream, for ranges of every sign and size."""
+    from envs.base import uniform
+
+    bounds = [(-np.pi, np.pi), (-1.0, 1.0), (0.0, 0.37), (0.8, 1.05), (-1e-3, 5e3), (2.0, 2.0)]
+    for seed in range(5):
+        a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+        for _ in range(400):
+            for low, high in bounds:
+                assert float(a.uniform(low, high)) == uniform(b, low, high)
+        assert a.random() == b.random()  # the streams stayed in step
