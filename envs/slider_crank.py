@@ -64,6 +64,9 @@ class SliderCrank(ShapedTask, ParticleTask):
         #: ((copies, radius, rod), goals, their crank angles) last used by the compiled measure
         #: (see _measure.crank); rebuilt when the copies or the geometry change
         self._goal_angle: tuple[tuple, np.ndarray, np.ndarray] | None = None
+        #: Scratch of the compiled whole step: per-particle piece lengths and counts, and the
+        #: warm start kept for a step the general path must take again
+        self._scratch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -256,25 +259,27 @@ class SliderCrank(ShapedTask, ParticleTask):
         s.check_arrays()
         lam = s.constraint_solver.lam
         ready = fused.prepare(s, lam, s.residual_limit)
-        post = self._compiled_post()
+        track = self._tracking()
         before = self._phi()
-        if (ready is None or post is None or before.dtype != np.float64
+        if (ready is None or track is None or before.dtype != np.float64
                 or before.shape != (N,)):
             return None
-        (p, common), (_, track) = ready, post
+        p, common = ready
         need, rows, frow = self._pushed[1:]
+        if self._scratch is None or self._scratch[2].shape != lam.shape:
+            self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
         x_out, v_out = np.empty_like(s.x), np.empty_like(s.v)
-        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-        out, success = np.empty((5, N)), np.empty(N, bool)
+        # the step's outputs in two blocks (a row each: fewer allocations)
+        values, flags = np.empty((8, N)), np.empty((5, N), bool)
+        out, height, to_go, reward = values[:5], values[5], values[6], values[7]
+        success, below, terminated, truncated, ended = flags
         obs = np.empty((N, 4 * self.n + 1), np.float32)
-        reward = np.empty(N)
-        terminated, truncated, ended = np.empty(N, bool), np.empty(N, bool), np.empty(N, bool)
         r = self.radius
         status, count = _measure.crank_step(
             actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
-            self.step_travel, MAX_PIECES, need, rows, np.empty(s.n), np.empty(s.n, np.int64),
+            self.step_travel, MAX_PIECES, need, rows, *self._scratch[:2],
             fused.METHOD_CODES[self.integrator], self.substeps, self.dt, s.x, s.v, s.mass,
-            s.inv_mass, lam, np.empty_like(lam), x_out, v_out, *common, p.ws_live, r, r**2,
+            s.inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
             self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
             track[0], track[1], self.hold, self._every_copy, self.goal_tolerance,
             self.rest_speed, self.hold_steps, out, success, *self._obs_scale(), OBS_LIMIT, obs,
