@@ -1374,11 +1374,14 @@ if _kernels.ENABLED:
         if first == total:  # every particle takes every step
             return _steps(method, total, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
                           v_out, *args, None)
+        # the steps only some particles take come first, while their data are likely still in
+        # cache from the last call (each particle takes its own steps in its own order, so
+        # the order of the two passes changes no bit); then every particle's common steps
         x_mid, v_mid = ws_n[10], ws_n[11]
-        status, done = _steps(method, first, h, hp, counts, x0, v0, mass, inv_mass, lam, x_mid,
-                              v_mid, *args, None)
+        status, done = _steps(method, total - first, h, hp, counts - first, x0, v0, mass,
+                              inv_mass, lam, x_mid, v_mid, *args, live)
         if status != OK:
             return status, done
-        status, done = _steps(method, total - first, h, hp, counts - first, x_mid, v_mid, mass,
-                              inv_mass, lam, x_out, v_out, *args, live)
-        return status, done + first
+        status, more = _steps(method, first, h, hp, counts, x_mid, v_mid, mass, inv_mass, lam,
+                              x_out, v_out, *args, None)
+        return status, done + more
