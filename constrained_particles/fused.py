@@ -1093,12 +1093,13 @@ if _kernels.ENABLED:
 
     @njit
     def _firsts(idx, mask, out):  # pragma: no cover - compiled
-        """The elements whose particle ``idx[e]`` is live, into ``out``; their number."""
+        """The elements whose particle ``idx[e]`` is live, into ``out``; their number.
+        (Branch-free: every element is written and the count advances only for live ones, so
+        a scattered mask costs no mispredicted branches; ``out`` has room for all.)"""
         k = 0
         for e in range(idx.shape[0]):
-            if mask[idx[e]]:
-                out[k] = e
-                k += 1
+            out[k] = e
+            k += mask[idx[e]]
         return k
 
     @njit
@@ -1140,23 +1141,20 @@ if _kernels.ENABLED:
         sizes[last] = upcoming
         if step > 0 and flips == 0:
             return
-        k = 0
+        k = 0  # (branch-free, as in _firsts)
         for q in range(mask.shape[0]):
-            if mask[q]:
-                plist[k] = q
-                k += 1
+            plist[k] = q
+            k += mask[q]
         sizes[0] = k
         k = 0
         for r in range(cols.shape[0]):
-            if mask[cols[r, 0] // 2]:
-                rlist[k] = r
-                k += 1
+            rlist[k] = r
+            k += mask[cols[r, 0] // 2]
         sizes[1] = k
         k = 0
         for c in range(comp_ptr.shape[0] - 1):
-            if mask[cols[comp_rows[comp_ptr[c]], 0] // 2]:
-                clist[k] = c
-                k += 1
+            clist[k] = c
+            k += mask[cols[comp_rows[comp_ptr[c]], 0] // 2]
         sizes[2] = k
         sizes[3] = _firsts(firsts[0], mask, elements[0])
         sizes[4] = _firsts(firsts[1], mask, elements[1])
