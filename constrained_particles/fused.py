@@ -1329,11 +1329,12 @@ if _kernels.ENABLED:
                      ws_q, ws_A, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
         not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
-        every step), particle q takes ``counts[q]`` steps instead (``steps`` is ignored): the
-        steps every particle takes run first, without the mask; in the rest a particle that has
-        taken its steps waits, and the elements, constraint rows and components of waiting
-        particles are skipped, so each independent group of particles is stepped exactly as it
-        would be alone. Returns ``(status, steps done)``."""
+        every step), particle q takes ``counts[q]`` steps instead (``steps`` is ignored): first
+        the steps only some particles take (a particle with fewer waits, and the elements,
+        constraint rows and components of waiting particles are skipped), then the steps every
+        particle takes, without the mask. Each particle takes its own steps in its own order,
+        so each independent group of particles is stepped exactly as it would be alone.
+        Returns ``(status, steps done)``."""
         n = x0.shape[0]
         m = lam.shape[0]
         per_particle = hp.shape[0] > 0

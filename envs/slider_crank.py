@@ -25,6 +25,13 @@ from .base import (
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 
 
+def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
+    """True if ``a`` is a C-ordered ndarray of ``dtype`` and ``shape`` (as the task made it:
+    the compiled step reads and writes it without bounds checks)."""
+    return (type(a) is np.ndarray and a.dtype == dtype and a.shape == shape
+            and a.flags.c_contiguous)
+
+
 class SliderCrank(ShapedTask, ParticleTask):
     """The SliderCrank physics and task for ``num_envs`` copies (see :class:`SliderCrankEnv`)."""
 
@@ -253,8 +260,10 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and s._fusable(self.integrator) and self._pushed is not None
                 and act.particles is self._pushed[0] and type(act.force) is np.ndarray
                 and act.force.dtype == np.float64 and act.force.shape == (N, 2)
-                and act.force.flags.c_contiguous and steps.dtype == np.int64
-                and steps.shape == (N,)):
+                and act.force.flags.c_contiguous and _owned(steps, np.int64, (N,))
+                and _owned(self.goal, np.float64, (N,))
+                and _owned(self.hold, np.int64, (N,))
+                and _owned(self.action, np.float64, (N, 1))):
             return None
         s.check_arrays()
         lam = s.constraint_solver.lam
