@@ -660,6 +660,15 @@ class ParticleTask:
             self._put(frozen, x0, v0)
         return frozen
 
+    def pass_time(self) -> None:
+        """Advance the clock by one env step (``substeps`` steps of ``dt``, added as a step
+        adds them) without stepping: for an env step in which every copy starts anew, whose
+        physics would be overwritten by the starts."""
+        t = self.system.t
+        for _ in range(self.substeps):
+            t = t + self.dt
+        self.system.t = t
+
     def _put(self, copies: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:
         """Set the masked ``copies`` to their rows of ``x``, ``v``; switch off their actuation."""
         rows = np.repeat(copies, self.n)
@@ -1115,10 +1124,15 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             starts = self.task.sample_starts([self._rngs[i] for i in envs])
             self.task.write_starts(envs, *starts)
             self.task.apply(a, idle=resetting)
-            diverged = self.task.simulate()
-            # the resetting copies were stepped along (no actuation); put their first state back
-            self.task.write_starts(envs, *starts)
-            diverged[resetting] = False
+            if (len(envs) == self.num_envs  # every copy starts anew: no physics to keep
+                    and type(self.task).simulate is ParticleTask.simulate):
+                self.task.pass_time()
+                diverged = np.zeros(self.num_envs, bool)
+            else:
+                diverged = self.task.simulate()
+                # the resetting copies were stepped along (no actuation); put their start back
+                self.task.write_starts(envs, *starts)
+                diverged[resetting] = False
         obs, info, m = self._result(diverged,
                                     self._all_copies if calm else ~resetting & ~diverged)
         reward = self.task.reward(m)

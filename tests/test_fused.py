@@ -294,9 +294,11 @@ def test_fused_rattle_on_tiled_pendulums_and_slider_cranks_is_copy_exact():
 def test_per_copy_pieces_step_each_copy_as_it_would_be_stepped_alone(method):
     """``_step_pieces``: copy i of a tiled scene, split into k_i pieces per step, ends bit for bit
     where ``steps * k_i`` separate steps of ``dt / k_i`` of that copy alone leave it, while the
-    other copies (with other counts) wait; cloths (CG components) and slider-cranks (direct)."""
+    other copies (with other counts) wait; cloths (CG components), slider-cranks (direct) and
+    a scene with every force and constraint type (each type's live list, several blocks of a
+    type, a pinned particle)."""
     for single, dt in [(scenes.wire_mixture(omega=3.0), 4e-3),
-                       (scenes.cloth(nx=4, ny=3, push=0.2), 1e-3)]:
+                       (scenes.cloth(nx=4, ny=3, push=0.2), 1e-3), (every_block(4), 1e-3)]:
         single.add(Drag(0.1))
         n = single.n
         counts = [1, 3, 2, 4]
