@@ -325,6 +325,9 @@ if ENABLED:
             count += ended[i]
         return count
 
+    # (numba's on-disk cache keys these kernels on this file alone: after editing fused.py or
+    # _kernels.py in a checkout, delete envs/__pycache__/_measure*.nbi and *.nbc, or the
+    # cached kernels here keep the old code compiled in)
     from constrained_particles._kernels import group_pieces as _group_pieces
     from constrained_particles.fused import OK as _OK
     from constrained_particles.fused import _fused_steps
