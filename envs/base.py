@@ -528,7 +528,8 @@ class ParticleTask:
         horizon = self.substeps * self.dt
         if (_kernels.group_pieces is not None and s is self.system
                 and isinstance(act, ConstantForce) and self._pushed is not None
-                and act.particles is self._pushed[0]):
+                and act.particles is self._pushed[0] and type(act.force) is np.ndarray
+                and act.force.shape == (len(act.particles), 2)):  # (read without bounds checks)
             # the same formula, compiled, reading the actuator's rows through the row map
             # (into buffers reused from step to step: only this step's caller reads them)
             out, rows, frow = self._pushed[1:]
@@ -773,8 +774,14 @@ class ParticleTask:
     def _compiled_post(self) -> tuple[Any, tuple[np.ndarray, float]] | None:
         """``(pack, tracking)`` for the compiled measures, or None where the numpy reference
         must run (compiled bookkeeping off, no tracked particles, or blocks it does not know)."""
+        N = self.num_envs
         track = self._tracking() if _measure.ENABLED else None
-        p = None if track is None else _measure.packed(self.system)
+        if track is None or not (  # (arrays the kernels read without bounds checks)
+                type(self.goal) is np.ndarray and self.goal.dtype == np.float64
+                and self.goal.shape == (N,) and type(self.hold) is np.ndarray
+                and self.hold.dtype == np.int64 and self.hold.shape == (N,)):
+            return None
+        p = _measure.packed(self.system)
         return None if p is None else (p, track)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
