@@ -289,9 +289,9 @@ if ENABLED:
         slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
         after a step in one call."""
         _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target)
-        _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall, walls,
-                  hold, stepped, below, tolerance, rest_speed, hold_steps, out, success)
-        _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
+        _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
+                          walls, hold, stepped, below, tolerance, rest_speed, hold_steps, out,
+                          success, cx, cy, ix, iy, limit, obs)
 
     @njit
     def _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n, goal,
@@ -301,23 +301,18 @@ if ENABLED:
                       ended):  # pragma: no cover - compiled
         """The end of a SliderCrank env step that ``every`` copy took: the measures and
         observation (:func:`_crank_measures_observe`), the shaped reward
-        ``((Phi_before - Phi) * scale - time_cost) + bonus * success`` with the potential
-        ``Phi = crank_to_go + speed`` (``envs.rewards.ShapedTask.reward`` and
-        ``SliderCrank.potential``: the same operations in the same order, so the same bits;
-        ``before`` becomes ``Phi``), and the episode counters: ``steps`` advance, ``terminated
-        = success``, ``truncated = steps >= max_steps``, ``ended`` either. Returns how many
-        copies ended."""
+        (:func:`_shaped_reward`, no penalties) of the potential ``Phi = crank_to_go + speed``
+        (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the episode counters:
+        ``steps`` advance, ``terminated = success``, ``truncated = steps >= max_steps``,
+        ``ended`` either. Returns how many copies ended."""
         _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
                                 goal, track, track_scale, circ, rod, line, fixed, wall, False,
                                 hold, every, tolerance, rest_speed, hold_steps, out, success,
                                 cx, cy, ix, iy, limit, obs)
-        speed = out[1]
+        phi = to_go + out[1]  # SliderCrank.potential
+        _shaped_reward(before, phi, success, phi[:0], scale, time_cost, bonus, reward)
         count = 0
         for i in range(goal.shape[0]):
-            phi = to_go[i] + speed[i]
-            reward[i] = ((before[i] - phi) * scale - time_cost) + bonus * (1.0 if success[i]
-                                                                          else 0.0)
-            before[i] = phi
             steps[i] += 1
             terminated[i] = success[i]
             truncated[i] = steps[i] >= max_steps

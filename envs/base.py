@@ -98,6 +98,14 @@ def check_goal_range(goal_range: Any, min_distance: Any) -> tuple[tuple[float, f
     return (low, high), gap
 
 
+def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
+    """True if ``a`` is a C-ordered ndarray of ``dtype`` and ``shape``, as the task made it:
+    the compiled bookkeeping reads (and writes) such arrays without bounds checks, so one a
+    user replaced with another shape takes the numpy path and its checks instead."""
+    return (type(a) is np.ndarray and a.dtype == dtype and a.shape == shape
+            and a.flags.c_contiguous)
+
+
 def uniform(rng: np.random.Generator, low: float, high: float) -> float:
     """``float(rng.uniform(low, high))`` bit for bit (numpy computes ``low + (high - low) u``
     from the same double ``u`` that ``rng.random()`` returns), in half the time."""
@@ -208,7 +216,8 @@ class ParticleTask:
         self.half = np.array([(xmax - xmin) / 2, (ymax - ymin) / 2])
         #: The default ``stepped`` and ``blocked`` masks of :meth:`_measures`: no copy.
         self._no_copies = np.zeros(self.num_envs, bool)
-        self._every_copy = np.ones(self.num_envs, bool)  # (read only)
+        #: The ``stepped`` mask of a step every copy took (never written).
+        self._every_copy = np.ones(self.num_envs, bool)
         self._scale: tuple[float, float, float, float] | None = None
         self._track: tuple[np.ndarray, float] | None = None
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
@@ -528,8 +537,8 @@ class ParticleTask:
         horizon = self.substeps * self.dt
         if (_kernels.group_pieces is not None and s is self.system
                 and isinstance(act, ConstantForce) and self._pushed is not None
-                and act.particles is self._pushed[0] and type(act.force) is np.ndarray
-                and act.force.shape == (len(act.particles), 2)):  # (read without bounds checks)
+                and act.particles is self._pushed[0]
+                and _owned(act.force, np.float64, (len(act.particles), 2))):
             # the same formula, compiled, reading the actuator's rows through the row map
             # (into buffers reused from step to step: only this step's caller reads them)
             out, rows, frow = self._pushed[1:]
@@ -739,20 +748,10 @@ class ParticleTask:
         after every step. In one compiled call (:func:`envs._measure.measures_observe`) when
         a subclass redefines neither and the blocks allow it; the same values either way."""
         if (type(self).measure is ParticleTask.measure
-                and type(self).observe is ParticleTask.observe):
-            post = self._compiled_post()
-            if post is not None:
-                p, track = post
-                N, s = self.num_envs, self.system
-                out, success = np.empty((5, N)), np.empty(N, bool)
-                obs = np.empty((N, 4 * self.n + 1), np.float32)
-                _measure.measures_observe(
-                    s.x, s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod,
-                    p.line, p.fixed, p.wall, False, self.hold,
-                    self._no_copies if stepped is None else stepped, self._no_copies,
-                    self.goal_tolerance, self.rest_speed, self.hold_steps, out, success,
-                    *self._obs_scale(), OBS_LIMIT, obs)
-                return _measured(out, success), obs
+                and type(self).observe is ParticleTask.observe
+                and self._compiled_post() is not None):
+            obs = np.empty((self.num_envs, 4 * self.n + 1), np.float32)
+            return self._measures(stepped, obs=obs)[0], obs
         return self.measure(stepped), self.observe()
 
     def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
@@ -776,10 +775,8 @@ class ParticleTask:
         must run (compiled bookkeeping off, no tracked particles, or blocks it does not know)."""
         N = self.num_envs
         track = self._tracking() if _measure.ENABLED else None
-        if track is None or not (  # (arrays the kernels read without bounds checks)
-                type(self.goal) is np.ndarray and self.goal.dtype == np.float64
-                and self.goal.shape == (N,) and type(self.hold) is np.ndarray
-                and self.hold.dtype == np.int64 and self.hold.shape == (N,)):
+        if (track is None or not _owned(self.goal, np.float64, (N,))
+                or not _owned(self.hold, np.int64, (N,))):
             return None
         p = _measure.packed(self.system)
         return None if p is None else (p, track)
@@ -804,7 +801,8 @@ class ParticleTask:
         return self._track
 
     def _measures(self, stepped: np.ndarray | None = None, blocked: np.ndarray | None = None,
-                  walls: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                  walls: bool = False, obs: np.ndarray | None = None
+                  ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """The measures of :meth:`measure` and the walls' total contact force per copy (N,
         the sum over particles of ``|F_x|``; zeros unless ``walls``).
 
@@ -812,7 +810,8 @@ class ParticleTask:
         the goal, slower than ``rest_speed``, not ``blocked`` and (with ``walls``) touching no
         wall; otherwise it restarts at 0. Computed in one compiled pass
         (:func:`envs._measure.measures`) when the system's blocks allow it, else by the numpy
-        reference below.
+        reference below. With ``obs``, the compiled pass also writes :meth:`observe`'s
+        observation into it (:func:`envs._measure.measures_observe`); the reference does not.
         """
         N, n = self.num_envs, self.n
         s = self.system
@@ -821,11 +820,15 @@ class ParticleTask:
             p, track = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            _measure.measures(
-                s.x, s.v, s.mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
-                p.fixed, p.wall, walls, self.hold, self._no_copies if stepped is None else stepped,
-                self._no_copies if blocked is None else blocked, self.goal_tolerance,
-                self.rest_speed, self.hold_steps, out, success)
+            args = (s.x, s.v, s.mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
+                    p.fixed, p.wall, walls, self.hold,
+                    self._no_copies if stepped is None else stepped,
+                    self._no_copies if blocked is None else blocked, self.goal_tolerance,
+                    self.rest_speed, self.hold_steps, out, success)
+            if obs is None:
+                _measure.measures(*args)
+            else:
+                _measure.measures_observe(*args, *self._obs_scale(), OBS_LIMIT, obs)
             return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
@@ -1051,7 +1054,6 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self._rngs: list[np.random.Generator] | None = None
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        self._all_copies = np.ones(self.num_envs, dtype=bool)  # (read only by the measures)
         self._info_keys: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
 
     def _seed_copies(self, seed: int | Sequence[int | None] | None) -> None:
@@ -1141,7 +1143,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 self.task.write_starts(envs, *starts)
                 diverged[resetting] = False
         obs, info, m = self._result(diverged,
-                                    self._all_copies if calm else ~resetting & ~diverged)
+                                    self.task._every_copy if calm else ~resetting & ~diverged)
         reward = self.task.reward(m)
         self.steps += 1
         if calm:

@@ -17,19 +17,13 @@ from .base import (
     ParticleTask,
     ParticleVectorEnv,
     _measured,
+    _owned,
     check_goal_range,
     check_positive,
     uniform,
     uniform_away,
 )
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
-
-
-def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
-    """True if ``a`` is a C-ordered ndarray of ``dtype`` and ``shape`` (as the task made it:
-    the compiled step reads and writes it without bounds checks)."""
-    return (type(a) is np.ndarray and a.dtype == dtype and a.shape == shape
-            and a.flags.c_contiguous)
 
 
 class SliderCrank(ShapedTask, ParticleTask):
@@ -191,21 +185,27 @@ class SliderCrank(ShapedTask, ParticleTask):
         if post is None:
             return super().measure_observe(stepped)
         p, track = post
-        N, s = self.num_envs, self.system
-        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-        out, success = np.empty((5, N)), np.empty(N, bool)
-        obs = np.empty((N, 4 * self.n + 1), np.float32)
-        r = self.radius
+        s, r = self.system, self.radius
+        values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
-            r, r**2, self.rod**2, height, to_go, below, *self._goal_angles(), s.x, s.v, s.mass,
-            self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed, p.wall,
-            False, self.hold, self._no_copies if stepped is None else stepped,
-            self.goal_tolerance, self.rest_speed, self.hold_steps, out, success,
+            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), s.x,
+            s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
+            p.wall, False, self.hold, self._no_copies if stepped is None else stepped,
+            self.goal_tolerance, self.rest_speed, self.hold_steps, values[:5], flags[0],
             *self._obs_scale(), OBS_LIMIT, obs)
-        m = _measured(out, success)
-        m["crank_height"] = height
-        m["crank_to_go"] = to_go
         return m, obs
+
+    def _crank_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Fresh outputs of the compiled crank bookkeeping, filled in place by the kernels: a
+        float block (8, num_envs) (the five rows of ``_measure.measures``, crank height, arc to
+        go, reward), a bool block (5, num_envs) (success, crank below the wire, terminated,
+        truncated, ended), the observation, and the measures dict over their rows."""
+        N = self.num_envs
+        values, flags = np.empty((8, N)), np.empty((5, N), bool)
+        m = _measured(values[:5], flags[0])
+        m["crank_height"] = values[5]
+        m["crank_to_go"] = values[6]
+        return values, flags, np.empty((N, 4 * self.n + 1), np.float32), m
 
     def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
         """After an env step that every copy took: :meth:`measure_observe` for all copies,
@@ -225,23 +225,16 @@ class SliderCrank(ShapedTask, ParticleTask):
         if post is None or before.dtype != np.float64 or before.shape != (self.num_envs,):
             return None
         p, track = post
-        N, s, r = self.num_envs, self.system, self.radius
-        height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-        out, success = np.empty((5, N)), np.empty(N, bool)
-        obs = np.empty((N, 4 * self.n + 1), np.float32)
-        reward = np.empty(N)
-        terminated, truncated, ended = np.empty(N, bool), np.empty(N, bool), np.empty(N, bool)
+        s, r = self.system, self.radius
+        values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            r, r**2, self.rod**2, height, to_go, below, *self._goal_angles(), s.x, s.v, s.mass,
-            self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed, p.wall,
-            self.hold, self._every_copy, self.goal_tolerance, self.rest_speed, self.hold_steps,
-            out, success, *self._obs_scale(), OBS_LIMIT, obs, before, float(self.shaping_scale),
-            TIME_COST, SUCCESS_BONUS, reward, steps, int(max_steps), terminated, truncated,
-            ended)
-        m = _measured(out, success)
-        m["crank_height"] = height
-        m["crank_to_go"] = to_go
-        return obs, m, reward, terminated, truncated, ended, count
+            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), s.x,
+            s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
+            p.wall, self.hold, self._every_copy, self.goal_tolerance, self.rest_speed,
+            self.hold_steps, values[:5], flags[0], *self._obs_scale(), OBS_LIMIT, obs, before,
+            float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, values[7], steps,
+            int(max_steps), flags[2], flags[3], flags[4])
+        return obs, m, values[7], flags[2], flags[3], flags[4], count
 
     def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
         """A whole env step with force actions in which every copy steps (no reset pending),
@@ -258,9 +251,8 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and actions.shape == (N, 1) and actions.flags.c_contiguous
                 and self.integrator != "rattle" and not s.project_each_step
                 and s._fusable(self.integrator) and self._pushed is not None
-                and act.particles is self._pushed[0] and type(act.force) is np.ndarray
-                and act.force.dtype == np.float64 and act.force.shape == (N, 2)
-                and act.force.flags.c_contiguous and _owned(steps, np.int64, (N,))
+                and act.particles is self._pushed[0] and _owned(act.force, np.float64, (N, 2))
+                and _owned(steps, np.int64, (N,))
                 and _owned(self.goal, np.float64, (N,))
                 and _owned(self.hold, np.int64, (N,))
                 and _owned(self.action, np.float64, (N, 1))):
@@ -278,11 +270,9 @@ class SliderCrank(ShapedTask, ParticleTask):
         if self._scratch is None or self._scratch[2].shape != lam.shape:
             self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
         x_out, v_out = np.empty_like(s.x), np.empty_like(s.v)
-        # the step's outputs in two blocks (a row each: fewer allocations)
-        values, flags = np.empty((8, N)), np.empty((5, N), bool)
+        values, flags, obs, m = self._crank_outputs()
         out, height, to_go, reward = values[:5], values[5], values[6], values[7]
         success, below, terminated, truncated, ended = flags
-        obs = np.empty((N, 4 * self.n + 1), np.float32)
         r = self.radius
         status, count = _measure.crank_step(
             actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
@@ -302,9 +292,6 @@ class SliderCrank(ShapedTask, ParticleTask):
         for _ in range(self.substeps):  # (the clock as ParticleSystem.step advances it)
             t = t + self.dt
         s.x, s.v, s.t = x_out, v_out, t
-        m = _measured(out, success)
-        m["crank_height"] = height
-        m["crank_to_go"] = to_go
         return obs, m, reward, terminated, truncated, ended, count
 
     def _goal_angles(self) -> tuple[np.ndarray, np.ndarray]:
