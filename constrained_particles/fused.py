@@ -271,7 +271,8 @@ class Packed:
         self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
                         np.zeros(len(self.comp_ptr) - 1, np.int64),
                         np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
-                        tuple(np.zeros(len(b[0]), np.int64) for b in blocks))
+                        tuple(np.zeros(len(b[0]), np.int64) for b in blocks),
+                        self._live_index(blocks))
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
@@ -299,6 +300,29 @@ class Packed:
         self.comp_rows, self.comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
         sizes = np.diff(self.comp_ptr)
         self.max_component = int(sizes.max()) if len(sizes) else 0
+
+    def _live_index(self, blocks: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                  np.ndarray]:
+        """What ``_gate`` needs to list the live rows, components and elements from the live
+        particles alone, instead of scanning every row and element: ``(ptr, ranged, comp_of,
+        seen)``. For a block type whose elements are ordered by their first particle
+        (``ranged[t]``), the elements of particle q are ``ptr[t, q]:ptr[t, q + 1]`` (so a list
+        made particle by particle keeps the elements' order); other types are scanned.
+        ``comp_of[c]`` is the component of coordinate c (-1: none), ``seen`` a zeroed mark
+        per component."""
+        n = self.n
+        ranged = np.array([len(b[0]) == 0 or bool(np.all(np.diff(b[0]) >= 0)) for b in blocks])
+        ptr = np.zeros((len(blocks), n + 1), np.int64)
+        for t, b in enumerate(blocks):
+            if ranged[t]:
+                ptr[t] = np.searchsorted(b[0], np.arange(n + 1))
+        ncomp = len(self.comp_ptr) - 1
+        row_comp = np.empty(self.m, np.int64)
+        row_comp[self.comp_rows] = np.repeat(np.arange(ncomp), np.diff(self.comp_ptr))
+        comp_of = np.full(2 * n, -1, np.int64)
+        used = self.cols >= 0
+        comp_of[self.cols[used]] = np.broadcast_to(row_comp[:, None], self.cols.shape)[used]
+        return (_ro(ptr), _ro(ranged), _ro(comp_of), np.zeros(len(self.comp_ptr) - 1, bool))
 
     def refresh(self) -> None:
         """Copy the parameter arrays of types with several blocks into their joined arrays."""
@@ -399,6 +423,9 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
 
 if _kernels.ENABLED:
     import numba
+    from numba.core import cgutils, types
+    from numba.extending import intrinsic
+    from numba.np.arrayobj import make_array
 
     from ._kernels import (
         add_spring,
@@ -413,6 +440,32 @@ if _kernels.ENABLED:
 
     # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
     njit = numba.njit(cache=True)
+
+    def _strip(context: Any, builder: Any, ty: Any, value: Any) -> Any:
+        """``value`` of type ``ty`` with every array in it (tuples recursively) carrying no
+        reference count (null meminfo and parent): see :func:`_borrowed`."""
+        if isinstance(ty, types.Array):
+            ary = make_array(ty)(context, builder, value=value)
+            ary.meminfo = cgutils.get_null_value(ary.meminfo.type)
+            ary.parent = cgutils.get_null_value(ary.parent.type)
+            return ary._getvalue()
+        if isinstance(ty, types.BaseTuple):
+            items = [_strip(context, builder, t, builder.extract_value(value, i))
+                     for i, t in enumerate(ty.types)]
+            return context.make_tuple(builder, ty, items)
+        return value
+
+    @intrinsic
+    def _borrowed(typingctx: Any, value: Any) -> Any:  # pragma: no cover - compiled
+        """``value`` (an array, a scalar, None or a nested tuple of them) with its arrays'
+        reference counts detached: the same data, shapes and strides, but passing or
+        unpacking them no longer costs an atomic increment and decrement each (about 1 us
+        per call of :func:`_accel`, whose arguments hold some 80 arrays). Only for arrays
+        that the caller keeps alive for longer than any use of the result, which must not
+        escape the call (the fused step's inputs, outputs and workspace)."""
+        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+            return _strip(context, builder, value, args[0])
+        return value(value), codegen
 
     @njit
     def _valid(idx, n):  # pragma: no cover - compiled
@@ -1124,7 +1177,7 @@ if _kernels.ENABLED:
         of :data:`_ELEMENT_TYPES`; ``firsts`` holds each type's first-particle array), with
         their lengths in ``live[4]``, whose last entry keeps the next step at which the mask
         changes (until then nothing is scanned)."""
-        mask, plist, rlist, clist, sizes, elements = live
+        mask, plist, rlist, clist, sizes, elements, index = live
         last = sizes.shape[0] - 1  # the next step at which the mask changes
         if step > 0 and step < sizes[last]:
             return
@@ -1146,33 +1199,67 @@ if _kernels.ENABLED:
             plist[k] = q
             k += mask[q]
         sizes[0] = k
+        # the live components (those of the live particles' coordinates: a component's
+        # particles share a count), then their rows, in order within each component (so each
+        # coordinate gets its rows' terms in row order, as on the path without a mask)
+        ptr, ranged, comp_of, seen = index
+        ncomp = comp_ptr.shape[0] - 1
         k = 0
-        for r in range(cols.shape[0]):
-            rlist[k] = r
-            k += mask[cols[r, 0] // 2]
-        sizes[1] = k
-        k = 0
-        for c in range(comp_ptr.shape[0] - 1):
-            clist[k] = c
-            k += mask[cols[comp_rows[comp_ptr[c]], 0] // 2]
+        for i in range(sizes[0]):
+            q = plist[i]
+            for col in range(2 * q, 2 * q + 2):
+                c = comp_of[col]
+                if c >= 0 and c < ncomp and not seen[c]:
+                    seen[c] = True
+                    clist[k] = c
+                    k += 1
         sizes[2] = k
-        sizes[3] = _firsts(firsts[0], mask, elements[0])
-        sizes[4] = _firsts(firsts[1], mask, elements[1])
-        sizes[5] = _firsts(firsts[2], mask, elements[2])
-        sizes[6] = _firsts(firsts[3], mask, elements[3])
-        sizes[7] = _firsts(firsts[4], mask, elements[4])
-        sizes[8] = _firsts(firsts[5], mask, elements[5])
-        k = 0  # mouse springs: only active ones have a particle to ask about
-        mi = firsts[6]
+        j = 0
+        for kk in range(k):
+            c = clist[kk]
+            seen[c] = False
+            for a in range(comp_ptr[c], min(comp_ptr[c + 1], comp_ptr[c] + rlist.shape[0] - j)):
+                rlist[j] = comp_rows[a]
+                j += 1
+        sizes[1] = j
+        live_n = sizes[0]
+        sizes[3] = _live_elements(0, firsts[0], mask, plist, live_n, ptr, ranged, elements[0])
+        sizes[4] = _live_elements(1, firsts[1], mask, plist, live_n, ptr, ranged, elements[1])
+        sizes[5] = _live_elements(2, firsts[2], mask, plist, live_n, ptr, ranged, elements[2])
+        sizes[6] = _live_elements(3, firsts[3], mask, plist, live_n, ptr, ranged, elements[3])
+        sizes[7] = _live_elements(4, firsts[4], mask, plist, live_n, ptr, ranged, elements[4])
+        sizes[8] = _live_elements(5, firsts[5], mask, plist, live_n, ptr, ranged, elements[5])
+        k = 0  # mouse springs: only active ones have a particle to ask about (a grab replaces
+        mi = firsts[6]  # the particle array, so they are always scanned)
         for e in range(mi.shape[0]):
             if mouse_active[e] and mask[mi[e]]:
                 elements[6][k] = e
                 k += 1
         sizes[9] = k
-        sizes[10] = _firsts(firsts[7], mask, elements[7])
-        sizes[11] = _firsts(firsts[8], mask, elements[8])
-        sizes[12] = _firsts(firsts[9], mask, elements[9])
-        sizes[13] = _firsts(firsts[10], mask, elements[10])
+        sizes[10] = _live_elements(7, firsts[7], mask, plist, live_n, ptr, ranged, elements[7])
+        sizes[11] = _live_elements(8, firsts[8], mask, plist, live_n, ptr, ranged, elements[8])
+        sizes[12] = _live_elements(9, firsts[9], mask, plist, live_n, ptr, ranged, elements[9])
+        sizes[13] = _live_elements(10, firsts[10], mask, plist, live_n, ptr, ranged,
+                                   elements[10])
+
+    @njit
+    def _live_elements(t, idx, mask, plist, live_n, ptr, ranged, out):
+        # pragma: no cover - compiled
+        """The live elements of block type ``t`` (first particles ``idx``) into ``out``, in
+        element order; their number. For a type ordered by first particle (``ranged[t]``),
+        the ranges ``ptr[t, q]:ptr[t, q + 1]`` of the ``live_n`` live particles in ``plist``
+        (clipped to ``out``'s length); otherwise a scan of every element (:func:`_firsts`)."""
+        if not ranged[t]:
+            return _firsts(idx, mask, out)
+        top = min(idx.shape[0], out.shape[0])
+        k = 0
+        for i in range(live_n):
+            q = plist[i]
+            lo = max(ptr[t, q], 0)
+            for e in range(lo, min(ptr[t, q + 1], top, lo + top - k)):
+                out[k] = e
+                k += 1
+        return k
 
     @njit
     def _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd,
@@ -1345,6 +1432,10 @@ if _kernels.ENABLED:
                                  or live[2].shape[0] != m
                                  or live[3].shape[0] != comp_ptr.shape[0] - 1
                                  or live[4].shape[0] != 4 + len(_ELEMENT_TYPES)
+                                 or live[6][0].shape != (len(_ELEMENT_TYPES), n + 1)
+                                 or live[6][1].shape[0] != len(_ELEMENT_TYPES)
+                                 or live[6][2].shape[0] != 2 * n
+                                 or live[6][3].shape[0] != comp_ptr.shape[0] - 1
                                  or not _element_lists_fit(live[5], grav, const, spring, ang,
                                                            drag, wall, mouse, circ, rod, line,
                                                            fixed)):
@@ -1363,9 +1454,13 @@ if _kernels.ENABLED:
             w2[2 * q + 1] = inv_mass[q]
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
-        args = (ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
-                circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
-                ws_A)
+        # every array below lives in the caller for the whole call: no reference counting
+        args = _borrowed((ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
+                          wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr,
+                          ws_n, ws_J, ws_r, ws_q, ws_A))
+        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, live = _borrowed(
+            (hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, live))
+        ws_n = args[20]
         if live is None or n == 0:
             return _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
                           v_out, *args, None)
