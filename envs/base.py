@@ -106,10 +106,24 @@ def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
             and a.flags.c_contiguous)
 
 
+def scaled(u: float, low: float, high: float) -> float:
+    """``low + (high - low) u``: how numpy's ``uniform(low, high)`` maps its double ``u`` in
+    [0, 1) (so a ``u`` drawn by ``rng.random()`` gives ``rng.uniform(low, high)`` bit for bit)."""
+    return low + (high - low) * u
+
+
 def uniform(rng: np.random.Generator, low: float, high: float) -> float:
     """``float(rng.uniform(low, high))`` bit for bit (numpy computes ``low + (high - low) u``
     from the same double ``u`` that ``rng.random()`` returns), in half the time."""
     return low + (high - low) * rng.random()
+
+
+def away(u: float, low: float, high: float, x0: float, gap: float) -> float:
+    """:func:`uniform_away` from its draw ``u`` in [0, 1)."""
+    left = max(0.0, min(x0 - gap, high) - low)
+    right = max(0.0, high - max(x0 + gap, low))
+    w = scaled(u, 0.0, left + right)
+    return low + w if w < left else max(x0 + gap, low) + (w - left)
 
 
 def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
@@ -118,10 +132,7 @@ def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
 
     Non-empty whenever ``high - low > 2 gap`` (see :func:`check_goal_range`).
     """
-    left = max(0.0, min(x0 - gap, high) - low)
-    right = max(0.0, high - max(x0 + gap, low))
-    u = uniform(rng, 0.0, left + right)
-    return low + u if u < left else max(x0 + gap, low) + (u - left)
+    return away(rng.random(), low, high, x0, gap)
 
 
 class ParticleTask:

@@ -18,10 +18,10 @@ from .base import (
     ParticleVectorEnv,
     _measured,
     _owned,
+    away,
     check_goal_range,
     check_positive,
-    uniform,
-    uniform_away,
+    scaled,
 )
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 
@@ -127,12 +127,16 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def _draw(self, rng: np.random.Generator) -> tuple[tuple[float, ...], float]:
         """One start's draws from ``rng``: the linkage's eight numbers (see
-        :meth:`_linkage_values`) and the goal (m)."""
-        angle = uniform(rng, -np.pi, np.pi)
-        omega = uniform(rng, -1.0, 1.0) * self.max_start_speed / self.radius
+        :meth:`_linkage_values`) and the goal (m). Three uniform doubles, drawn in one call
+        (the same three that three calls of ``rng.random()`` return): the crank angle
+        ~ U(-pi, pi), the angular speed ~ U(+-max_start_speed / radius), and the goal's draw
+        (:func:`~envs.base.uniform_away`)."""
+        u_angle, u_speed, u_goal = rng.random(3).tolist()
+        angle = scaled(u_angle, -np.pi, np.pi)
+        omega = scaled(u_speed, -1.0, 1.0) * self.max_start_speed / self.radius
         values = self._linkage_values(angle, omega)
         low, high = self.goal_range
-        return values, uniform_away(rng, low, high, values[2], self.min_distance)
+        return values, away(u_goal, low, high, values[2], self.min_distance)
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
         """Crank angle ~ U(-pi, pi), angular speed ~ U(+-max_start_speed / radius); the goal

@@ -599,6 +599,31 @@ def test_uniform_is_numpys_uniform_bit_for_bit():
         assert a.random() == b.random()  # the streams stayed in step
 
 
+def test_slider_crank_start_draws_are_numpys_uniform_draws_bit_for_bit():
+    """SliderCrank draws a start's three doubles in one ``rng.random(3)`` call; the starts are
+    those of numpy's ``uniform`` from three successive draws of the same stream (angle, speed,
+    the goal away from the slider), for every seed tried and two geometries."""
+    from envs.base import scaled
+
+    for kwargs in ({}, {"max_start_speed": 2.5, "radius": 0.25, "rod": 0.9}):
+        task = gym.make("SliderCrank-v0", **kwargs).unwrapped.task
+        low, high = task.goal_range
+        for seed in range(300):
+            ref = np.random.default_rng(seed)
+            angle = float(ref.uniform(-np.pi, np.pi))
+            omega = float(ref.uniform(-1.0, 1.0)) * task.max_start_speed / task.radius
+            values = task._linkage_values(angle, omega)
+            x0, gap = values[2], task.min_distance
+            left = max(0.0, min(x0 - gap, high) - low)
+            right = max(0.0, high - max(x0 + gap, low))
+            u = float(ref.uniform(0.0, left + right))
+            goal = low + u if u < left else max(x0 + gap, low) + (u - left)
+            rng = np.random.default_rng(seed)
+            assert task._draw(rng) == (values, goal)
+            assert rng.random() == ref.random()  # the streams stayed in step
+        assert scaled(0.25, -2.0, 6.0) == 0.0
+
+
 @pytest.mark.parametrize("env_id", ["SliderCrank-v0", "ClothPin-v0"])
 def test_a_step_in_which_every_copy_starts_anew_skips_the_physics_alone(env_id):
     """When every copy resets at once (all truncated together) the vector env writes the starts
