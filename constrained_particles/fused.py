@@ -265,14 +265,7 @@ class Packed:
         self.ws_r = np.zeros((5, m))
         self.ws_q = np.zeros((2, 2 * n))
         self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
-        # with per-particle step counts: the live mask, live particle, row and component lists
-        blocks = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
-                  self.mouse, self.circ, self.rod, self.line, self.fixed)
-        self.ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
-                        np.zeros(len(self.comp_ptr) - 1, np.int64),
-                        np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
-                        tuple(np.zeros(len(b[0]), np.int64) for b in blocks),
-                        self._live_index(blocks))
+        self._ws_live: tuple | None = None  # (made on first use: see ws_live)
         self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
                      self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
                      self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
@@ -300,6 +293,22 @@ class Packed:
         self.comp_rows, self.comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
         sizes = np.diff(self.comp_ptr)
         self.max_component = int(sizes.max()) if len(sizes) else 0
+
+    @property
+    def ws_live(self) -> tuple:
+        """The workspace of per-particle step counts (made on first use, as only split steps
+        need it): the live mask, the live particle, row and component lists, their lengths,
+        the live element list of each block type and :meth:`_live_index`."""
+        if self._ws_live is None:
+            n, m = self.n, self.m
+            blocks = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
+                      self.mouse, self.circ, self.rod, self.line, self.fixed)
+            self._ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
+                             np.zeros(len(self.comp_ptr) - 1, np.int64),
+                             np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
+                             tuple(np.zeros(len(b[0]), np.int64) for b in blocks),
+                             self._live_index(blocks))
+        return self._ws_live
 
     def _live_index(self, blocks: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                   np.ndarray]:
