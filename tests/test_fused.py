@@ -322,6 +322,47 @@ def test_per_copy_pieces_step_each_copy_as_it_would_be_stepped_alone(method):
         assert tiled.t == pytest.approx(15 * dt)
 
 
+def test_live_lists_are_the_elements_rows_and_components_of_the_live_particles():
+    """``_gate``'s lists for a step that only some copies take, against a plain numpy
+    selection: every element whose first particle is live (in element order, whether its type
+    is listed by per-particle ranges or by a scan), every row and component of a live
+    particle, each row once, and a component's rows in row order."""
+    s = every_block(3).tile(5)
+    s.add(Drag(0.1))
+    p = fused.pack(s)
+    live = p.ws_live
+    blocks = (p.grav, p.const, p.spring, p.ang, p.drag, p.wall, p.mouse, p.circ, p.rod, p.line,
+              p.fixed)
+    assert not live[6][1].all() and live[6][1].any()  # both kinds of types are in the scene
+    rng = np.random.default_rng(0)
+    for trial in range(6):
+        counts = np.repeat(rng.integers(0, 3, 5), s.n // 5).astype(np.int64)
+        step = int(trial % 2)
+        live[4][-1] = 0
+        fused._gate(step, counts, p.cols, p.comp_rows, p.comp_ptr, tuple(b[0] for b in blocks),
+                    p.mouse[2], live)
+        mask, plist, rlist, clist, sizes, elements, _ = live
+        alive = counts > step
+        assert mask.tolist() == alive.tolist()
+        assert plist[:sizes[0]].tolist() == np.flatnonzero(alive).tolist()
+        for t, b in enumerate(blocks):
+            want = np.flatnonzero(alive[b[0]])
+            if t == 6:  # mouse springs: the active ones
+                want = want[p.mouse[2][want]]
+            assert elements[t][:sizes[3 + t]].tolist() == want.tolist(), t
+        rows = rlist[:sizes[1]]
+        assert sorted(rows.tolist()) == np.flatnonzero(alive[p.cols[:, 0] // 2]).tolist()
+        comps = clist[:sizes[2]]
+        firsts = p.cols[p.comp_rows[p.comp_ptr[:-1]], 0] // 2
+        assert sorted(comps.tolist()) == np.flatnonzero(alive[firsts]).tolist()
+        k = 0
+        for c in comps:  # rows grouped by component, in row order within each
+            mine = p.comp_rows[p.comp_ptr[c]:p.comp_ptr[c + 1]]
+            assert rows[k:k + len(mine)].tolist() == sorted(mine.tolist())
+            k += len(mine)
+        assert not live[6][3].any()  # the marks are cleared for the next call
+
+
 def test_per_copy_pieces_refuse_what_they_cannot_do():
     s = scenes.wire_mixture(omega=3.0).tile(2)
     x0 = s.x.copy()
