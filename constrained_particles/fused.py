@@ -1479,12 +1479,11 @@ if _kernels.ENABLED:
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
         # every array below lives in the caller for the whole call: no reference counting
+        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, live = _borrowed(
+            (hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, live))
         args = _borrowed((ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
                           wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr,
                           ws_n, ws_J, ws_r, ws_q, ws_A))
-        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, live = _borrowed(
-            (hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, live))
-        ws_n = args[20]
         if live is None or n == 0:
             return _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
                           v_out, *args, None)

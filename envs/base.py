@@ -112,12 +112,6 @@ def scaled(u: float, low: float, high: float) -> float:
     return low + (high - low) * u
 
 
-def uniform(rng: np.random.Generator, low: float, high: float) -> float:
-    """``float(rng.uniform(low, high))`` bit for bit (numpy computes ``low + (high - low) u``
-    from the same double ``u`` that ``rng.random()`` returns), in half the time."""
-    return low + (high - low) * rng.random()
-
-
 def away(u: float, low: float, high: float, x0: float, gap: float) -> float:
     """:func:`uniform_away` from its draw ``u`` in [0, 1)."""
     left = max(0.0, min(x0 - gap, high) - low)

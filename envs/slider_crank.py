@@ -292,10 +292,8 @@ class SliderCrank(ShapedTask, ParticleTask):
             raise ValueError(f"action must be finite, got {actions!r}")
         if status != fused.OK:
             return None
-        t = s.t
-        for _ in range(self.substeps):  # (the clock as ParticleSystem.step advances it)
-            t = t + self.dt
-        s.x, s.v, s.t = x_out, v_out, t
+        s.x, s.v = x_out, v_out
+        self.pass_time()  # (the clock as ParticleSystem.step advances it)
         return obs, m, reward, terminated, truncated, ended, count
 
     def _goal_angles(self) -> tuple[np.ndarray, np.ndarray]:
