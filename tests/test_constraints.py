@@ -122,7 +122,7 @@ def test_assembled_sparse_jacobian(seed):
 
 
 def test_formulas_by_hand():
-    """The DESIGN.md definitions of C, for one element of each block, with numbers."""
+    """The docs/physics.md definitions of C, for one element of each block, with numbers."""
     x = np.array([[3.0, 4.0], [0.0, 1.0]])
     v = np.array([[1.0, -2.0], [0.5, 0.5]])
     assert CircularWire(0, (0.0, 0.0), 2.0).evaluate(x, v)[0] == pytest.approx([0.5 * (25 - 4)])

@@ -1,7 +1,7 @@
 """Force blocks against independent finite differences and hand-computed formulas.
 
 Conservative forces must equal minus the central-difference gradient of their ``potential``;
-damping terms are checked separately against the formulas of shared/DESIGN.md, computed here
+damping terms are checked separately against the formulas of docs/physics.md, computed here
 element by element (the library computes them vectorized). Internal forces must conserve linear
 and angular momentum.
 """

@@ -1,6 +1,6 @@
 """The multiplier solve, its fast and fallback paths, degenerate constraints and projection.
 
-The solved accelerations must satisfy the constraint equation of DESIGN.md,
+The solved accelerations must satisfy the constraint equation of docs/physics.md,
 ``J qddot + Jdot qdot = -ks C - kd Cdot``, checked here from the assembled matrices and against
 a dense numpy solve of ``J W J^T lam = rhs``.
 """

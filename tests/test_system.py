@@ -367,7 +367,7 @@ class Recorder:
 
 @pytest.mark.parametrize("method", EXPLICIT)
 def test_every_stage_reevaluates_at_its_own_state(method):
-    """Stage times and states, and the final combination, of DESIGN.md's formulas."""
+    """Stage times and states, and the final combination, of docs/physics.md's formulas."""
     s = scenes.wire_mixture()
     s.add(Drag(0.3))  # velocity dependence, so the stage velocities matter
     s.step(1e-3)
