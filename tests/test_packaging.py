@@ -84,3 +84,37 @@ def test_pprint_registry_lists_the_envs_together():
     assert "===== cparticles =====" in listing
     for env_id in envs.ENV_IDS:
         assert gym.spec(env_id).id == env_id  # ids unchanged, no namespace
+
+
+def test_readme_is_a_short_product_page():
+    readme = (ROOT / "README.md").read_text()
+    lines = readme.splitlines()
+    assert len(lines) <= 300, f"README.md has {len(lines)} lines; at most 300"
+    assert not re.search(r"\bissues?\s+#?\d+", readme, re.I), "README mentions an issue number"
+    assert "used to" not in readme.lower()
+    # the two commands, the second verbatim as CI runs it
+    assert "git clone " in readme and "cd constrained-particles" in readme
+    assert 'python -m pip install -e ".[test]" && python -m pytest' in readme
+    for command in ("run", "demo", "view", "verify", "bench", "train", "evaluate"):
+        assert f"| `cparticles {command}" in readme, f"command table lacks {command}"
+    for env_id in envs.ALL_ENV_IDS:
+        assert f"| `{env_id}` |" in readme, f"task table lacks {env_id}"
+
+
+def test_docs_index_links_every_docs_page():
+    docs = ROOT / "docs"
+    index = (docs / "README.md").read_text()
+    linked = {target for target in local_links(index, images=False)}
+    pages = {p.name for p in docs.glob("*.md") if p.name != "README.md"}
+    assert pages, "no pages under docs/"
+    assert not pages - linked, f"docs/README.md does not link {sorted(pages - linked)}"
+    assert "docs/README.md" in local_links((ROOT / "README.md").read_text(), images=False)
+
+
+def test_docs_links_and_images_are_tracked_files():
+    tracked = tracked_files()
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        text = page.read_text()
+        for target in local_links(text, images=False) + local_links(text, images=True):
+            path = (page.parent / target).resolve().relative_to(ROOT).as_posix()
+            assert path in tracked, f"{page.relative_to(ROOT)} links to untracked {target}"
