@@ -48,7 +48,7 @@ DT_RANGE = (1e-6, 0.5)  #: the + and - keys keep dt inside this range (s)
 SNAP_RADIUS = 12.0  #: pixels: a press or release this close to a particle uses it
 CLICK_RADIUS = 5.0  #: pixels: a press and release closer than this is a click, not a drag
 
-#: (control, action) rows: the help overlay and the README's controls table.
+#: (control, action) rows: the help overlay and the controls table of docs/viewer.md.
 CONTROLS: tuple[tuple[str, str], ...] = (
     ("left drag", f"draw a spring (ends snap to a particle within {SNAP_RADIUS:g} px, "
                   "else new particles)"),

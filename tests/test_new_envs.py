@@ -464,7 +464,7 @@ def test_scripted_agent_succeeds_and_random_agent_fails(env_id, kwargs):
 
 def test_scripted_swingup_balances_the_chain_upside_down():
     # 150 of the 200 steps to keep the test short: 21 of these 24 succeed (98% of 50 episodes
-    # from seed 0 with the full 200 steps, README)
+    # from seed 0 with the full 200 steps, docs/training.md)
     res = run_episodes("ChainSwing-v0", "scripted", 24, seed=100, target="swingup",
                        max_episode_steps=150)
     assert res["success"].mean() >= 0.75

@@ -109,8 +109,9 @@ def test_constraint_free_system_is_velocity_verlet():
 
 # ---------------------------------------------------------------------- energy
 def test_pendulum_energy_done_when_at_a_tenth_of_the_horizon():
-    # issue 12's bars are for 1e5 steps (measured there: max |E - E0| = 2.33e-4 J, trend
-    # 1.2e-7 J = 0.05 % of the 2.36e-4 J peak-to-peak, max |C| = 9.4e-14; see the README).
+    # The published bars are for 1e5 steps (measured: max |E - E0| = 2.33e-4 J, trend
+    # 1.2e-7 J = 0.05 % of the 2.36e-4 J peak-to-peak, max |C| = 9.4e-14;
+    # docs/verification/long_run.md).
     # Over 1e4 steps a linear drift would be 10x smaller: the trend bar is 0.1 % here.
     run = energy_run(scenes.pendulum(angle=2.0), "rattle", 2e-3, 10_000, samples=10_000)
     assert run["diverged_at"] is None
