@@ -706,3 +706,30 @@ def test_auto_takes_cg_from_the_documented_size():
         asm = implicit._assembly(s)
         assert (asm.nf >= implicit.CG_MIN_COORDINATES) == (expected == "cg")
         assert asm.last_solver == expected
+
+
+def test_the_compiled_cg_kernel_matches_its_numpy_reference():
+    """The same CG inputs (a step of the constrained cloth, cold start) through the compiled
+    kernel and the numpy reference: the same iteration count and dv to 1e-12 m/s."""
+    from constrained_particles import _kernels, implicit
+
+    if not _kernels.ENABLED:
+        pytest.skip("the compiled kernel is off (CPARTICLES_NUMBA=0)")
+    captured = {}
+
+    def spy(*args):
+        captured["args"] = args
+        return implicit._cg_reference(*args)
+
+    s = _constrained_cloth("cg", circular=True)
+    compiled = implicit._cg_compiled
+    implicit._cg_compiled = spy
+    try:
+        s.step(1 / 60, method="implicit_euler")
+    finally:
+        implicit._cg_compiled = compiled
+    args = captured["args"]
+    ref_dv, ref_its, ref_ok = implicit._cg_reference(*args)
+    dv, its, ok = compiled(*args)
+    assert ref_ok and ok and its == ref_its > 5
+    np.testing.assert_allclose(dv, ref_dv, rtol=0, atol=1e-12)
