@@ -21,6 +21,7 @@ Prints a table and then the results as JSON.
 
     python benchmarks/bench_implicit.py [--tol 0.01] [--repeats 5] [--shear-full]
     python benchmarks/bench_implicit.py --scaling   # cost per particle-step at 15, 30, 60
+    python benchmarks/bench_implicit.py --solvers   # CG against the direct solve, 15 to 120
 """
 
 from __future__ import annotations
@@ -177,10 +178,11 @@ SCALING_SIZES = (15, 30, 60)
 
 
 def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[dict]:
-    """implicit_euler's cost per particle-step on the pushed stiff cloth at n x n particles
-    (h = 1/60 s), next to the LU factors' fill per unknown of the KKT system, with the
-    fill-reducing ordering kept from the first step (the default) and searched at every step
-    (the time ratio is searched / kept). Medians of ``repeats`` alternated batches."""
+    """implicit_euler's cost per particle-step with the direct solve on the pushed stiff cloth
+    at n x n particles (h = 1/60 s), next to the LU factors' fill per unknown of the KKT
+    system, with the fill-reducing ordering kept from the first step (the default) and
+    searched at every step (the time ratio is searched / kept). Medians of ``repeats``
+    alternated batches."""
     from scipy.sparse import linalg as spla
 
     from constrained_particles import implicit
@@ -191,6 +193,7 @@ def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[di
         for keep in (True, False):
             s = scenes.cloth(n, n, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None,
                              drag=0.0, push=0.05)
+            s.implicit_solver = "direct"
             s.step(float(FRAME), "implicit_euler")
             asm = implicit._assembly(s)
             if not keep:  # back to the unpermuted structure, never reordered again
@@ -229,6 +232,85 @@ def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[di
     return out
 
 
+SOLVER_SIZES = (15, 30, 60, 120)
+
+
+def scaling_cloth(n: int, implicit_solver: str) -> ParticleSystem:
+    """The issue's stiff cloth at n x n particles (hanging, no push) with that linear solver."""
+    s = scenes.cloth(n, n, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None, drag=0.0)
+    s.implicit_solver = implicit_solver
+    return s
+
+
+def bench_implicit_scaling(sizes: tuple[int, ...] = SOLVER_SIZES, repeats: int = 5,
+                           steps: int = 10) -> dict:
+    """implicit_euler's cost per step (ms) on the stiff cloth at n x n particles, h = 1/60 s,
+    with both linear solvers (``implicit_solver="cg"`` and ``"direct"``), and its growth from
+    one size to the next (linear in the particle count is (n2/n1)^2, 4x per doubling).
+
+    A batch is ``steps`` steps of a fresh cloth after one untimed step (which builds the
+    topology's structures; the CG warm start then carries over within the batch), so every
+    batch does the same work. ``repeats`` rounds, each timing every size with both solvers in
+    turn (cg, then direct); the figures are the medians over rounds, which spreads a shared
+    machine's changing load over all of them alike. Also reports CG's median iteration count
+    per step, the solver ``implicit_solver="auto"`` picks, and the largest position difference
+    (m) between the two solvers after the batch."""
+    from constrained_particles import implicit
+
+    times: dict[str, dict[int, list[float]]] = {k: {n: [] for n in sizes}
+                                                for k in ("cg", "direct")}
+    iterations: dict[int, list[int]] = {n: [] for n in sizes}
+    difference: dict[int, float] = {}
+    h = float(FRAME)
+    for _ in range(repeats):
+        for n in sizes:
+            final = {}
+            for solver in ("cg", "direct"):
+                s = scaling_cloth(n, solver)
+                s.step(h, "implicit_euler")
+                asm = implicit._assembly(s)
+                start = time.perf_counter()
+                for _ in range(steps):
+                    s.step(h, "implicit_euler")
+                    if solver == "cg":
+                        iterations[n].append(asm.cg_iterations)
+                times[solver][n].append((time.perf_counter() - start) / steps)
+                if asm.last_solver != solver:
+                    raise RuntimeError(f"{n}x{n}: asked for {solver}, the step used "
+                                       f"{asm.last_solver}")
+                final[solver] = s.x
+            difference[n] = float(np.max(np.abs(final["cg"] - final["direct"])))
+    ms = {k: [1e3 * float(np.median(t[n])) for n in sizes] for k, t in times.items()}
+    pairs = list(zip(sizes[:-1], sizes[1:], strict=True))
+    auto = []
+    for n in sizes:
+        s = scaling_cloth(n, "auto")
+        s.step(h, "implicit_euler")
+        auto.append(implicit._assembly(s).last_solver)
+    return {"sizes": list(sizes), "particles": [n * n for n in sizes], "repeats": repeats,
+            "steps_per_batch": steps, "dt": h, "ms_per_step": ms,
+            "growth": {k: [v[i + 1] / v[i] for i in range(len(pairs))] for k, v in ms.items()},
+            "linear_growth": [(b / a) ** 2 for a, b in pairs],
+            "cg_iterations": [float(np.median(iterations[n])) for n in sizes],
+            "cg_minus_direct_max_m": [difference[n] for n in sizes], "auto_picks": auto}
+
+
+def solver_table(result: dict) -> str:
+    """A plain-text table of :func:`bench_implicit_scaling`'s result."""
+    lines = [f"implicit_euler on the stiff cloth, h = 1/60 s: ms per step (median of "
+             f"{result['repeats']} alternated batches of {result['steps_per_batch']} steps)",
+             f"{'cloth':>8}{'cg':>10}{'growth':>8}{'direct':>10}{'growth':>8}{'linear':>8}"
+             f"{'CG its':>8}{'auto':>8}{'|cg-direct| m':>15}"]
+    for k, n in enumerate(result["sizes"]):
+        grow = [f"{result['growth'][s][k - 1]:.2f}x" if k else "" for s in ("cg", "direct")]
+        linear = f"{result['linear_growth'][k - 1]:.2f}x" if k else ""
+        lines.append(f"{f'{n}x{n}':>8}{result['ms_per_step']['cg'][k]:>10.2f}{grow[0]:>8}"
+                     f"{result['ms_per_step']['direct'][k]:>10.2f}{grow[1]:>8}{linear:>8}"
+                     f"{result['cg_iterations'][k]:>8.0f}{result['auto_picks'][k]:>8}"
+                     f"{result['cg_minus_direct_max_m'][k]:>15.1e}")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tol", type=float, default=0.01, help="visual tolerance in metres")
@@ -240,7 +322,15 @@ def main() -> None:
     parser.add_argument("--scaling", action="store_true",
                         help="instead: cost per particle-step and LU fill of implicit_euler "
                         f"at {', '.join(f'{n}x{n}' for n in SCALING_SIZES)}")
+    parser.add_argument("--solvers", action="store_true",
+                        help="instead: implicit_euler's cost per step with CG and the direct "
+                        f"solve at {', '.join(f'{n}x{n}' for n in SOLVER_SIZES)}")
     args = parser.parse_args()
+    if args.solvers:
+        result = bench_implicit_scaling(repeats=args.repeats)
+        print(solver_table(result))
+        print(json.dumps(result, indent=1))
+        return
     if args.scaling:
         rows = scaling(repeats=args.repeats)
         print("| cloth | KKT unknowns | ms per step | us per particle-step | LU fill per unknown "

@@ -24,8 +24,19 @@ stiffness, Gauss-Newton angular springs; Choi & Ko 2002). With the exact ones a 
 cloth predicts buckling and the next large step overshoots: a stiff cloth yanked by a mouse
 spring gains energy without bound, while with these its energy never rises. The method stays
 order 1. The sparse structure (union of the force blocks' ``jacobian_pattern`` and the
-constraint pattern) is built once per topology; each step refills the values and factorises
-with SuperLU (``scipy.sparse.linalg.splu``).
+constraint pattern) is built once per topology; each step refills the values.
+
+The linear solve is ``ParticleSystem(implicit_solver=...)``: ``"direct"`` factorises the KKT
+matrix with SuperLU (``scipy.sparse.linalg.splu``), whose fill grows faster than the system;
+``"cg"`` runs Baraff & Witkin's modified preconditioned conjugate gradients (section 5 of their
+paper), cost linear in the particle count: each constraint row on a single moving particle
+(wires, fixed points, a rod to a fixed particle) becomes a per-particle *filter* ``S`` and a
+prescribed velocity change ``z``, ``dv = z + S y``, and CG solves ``S (A dv - b) = 0`` with
+``A = M - h D - h^2 K``, a block-Jacobi preconditioner restricted to the free directions, a warm
+start from the previous dv and a relative tolerance :data:`CG_TOLERANCE`. Constraints it cannot
+filter (a rod between moving particles, compliance > 0) and a CG solve that fails take the
+direct solve. ``"auto"`` (default) takes CG from :data:`CG_MIN_COORDINATES` free coordinates.
+docs/physics.md ("Implicit Euler") has the details and figures.
 
 Damping (measured; tests/test_implicit.py checks the first and third figures). A mode whose
 restoring force goes through a force Jacobian keeps ``1/(1 + (w h)^2)`` of its energy per step
@@ -58,8 +69,9 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import _kernels
 from .integrators import METHODS, ORDERS, State
-from .system import SimulationDiverged
+from .system import IMPLICIT_SOLVERS, SimulationDiverged
 
 if TYPE_CHECKING:
     from .solver import ConstraintSolver
@@ -72,6 +84,18 @@ SOLVE_TOLERANCE = 1e-8
 #: range (under 2.2e-308) where a settled system's velocities end up and floats keep only a few
 #: significant digits, so that the relative test would reject a correct solution.
 SOLVE_FLOOR = 1e-280
+#: Conjugate gradients stop when the preconditioned residual norm ``sqrt(r^T P r)`` has fallen
+#: to this fraction of its value at the start (``dv = z``, no warm start).
+CG_TOLERANCE = 1e-6
+#: Absolute floor (J, the units of ``r^T P r``) below which a CG residual is accepted.
+CG_FLOOR = 1e-300
+#: CG iterations after which a solve is abandoned for the direct one.
+CG_MAX_ITERATIONS = 1000
+#: ``implicit_solver="auto"`` takes CG from this many free coordinates up (measured crossover).
+CG_MIN_COORDINATES = 1024
+#: Two rows on one particle whose gradients are this close to parallel (|sin| of their angle)
+#: are left to the direct solve, which names them if they are redundant.
+PARALLEL_ROWS = 1e-9
 
 
 class ImplicitSolveError(SimulationDiverged):
@@ -131,6 +155,21 @@ def _topology_key(system: ParticleSystem) -> tuple:
     return system.n, (system.inv_mass > 0).tobytes(), forces
 
 
+def _structure(R: np.ndarray, C: np.ndarray, size: int
+               ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """The CSC structure of a (size, size) matrix with entries at rows ``R``, columns ``C``
+    (repeats summed): the data slot of every entry, the number of stored values, the row
+    indices and the column pointers."""
+    order = np.lexsort((R, C))
+    Rs, Cs = R[order], C[order]
+    first = np.ones(len(R), dtype=bool)
+    first[1:] = (Rs[1:] != Rs[:-1]) | (Cs[1:] != Cs[:-1])
+    slot = np.empty(len(R), dtype=np.int64)
+    slot[order] = np.cumsum(first) - 1
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(Cs[first], minlength=size))])
+    return slot, int(first.sum()), Rs[first], indptr
+
+
 class _Assembly:
     """The KKT matrix structure for one topology; :meth:`matrix` only refills values.
 
@@ -168,19 +207,17 @@ class _Assembly:
         #: benchmark's baseline does).
         self.keep_order = True
         self._structure(self._R, self._C)
+        #: The conjugate-gradient structure, built at the first CG solve of this topology.
+        self.filtered: _Filter | None = None
+        #: Which solver gave the last step's dv ("cg" or "direct"), the last CG solve's
+        #: iteration count and how many CG solves failed and were redone directly.
+        self.last_solver = ""
+        self.cg_iterations = 0
+        self.cg_failures = 0
 
     def _structure(self, R: np.ndarray, C: np.ndarray) -> None:
         """The CSC structure of the entries at rows ``R``, columns ``C`` (repeats summed)."""
-        order = np.lexsort((R, C))
-        Rs, Cs = R[order], C[order]
-        first = np.ones(len(R), dtype=bool)
-        first[1:] = (Rs[1:] != Rs[:-1]) | (Cs[1:] != Cs[:-1])
-        self.slot = np.empty(len(R), dtype=np.int64)
-        self.slot[order] = np.cumsum(first) - 1
-        self.nnz = int(first.sum())
-        self.indices = Rs[first]
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(Cs[first],
-                                                                   minlength=self.size))])
+        self.slot, self.nnz, self.indices, self.indptr = _structure(R, C, self.size)
 
     def forget(self) -> None:
         """Back to the unpermuted structure (the next solve searches for an ordering again)."""
@@ -204,6 +241,257 @@ class _Assembly:
                                np.full(self.m, compliance)])
         data = np.bincount(self.slot, weights=vals, minlength=self.nnz)
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+
+
+class _Filter:
+    """The filtered conjugate-gradient solve of one topology (Baraff & Witkin 1998, section 5).
+
+    Every constraint row that acts on one moving particle (line and circular wires, fixed
+    points, a rod to a fixed particle) prescribes that particle's velocity change along the
+    row's gradient; a particle with one such row keeps one free direction, with two none. The
+    solve then runs over the free directions only: ``dv = z + S y``, with ``S`` the per-particle
+    projection onto the free directions (the filter) and ``z`` the prescribed part. :attr:`ok`
+    is False when a row couples two moving particles (a rod between them) or a particle carries
+    more than two rows: those topologies take the direct KKT solve.
+    """
+
+    def __init__(self, system: ParticleSystem, asm: _Assembly) -> None:
+        n = self.n = system.n
+        diag = np.arange(2 * n)
+        R = np.concatenate([diag, asm.force_rows])
+        C = np.concatenate([diag, asm.force_cols])
+        # (C, R) swapped: the CSC structure of the transpose is the CSR structure of the matrix
+        self.slot, self.nnz, self.indices, self.indptr = _structure(C, R, 2 * n)
+        own = (R // 2 == C // 2) & (R <= C)  # the upper triangle of each particle's 2x2 block
+        self.own = own
+        self.own_slot = 3 * (R[own] // 2) + (R[own] & 1) + (C[own] & 1)  # xx 0, xy 1, yy 2
+        self.fixed = np.flatnonzero(system.inv_mass == 0)
+        #: The previous step's dv (m/s): the next solve's first guess.
+        self.warm: np.ndarray | None = None
+        J, m = asm.solver.J, asm.m
+        self.m = m
+        jr = np.repeat(np.arange(m), np.diff(J.indptr))[asm.keep_J]
+        part = J.indices[asm.keep_J] // 2
+        first = np.full(m, n)
+        last = np.full(m, -1)
+        np.minimum.at(first, jr, part)
+        np.maximum.at(last, jr, part)
+        count = np.bincount(first, minlength=n + 1)[:n]
+        self.ok = bool(np.all(first == last) and count.max(initial=0) <= 2)
+        if not self.ok:
+            return
+        self.target = 2 * jr + (J.indices[asm.keep_J] & 1)
+        rows = np.argsort(first, kind="stable")
+        start = np.concatenate([[0], np.cumsum(count)])[:-1]
+        self.p1 = np.flatnonzero(count == 1)
+        self.k1 = rows[start[self.p1]]
+        self.p2 = np.flatnonzero(count == 2)
+        self.ka, self.kb = rows[start[self.p2]], rows[start[self.p2] + 1]
+        #: Particles whose filter is not the identity (sorted).
+        self.filtered = np.union1d(np.union1d(self.p1, self.p2), self.fixed)
+
+    def matrix(self, mass2: np.ndarray, A_force: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """``A = M - h D - h^2 K`` over all 2n coordinates (CSR) and the upper triangles
+        (xx, xy, yy) of its diagonal 2x2 blocks, shape (n, 3)."""
+        vals = np.concatenate([mass2, A_force])
+        data = np.bincount(self.slot, weights=vals, minlength=self.nnz)
+        blocks = np.bincount(self.own_slot, weights=vals[self.own], minlength=3 * self.n)
+        n2 = 2 * self.n
+        return (sp.csr_matrix((data, self.indices, self.indptr), shape=(n2, n2)),
+                blocks.reshape(self.n, 3))
+
+    def constraints(self, J_data: np.ndarray, keep_J: np.ndarray, r: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The filter and the prescribed velocity change for rows with values ``J_data`` and
+        right-hand sides ``r`` (``J dv = r``): ``S`` of the filtered particles as an (k, 3)
+        array (xx, xy, yy), ``z`` (2n,). None if a particle's two rows are (nearly) parallel,
+        which only the direct solve can diagnose."""
+        n, m = self.n, self.m
+        g = np.bincount(self.target, weights=J_data[keep_J], minlength=2 * m).reshape(m, 2)
+        z = np.zeros((n, 2))
+        S = np.zeros((n, 3))
+        g1, r1 = g[self.k1], r[self.k1]
+        gg = g1[:, 0] ** 2 + g1[:, 1] ** 2
+        z[self.p1] = g1 * (r1 / gg)[:, None]
+        S[self.p1] = np.stack([g1[:, 1] ** 2, -g1[:, 0] * g1[:, 1], g1[:, 0] ** 2], 1) / gg[:, None]
+        ga, gb, ra, rb = g[self.ka], g[self.kb], r[self.ka], r[self.kb]
+        det = ga[:, 0] * gb[:, 1] - ga[:, 1] * gb[:, 0]
+        if np.any(np.abs(det) <= PARALLEL_ROWS * np.hypot(*ga.T) * np.hypot(*gb.T)):
+            return None
+        z[self.p2, 0] = (gb[:, 1] * ra - ga[:, 1] * rb) / det
+        z[self.p2, 1] = (ga[:, 0] * rb - gb[:, 0] * ra) / det
+        return S[self.filtered], z.ravel()
+
+    def preconditioner(self, blocks: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The block-Jacobi preconditioner, (n, 3) (xx, xy, yy): the inverse of each particle's
+        2x2 diagonal block of A restricted to its free directions (0 where it has none)."""
+        a, b, c = blocks.T
+        P = np.stack([c, -b, a], 1) / (a * c - b * b)[:, None]
+        f = self.filtered
+        sa, sb, sc = S.T  # S = t t^T (one free direction t) or 0
+        d = sa * a[f] + 2 * sb * b[f] + sc * c[f]  # t^T B t when S = t t^T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            P[f] = np.where((sa + sc > 0.5)[:, None], S / d[:, None], 0.0)
+        return P
+
+    def solve(self, A: sp.csr_matrix, P: np.ndarray, S: np.ndarray, z: np.ndarray,
+              b: np.ndarray, tol: float, max_iterations: int
+              ) -> tuple[np.ndarray | None, int]:
+        """Modified preconditioned conjugate gradients (Baraff & Witkin 1998, section 5.3):
+        ``dv = z + S y`` with ``S (A dv - b) = 0``, from the previous step's dv, until the
+        preconditioned residual ``r^T P r`` is at most ``tol^2`` times its value at ``dv = z``
+        (plus :data:`CG_FLOOR`). Returns (dv, iterations); dv is None if A is not positive
+        definite on the free directions, the iteration did not converge, or the residual,
+        recomputed from dv at the end, fails the same test (four times looser, for rounding).
+
+        The compiled kernel runs it when Numba is enabled, :func:`_cg_reference` otherwise."""
+        warm = np.zeros(0) if self.warm is None else self.warm
+        run = _cg_compiled if _kernels.ENABLED else _cg_reference
+        dv, iterations, ok = run(A.indptr, A.indices, A.data, P, self.filtered, S, z, b, warm,
+                                 tol, CG_FLOOR, max_iterations)
+        if not ok:
+            return None, iterations
+        self.warm = dv
+        return dv, iterations
+
+
+def _cg_reference(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, P: np.ndarray,
+                  fidx: np.ndarray, S: np.ndarray, z: np.ndarray, b: np.ndarray,
+                  warm: np.ndarray, tol: float, floor: float, max_iterations: int
+                  ) -> tuple[np.ndarray, int, bool]:
+    """The filtered PCG of :meth:`_Filter.solve` in numpy (the reference of the compiled
+    kernel): the CSR matrix A, the preconditioner P (n, 3), the filter S (k, 3) of particles
+    ``fidx``, the prescribed part z, the right-hand side b, a first guess ``warm`` (empty: none).
+    Returns (dv, iterations, converged)."""
+    A = sp.csr_matrix((data, indices, indptr), shape=(len(b), len(b)))
+    px, pxy, py = P[:, 0], P[:, 1], P[:, 2]
+
+    def filtered(u: np.ndarray) -> np.ndarray:
+        u2 = u.reshape(-1, 2)
+        ux, uy = u2[fidx, 0], u2[fidx, 1]
+        u2[fidx, 0] = S[:, 0] * ux + S[:, 1] * uy
+        u2[fidx, 1] = S[:, 1] * ux + S[:, 2] * uy
+        return u
+
+    def precondition(r: np.ndarray) -> np.ndarray:
+        rx, ry = r[0::2], r[1::2]
+        out = np.empty_like(r)
+        out[0::2] = px * rx + pxy * ry
+        out[1::2] = pxy * rx + py * ry
+        return out
+
+    residual = filtered(b - A @ z)
+    delta0 = float(np.dot(residual, precondition(residual)))
+    goal = tol * tol * delta0 + floor
+    dv = z.copy()
+    if len(warm) and delta0 > goal:
+        guess = filtered(warm.copy())
+        dv += guess
+        residual -= filtered(A @ guess)
+    c = precondition(residual)
+    delta = float(np.dot(residual, c))
+    iterations = 0
+    while delta > goal:
+        if iterations == max_iterations:
+            return dv, iterations, False
+        q = A @ c
+        cq = float(np.dot(c, q))  # (c is in the free directions: c . S q = c . q)
+        if not cq > 0:  # (also NaN) not positive definite on the free directions
+            return dv, iterations, False
+        alpha = delta / cq
+        dv += alpha * c
+        residual -= alpha * filtered(q)
+        s = precondition(residual)
+        delta, old = float(np.dot(residual, s)), delta
+        c = s + (delta / old) * c
+        iterations += 1
+    final = filtered(b - A @ dv)
+    return dv, iterations, bool(float(np.dot(final, precondition(final))) <= 4 * goal)
+
+
+_cg_compiled = None
+if _kernels.ENABLED:
+    njit = _kernels.njit
+
+    @njit
+    def _matvec(indptr, indices, data, c, out):  # pragma: no cover - compiled
+        """``out = A c`` for the CSR matrix A; returns ``c . A c``."""
+        total = 0.0
+        for i in range(len(out)):
+            acc = 0.0
+            for k in range(indptr[i], indptr[i + 1]):
+                acc += data[k] * c[indices[k]]
+            out[i] = acc
+            total += c[i] * acc
+        return total
+
+    @njit
+    def _filter(fidx, S, u):  # pragma: no cover - compiled
+        """``u = S u`` on the filtered particles ``fidx``."""
+        for k in range(len(fidx)):
+            p = fidx[k]
+            ux, uy = u[2 * p], u[2 * p + 1]
+            u[2 * p] = S[k, 0] * ux + S[k, 1] * uy
+            u[2 * p + 1] = S[k, 1] * ux + S[k, 2] * uy
+
+    @njit
+    def _precondition(P, r, out):  # pragma: no cover - compiled
+        """``out = P r`` (block diagonal); returns ``r . P r``."""
+        total = 0.0
+        for p in range(len(P)):
+            rx, ry = r[2 * p], r[2 * p + 1]
+            sx = P[p, 0] * rx + P[p, 1] * ry
+            sy = P[p, 1] * rx + P[p, 2] * ry
+            out[2 * p], out[2 * p + 1] = sx, sy
+            total += rx * sx + ry * sy
+        return total
+
+    @njit
+    def _cg_compiled(indptr, indices, data, P, fidx, S, z, b, warm, tol, floor,
+                     max_iterations):  # pragma: no cover - compiled
+        """The compiled twin of :func:`_cg_reference` (same arguments and results)."""
+        size = len(b)
+        q = np.empty(size)
+        s = np.empty(size)
+        _matvec(indptr, indices, data, z, q)
+        residual = b - q
+        _filter(fidx, S, residual)
+        delta0 = _precondition(P, residual, s)
+        goal = tol * tol * delta0 + floor
+        dv = z.copy()
+        if len(warm) > 0 and delta0 > goal:
+            guess = warm.copy()
+            _filter(fidx, S, guess)
+            _matvec(indptr, indices, data, guess, q)
+            _filter(fidx, S, q)
+            for i in range(size):
+                dv[i] += guess[i]
+                residual[i] -= q[i]
+        delta = _precondition(P, residual, s)
+        c = s.copy()
+        iterations = 0
+        while delta > goal:
+            if iterations == max_iterations:
+                return dv, iterations, False
+            cq = _matvec(indptr, indices, data, c, q)
+            if not cq > 0.0:
+                return dv, iterations, False
+            alpha = delta / cq
+            _filter(fidx, S, q)
+            for i in range(size):
+                dv[i] += alpha * c[i]
+                residual[i] -= alpha * q[i]
+            old = delta
+            delta = _precondition(P, residual, s)
+            beta = delta / old
+            for i in range(size):
+                c[i] = s[i] + beta * c[i]
+            iterations += 1
+        _matvec(indptr, indices, data, dv, q)
+        for i in range(size):
+            q[i] = b[i] - q[i]
+        _filter(fidx, S, q)
+        return dv, iterations, _precondition(P, q, s) <= 4.0 * goal
 
 
 _ASSEMBLIES: weakref.WeakKeyDictionary[ParticleSystem, _Assembly] = weakref.WeakKeyDictionary()
@@ -306,9 +594,14 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
     wires and fixed points; 0 is a hard constraint). Raises :class:`ImplicitSolveError` if the
     KKT system is singular or the solve is inaccurate (its message names linearly dependent
     constraint rows, which need compliance > 0, when there are any), the explicit methods'
-    ``ValueError`` for a constraint row with a vanishing gradient (a rod whose ends coincide),
-    ``NotImplementedError`` for a force block without Jacobians.
+    ``ValueError`` for a constraint row with a vanishing gradient (a rod whose ends coincide)
+    or an unknown ``implicit_solver``, ``NotImplementedError`` for a force block without
+    Jacobians. The system's ``implicit_solver`` (``"auto"``, ``"cg"`` or ``"direct"``) picks
+    the linear solve (module docstring).
     """
+    choice = getattr(system, "implicit_solver", "auto")
+    if choice not in IMPLICIT_SOLVERS:
+        raise ValueError(f"implicit_solver must be one of {IMPLICIT_SOLVERS}, got {choice!r}")
     asm = _assembly(system)
     solver = asm.solver
     beta, compliance = system.drift_correction, system.compliance
@@ -321,15 +614,46 @@ def implicit_euler(system: ParticleSystem, t: float, x: np.ndarray, v: np.ndarra
     solver.refill(x, v)
     if solver.m:  # a row with a vanishing gradient gets the explicit methods' ValueError
         solver._diag(np.repeat(system.inv_mass, 2))
-    A = asm.matrix(np.repeat(system.mass, 2), -h * D - h * h * K, solver.J.data,
-                   -compliance / (h * h))
-    rhs = np.concatenate([(h * (f0 + h * Kv))[asm.free],
-                          -(beta / h) * solver.C - solver.J @ qdot])
-    sol = _solve(A, rhs, t, solver.J, asm.free, asm)
-    dv = np.zeros_like(qdot)
-    dv[asm.free] = sol[:asm.nf]
+    mass2 = np.repeat(system.mass, 2)
+    A_force = -h * D - h * h * K
+    b = h * (f0 + h * Kv)
+    r = -(beta / h) * solver.C - solver.J @ qdot
+    dv = None
+    if compliance == 0 and (choice == "cg" or (choice == "auto"
+                                               and asm.nf >= CG_MIN_COORDINATES)):
+        dv = _solve_cg(asm, system, mass2, A_force, b, r)
+    if dv is None:
+        A = asm.matrix(mass2, A_force, solver.J.data, -compliance / (h * h))
+        sol = _solve(A, np.concatenate([b[asm.free], r]), t, solver.J, asm.free, asm)
+        dv = np.zeros_like(qdot)
+        dv[asm.free] = sol[:asm.nf]
+        asm.last_solver = "direct"
     v1 = (qdot + dv).reshape(v.shape)
     return x + h * v1, v1
+
+
+def _solve_cg(asm: _Assembly, system: ParticleSystem, mass2: np.ndarray, A_force: np.ndarray,
+              b: np.ndarray, r: np.ndarray) -> np.ndarray | None:
+    """dv (2n,) by filtered CG for ``A = M + A_force``, forces ``b`` and rows ``J dv = r``, or
+    None where the direct solve must take over: the topology or the rows cannot be filtered,
+    or CG failed (counted in ``asm.cg_failures``)."""
+    if asm.filtered is None:
+        asm.filtered = _Filter(system, asm)
+    filt = asm.filtered
+    if not filt.ok:
+        return None
+    found = filt.constraints(asm.solver.J.data, asm.keep_J, r)
+    if found is None:
+        return None
+    S, z = found
+    A, blocks = filt.matrix(mass2, A_force)
+    P = filt.preconditioner(blocks, S)
+    dv, asm.cg_iterations = filt.solve(A, P, S, z, b, CG_TOLERANCE, CG_MAX_ITERATIONS)
+    if dv is None:
+        asm.cg_failures += 1
+    else:
+        asm.last_solver = "cg"
+    return dv
 
 
 METHODS["implicit_euler"] = implicit_euler
