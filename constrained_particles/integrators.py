@@ -5,7 +5,8 @@ calls ``system.acceleration(t, x, v)`` (forces and constraint forces re-evaluate
 stage's state) as many times as it has stages. It must not modify its inputs.
 Formulas are those of docs/physics.md; y = (x, v) and f(t, y) = (v, a(t, x, v)).
 
-Which to use (figures from ``python -m verification energy``, 1e5 steps of 2 ms; docs/integrators.md):
+Which to use (figures from ``python -m verification energy``, 1e5 steps of 2 ms;
+docs/integrators.md):
 
 - ``rattle`` (:mod:`constrained_particles.rattle`) for long conservative runs with
   constraints: symplectic on rods and curved wires too, energy error bounded with no secular
