@@ -72,7 +72,7 @@ ENV_ACTION_MODES: dict[str, tuple[str, ...]] = {
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
 #: What ``config.json`` of a run holds, with the types ``evaluate`` checks before loading.
-CONFIG_FIELDS: dict[str, type | tuple[type, ...]] = {
+CONFIG_FIELDS: dict[str, type] = {
     "env": str, "action_mode": str, "algo": str, "seed": int, "timesteps": int,
     "hyperparams": dict}
 
@@ -336,14 +336,16 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
                          "(no config.json)")
     try:
         config = json.loads(config_path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
+    except OSError as exc:
+        raise ValueError(f"cannot read {config_path} ({exc.strerror or exc})") from None
+    except ValueError as exc:  # also UnicodeDecodeError
         raise ValueError(f"{config_path} is not valid JSON ({exc})") from None
     if not isinstance(config, dict):
         raise ValueError(f"{config_path} is not a JSON object")
     for name, kind in CONFIG_FIELDS.items():
         if not isinstance(config.get(name), kind) or isinstance(config.get(name), bool):
             raise ValueError(f"{config_path}: field {name!r} missing or not a "
-                             f"{getattr(kind, '__name__', kind)}")
+                             f"{kind.__name__}")
     try:
         check_env_mode(config["env"], config["action_mode"])
     except ValueError as exc:
