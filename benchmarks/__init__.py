@@ -1,5 +1,5 @@
 """Benchmark scripts run from a checkout (never as tests, never installed).
 
-``cparticles bench`` itself lives in :mod:`constrained_particles.bench`, so it works from an
+``cparticles bench`` itself lives in :mod:`cparticles.bench`, so it works from an
 installed wheel.
 """

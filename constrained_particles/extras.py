@@ -4,7 +4,10 @@ Commands check what they need before doing any work::
 
     >>> require("numpy", command="cparticles run")   # installed: nothing happens
     >>> install_hint("verify")
-    'pip install -e ".[verify]" in a checkout, or pip install "constrained-particles[verify]"'
+    'pip install -e ".[verify]" in the constrained-particles checkout'
+
+The package is installed from its source checkout (it is not on a package index), so the hint
+names the extra for ``pip install -e`` there.
 """
 
 from __future__ import annotations
@@ -19,11 +22,14 @@ EXTRA_OF: dict[str, str] = {
     "matplotlib": "verify",
     "pygame": "render",
     "PIL": "render",
+    "stable_baselines3": "rl",
+    "torch": "rl",
 }
 
 
 #: importable module -> the distribution a user installs, where the names differ
-DISTRIBUTION: dict[str, str] = {"pygame": "pygame-ce", "PIL": "pillow"}
+DISTRIBUTION: dict[str, str] = {"pygame": "pygame-ce", "PIL": "pillow",
+                                "stable_baselines3": "stable-baselines3"}
 
 
 class MissingExtra(ImportError):
@@ -32,9 +38,8 @@ class MissingExtra(ImportError):
 
 
 def install_hint(extra: str) -> str:
-    """How to install ``extra`` from a source checkout and from a package index."""
-    return (f'pip install -e ".[{extra}]" in a checkout, '
-            f'or pip install "constrained-particles[{extra}]"')
+    """How to install ``extra``: from the source checkout the package was installed from."""
+    return f'pip install -e ".[{extra}]" in the constrained-particles checkout'
 
 
 def missing(*modules: str) -> list[str]:

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from .arguments import int_at_least, output_file, positive_float, time_step
 from .extras import require
 from .forces import DampedSpring, Drag, Gravity, MouseSpring, Wall
 from .integrators import METHODS
@@ -479,8 +480,6 @@ def display_problem() -> str | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles view``."""
-    from .cli import int_at_least, output_file, positive_float, time_step
-
     parser.add_argument("scene", nargs="?", default="cloth", choices=list(SCENES),
                         help="scene to open (n / p cycle through the others)")
     parser.add_argument("--method", default="rk4", choices=sorted(METHODS), help="integrator")
@@ -493,10 +492,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int_at_least(1), default=None,
                         help="stop after this many frames (default: 120 when headless)")
     parser.add_argument("--screenshot", type=output_file(".png"), default=None,
-                        metavar="PATH.png", help="save the last frame as a PNG")
+                        metavar="PATH.png",
+                        help="save the last frame as a PNG (default: no screenshot)")
     parser.add_argument("--record", type=output_file(".gif"), default=None, metavar="PATH.gif",
                         help="record the session to an animated GIF (pillow, at most 25 "
-                        "frames/s; frames stay in memory until the end, so keep it short)")
+                        "frames/s; frames stay in memory until the end, so keep it short; default: "
+                        "no recording)")
     parser.add_argument("--no-forces", action="store_true", help="start with force arrows off")
     parser.add_argument("--no-constraint-forces", action="store_true",
                         help="start with constraint-force arrows off")

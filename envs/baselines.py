@@ -1,23 +1,26 @@
 """The published baselines (docs/baselines): run the grid, then make the plots and the table.
 
-    python -m envs.baselines run --runs runs/ --jobs 2                  # the full grid
-    python -m envs.baselines run --envs ClothSlide-v0 --modes force --algos ppo --seeds 0 1 2 3 4
-    python -m envs.baselines report                                     # plots + table
+    python -m envs.baselines run --runs runs --jobs 2                   # the full grid
+    python -m envs.baselines run --runs runs --envs ClothSlide-v0 --modes force --algos ppo
+    python -m envs.baselines report --runs runs                         # plots + table
 
-``run`` trains every (env, action mode, algorithm, seed) of the grid with ``cparticles train``
-(the shipped hyperparameters and budgets) into ``RUNS/<env>-<mode>-<algo>-<seed>`` (a run whose
-``config.json`` exists is not trained again; its config.json and evaluations.json are copied to
-``docs/baselines/runs/``), evaluates each on ``EPISODES`` held-out episodes
+Everything is written where the options say, nothing elsewhere. ``run`` trains every (env,
+action mode it takes, algorithm, seed) of the grid with ``cparticles train`` (the shipped
+hyperparameters and budgets) into ``RUNS/<env>-<mode>-<algo>-<seed>`` (a run whose
+``config.json`` exists is not trained again), evaluates each on ``EPISODES`` held-out episodes
 (seeds from ``HELD_OUT_SEED_START``), deterministic and stochastic, and merges the records into
-``docs/baselines/results.json``: ``{"env", "action_mode", "algo", "seed", "timesteps",
-"success_rate", "mean_return", "eval_episodes", "deterministic", "wall_seconds", ...}``.
-Trainings run in up to ``--jobs`` subprocesses, each with one torch thread.
+``--results`` (default ``RUNS/results.json``): ``{"env", "action_mode", "algo", "seed",
+"timesteps", "success_rate", "mean_return", "eval_episodes", "deterministic", "wall_seconds",
+...}``. ``--publish DIR`` (the published set is ``docs/baselines`` of the checkout) also copies
+each run's config.json and evaluations.json (not its models) into ``DIR/runs/<run>/`` and merges
+the records into ``DIR/results.json``. Trainings run in up to ``--jobs`` subprocesses, each with
+one torch thread.
 
-``report`` draws the learning curves (periodic evaluations from each run's evaluations.json:
-median and interquartile range over seeds) into ``docs/baselines/curves.png`` and writes
-``docs/baselines/table.md``: per (env, mode, algo), the median success rate over seeds with a
-distribution-free confidence interval for the median (order statistics; with 5 seeds the
-interval is [min, max], coverage 94%), the median return, and the training time.
+``report`` draws the learning curves (periodic evaluations from each run's evaluations.json in
+``--runs``: median and interquartile range over seeds) into ``OUT/curves.png`` and writes
+``OUT/table.md`` (``--out``, default ``--runs``): per (env, mode, algo), the median success rate
+over seeds with a distribution-free confidence interval for the median (order statistics; with 5
+seeds the interval is [min, max], coverage 94%), the median return, and the training time.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import threading
@@ -34,12 +38,16 @@ from typing import Any
 
 import numpy as np
 
-from . import ENV_IDS
-from .base import ACTION_MODES
-from .train import ALGOS, HELD_OUT_SEED_START
+from constrained_particles.arguments import (
+    HelpFormatter,
+    int_at_least,
+    new_directory,
+    positive_float,
+)
 
-#: Where the published files live.
-DOCS = Path(__file__).resolve().parent.parent / "docs" / "baselines"
+from . import ALL_ENV_IDS
+from .train import ALGOS, ENV_ACTION_MODES, HELD_OUT_SEED_START
+
 #: Held-out episodes per evaluation.
 EPISODES = 100
 #: Seeds per algorithm in the full grid (the issue: PPO 5, the second algorithm 3).
@@ -54,13 +62,16 @@ def run_name(env: str, mode: str, algo: str, seed: int) -> str:
 
 
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "constrained_particles.cli", *args]
+    return [sys.executable, "-m", "cparticles", *args]
 
 
 def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
                        timesteps: int | None = None, episodes: int = EPISODES,
-                       timeout: float | None = None) -> list[dict[str, Any]]:
-    """Train one cell (unless already trained) and evaluate it both ways; its two records."""
+                       timeout: float | None = None, publish: Path | None = None
+                       ) -> list[dict[str, Any]]:
+    """Train one cell (unless already trained) and evaluate it both ways; its two records.
+    With ``publish``, the run's config.json and evaluations.json are copied to
+    ``publish/runs/<run>/``."""
     out = runs / run_name(env, mode, algo, seed)
     if not (out / "config.json").is_file():
         cmd = _cli("train", env, "--algo", algo, "--seed", str(seed), "--out", str(out),
@@ -72,12 +83,13 @@ def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
             subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT,
                            timeout=timeout)
     config = json.loads((out / "config.json").read_text())
-    # the learning curve and what was run, kept with the published results (the models are not)
-    kept = DOCS / "runs" / out.name
-    kept.mkdir(parents=True, exist_ok=True)
-    for name in ("config.json", "evaluations.json"):
-        if (out / name).is_file():
-            (kept / name).write_text((out / name).read_text())
+    if publish is not None:
+        # the learning curve and what was run, kept with the published results (not the models)
+        kept = publish / "runs" / out.name
+        kept.mkdir(parents=True, exist_ok=True)
+        for name in ("config.json", "evaluations.json"):
+            if (out / name).is_file():
+                (kept / name).write_text((out / name).read_text())
     records = []
     for deterministic in (True, False):
         cmd = _cli("evaluate", str(out), "--episodes", str(episodes), "--seed-start",
@@ -129,8 +141,8 @@ def median_ci(values: np.ndarray, level: float = 0.95) -> tuple[float, float, fl
 
 
 def report(results_path: Path, runs: Path, docs: Path) -> str:
-    """Write ``docs/table.md`` and ``docs/curves.png`` from the results and the runs' learning
-    curves; returns the table (markdown)."""
+    """Write ``docs/table.md`` and ``docs/curves.png`` (``docs``: any folder) from the results
+    and the runs' learning curves; returns the table (markdown)."""
     records = json.loads(results_path.read_text())
     cells: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in records:
@@ -197,49 +209,83 @@ def _plot_curves(cells: dict, runs: Path, path: Path) -> None:
     plt.close(fig)
 
 
+def new_directory_file(text: str) -> str:
+    """argparse type: a file path whose folder exists or can be created, and is writable."""
+    new_directory(os.path.dirname(os.path.abspath(text)))
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is a directory")
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m envs.baselines {run,report}``."""
-    p = argparse.ArgumentParser(prog="python -m envs.baselines", description=__doc__.split(
-        "\n")[0])
+    p = argparse.ArgumentParser(prog="python -m envs.baselines",
+                                description=__doc__.split("\n")[0], formatter_class=HelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="train and evaluate the grid")
-    r.add_argument("--runs", default="runs", help="folder of the run directories")
-    r.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=ENV_IDS)
-    r.add_argument("--modes", nargs="+", default=list(ACTION_MODES), choices=ACTION_MODES)
+    r = sub.add_parser("run", help="train and evaluate the grid", formatter_class=HelpFormatter)
+    r.add_argument("--runs", default="runs", type=new_directory,
+                   help="folder of the run directories (created)")
+    r.add_argument("--envs", nargs="+", default=list(ALL_ENV_IDS), choices=ALL_ENV_IDS,
+                   metavar="ENV_ID", help=f"env ids, of {', '.join(ALL_ENV_IDS)}")
+    modes = sorted({m for v in ENV_ACTION_MODES.values() for m in v})
+    r.add_argument("--modes", nargs="+", default=modes, choices=modes,
+                   help="action modes (each env trains in those it takes)")
     r.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS)
-    r.add_argument("--seeds", nargs="+", type=int,
-                   help="seeds (default: 5 for PPO, 3 for SAC)")
-    r.add_argument("--timesteps", type=int, help="override the shipped budgets")
-    r.add_argument("--episodes", type=int, default=EPISODES)
-    r.add_argument("--jobs", type=int, default=1, help="trainings in parallel")
-    r.add_argument("--timeout", type=float, help="seconds allowed per training")
-    r.add_argument("--results", default=str(DOCS / "results.json"))
-    g = sub.add_parser("report", help="plots and table from results.json")
-    g.add_argument("--runs", default=str(DOCS / "runs"),
-                   help="folder with <run>/evaluations.json (run copies them to docs)")
-    g.add_argument("--results", default=str(DOCS / "results.json"))
-    g.add_argument("--docs", default=str(DOCS))
+    r.add_argument("--seeds", nargs="+", type=int_at_least(0),
+                   help="seeds (default: " + ", ".join(f"{len(v)} for {k.upper()}"
+                                                       for k, v in GRID_SEEDS.items()) + ")")
+    r.add_argument("--timesteps", type=int_at_least(1),
+                   help="override the shipped budgets (default: the shipped budgets)")
+    r.add_argument("--episodes", type=int_at_least(1), default=EPISODES,
+                   help="held-out episodes per evaluation")
+    r.add_argument("--jobs", type=int_at_least(1), default=1, help="trainings in parallel")
+    r.add_argument("--timeout", type=positive_float,
+                   help="seconds allowed per training (default: no limit)")
+    r.add_argument("--results", type=new_directory_file,
+                   help="JSON file the records are merged into (default: RUNS/results.json)")
+    r.add_argument("--publish", type=new_directory,
+                   help="also copy each run's config.json and evaluations.json (no models) to "
+                   "PUBLISH/runs/ and merge the records into PUBLISH/results.json (default: "
+                   "no copy)")
+    g = sub.add_parser("report", help="plots and table from results.json",
+                       formatter_class=HelpFormatter)
+    g.add_argument("--runs", default="runs",
+                   help="folder with <run>/evaluations.json (a run folder or a published one)")
+    g.add_argument("--results", help="records to tabulate (default: RUNS/results.json)")
+    g.add_argument("--out", type=new_directory,
+                   help="folder for table.md and curves.png (created; default: RUNS)")
     args = p.parse_args(argv)
-    if args.command == "report":
-        print(report(Path(args.results), Path(args.runs), Path(args.docs)), end="")
-        return 0
     runs = Path(args.runs)
+    results = Path(args.results) if args.results else runs / "results.json"
+    if args.command == "report":
+        if not results.is_file():
+            p.error(f"argument --results: {str(results)!r} does not exist")
+        out = Path(args.out) if args.out else runs
+        out.mkdir(parents=True, exist_ok=True)
+        print(report(results, runs, out), end="")
+        return 0
     grid = [(env, mode, algo, seed) for env in args.envs for mode in args.modes
+            if mode in ENV_ACTION_MODES[env]
             for algo in args.algos for seed in (args.seeds or GRID_SEEDS[algo])]
-
+    if not grid:
+        takes = "; ".join(f"{e} takes {', '.join(ENV_ACTION_MODES[e])}" for e in args.envs)
+        p.error(f"no env in --envs takes an action mode in --modes ({takes})")
+    publish = Path(args.publish) if args.publish else None
     lock = threading.Lock()
 
     def cell(c: tuple[str, str, str, int]) -> list[dict[str, Any]]:
         recs = train_and_evaluate(runs, *c, timesteps=args.timesteps, episodes=args.episodes,
-                                  timeout=args.timeout)
+                                  timeout=args.timeout, publish=publish)
         with lock:
-            merge(Path(args.results), recs)
+            merge(results, recs)
+            if publish is not None:
+                merge(publish / "results.json", recs)
         print(f"{run_name(*c)}: success {recs[0]['success_rate']:.0%} (deterministic), "
               f"{recs[1]['success_rate']:.0%} (stochastic), {recs[0]['wall_seconds']:.0f} s",
               flush=True)
         return recs
 
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(cell, grid))
     return 0
 

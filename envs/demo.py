@@ -18,6 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from constrained_particles.arguments import int_at_least, output_file, time_step
 from constrained_particles.integrators import METHODS
 
 from . import ALL_ENV_IDS, ENV_IDS
@@ -31,8 +32,6 @@ BATCH = 64
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
-    from constrained_particles.cli import int_at_least, output_file, time_step
-
     parser.add_argument("--env", default=ENV_IDS[0], choices=ALL_ENV_IDS, help="environment id")
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
@@ -44,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "ChainSwing; default force); ClothPin draws springs (draw)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
-                        help="save episode 0 as an animated GIF (needs the render extra)")
+                        help="save episode 0 as an animated GIF (needs the render extra; default: "
+                        "no GIF)")
     parser.add_argument("--watch", action="store_true",
                         help="show episode 0 in a pygame-ce window first (needs a display)")
     parser.add_argument("--integrator", choices=sorted(METHODS),

@@ -28,8 +28,8 @@ Without Ray, :func:`make_env` is an ordinary factory (what each EnvRunner calls)
 >>> type(venv.unwrapped).__name__, venv.num_envs
 ('ClothSlideVectorEnv', 4)
 
-Requires the ``ray`` extra (``pip install "constrained-particles[ray]"``: ``ray[rllib]`` and torch)
-for :func:`register` and :func:`configure`; importing this module does not import Ray.
+Requires the ``ray`` extra (``pip install -e ".[ray]"`` in the checkout: ``ray[rllib]`` and
+torch) for :func:`register` and :func:`configure`; importing this module does not import Ray.
 """
 
 from __future__ import annotations

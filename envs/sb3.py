@@ -29,7 +29,7 @@ what makes it faster.
 >>> rewards.shape, dones.dtype, sorted(infos[0])[:3]
 ((4,), dtype('bool'), ['TimeLimit.truncated', 'constraint_residual', 'distance'])
 
-Requires the ``rl`` extra (``pip install constrained-particles[rl]``).
+Requires the ``rl`` extra (``pip install -e ".[rl]"`` in the checkout).
 """
 
 from __future__ import annotations

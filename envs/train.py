@@ -20,6 +20,15 @@ bar. Every ``--eval-freq`` steps it runs deterministic evaluation episodes on se
 ClothSlide: the mean |squeeze| of the actions, the RMS speed near the goal, final distances and
 speeds of failed episodes).
 
+**A run directory holds pickles.** ``model.zip`` and ``best_model.zip`` (Stable-Baselines3
+archives, which hold cloudpickled objects) and ``vecnormalize.pkl`` run code when they are
+loaded, so a crafted run directory can run any program. ``evaluate`` loads only what looks like
+a directory ``train`` wrote: it reads ``config.json`` first (no pickle involved) and refuses a
+directory without one, with an unknown env, action mode or algorithm, without the model file, or
+whose recorded observation shape does not match its env, all before unpickling anything. That
+check stops mistakes, not an attacker who writes a matching ``config.json``: evaluate only run
+directories you made yourself or otherwise trust.
+
 Requires the ``rl`` extra (stable-baselines3, torch).
 """
 
@@ -37,8 +46,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from . import ENV_IDS
+from constrained_particles.arguments import int_at_least, new_directory
+from constrained_particles.extras import require
+
+from . import ALL_ENV_IDS
 from .base import ACTION_MODES
+from .cloth_pin import DRAW_MODES
 
 #: Algorithms ``cparticles train`` knows (Stable-Baselines3 classes).
 ALGOS = ("ppo", "sac")
@@ -52,6 +65,16 @@ HELD_OUT_SEED_START = 2_000_000
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
+#: The action modes each env takes, its default first (``train`` ships hyperparameters for each).
+ENV_ACTION_MODES: dict[str, tuple[str, ...]] = {
+    env_id: DRAW_MODES if env_id == "ClothPin-v0" else ACTION_MODES for env_id in ALL_ENV_IDS}
+#: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
+#: Stable-Baselines3 uses, takes at most 2**32 - 1).
+MAX_SEED = 2**31 - 1
+#: What ``config.json`` of a run holds, with the types ``evaluate`` checks before loading.
+CONFIG_FIELDS: dict[str, type] = {
+    "env": str, "action_mode": str, "algo": str, "seed": int, "timesteps": int,
+    "hyperparams": dict}
 
 
 def _algo_class(algo: str) -> type:
@@ -62,14 +85,26 @@ def _algo_class(algo: str) -> type:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def load_hyperparams(algo: str, env_id: str, action_mode: str = "force") -> dict[str, Any]:
-    """The shipped hyperparameters of ``algo`` for ``env_id`` in ``action_mode`` (a copy)."""
+def check_env_mode(env_id: str, action_mode: str | None) -> str:
+    """The action mode to use (``None``: the env's default); ValueError naming the argument if
+    ``env_id`` is not a registered id or does not take ``action_mode``."""
+    if env_id not in ENV_ACTION_MODES:
+        raise ValueError(f"env_id must be one of {ALL_ENV_IDS}, got {env_id!r}")
+    modes = ENV_ACTION_MODES[env_id]
+    if action_mode is None:
+        return modes[0]
+    if action_mode not in modes:
+        raise ValueError(f"action_mode: {env_id} takes {' or '.join(modes)}, "
+                         f"got {action_mode!r}")
+    return action_mode
+
+
+def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None) -> dict[str, Any]:
+    """The shipped hyperparameters of ``algo`` for ``env_id`` in ``action_mode`` (None: the
+    env's default mode), a copy."""
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
-    if env_id not in ENV_IDS:
-        raise ValueError(f"env_id must be one of {ENV_IDS}, got {env_id!r}")
-    if action_mode not in ACTION_MODES:
-        raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
+    action_mode = check_env_mode(env_id, action_mode)
     table = json.loads((HYPERPARAMS_DIR / f"{algo}.json").read_text())
     key = f"{env_id}/{action_mode}"
     if key not in table:
@@ -220,19 +255,21 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
     return PeriodicEvaluation()
 
 
-def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str = "force",
+def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str | None = None,
           timesteps: int | None = None, eval_freq: int | None = None, eval_episodes: int = 50,
           progress_bar: bool = True, threads: int = 1, verbose: int = 0) -> dict[str, Any]:
     """Train ``algo`` on ``env_id`` with the shipped hyperparameters; write the run to ``out``.
 
-    ``timesteps`` overrides the file's ``n_timesteps``; ``eval_freq`` (env steps, default a
-    tenth of the budget) and ``eval_episodes`` set the periodic evaluation. ``threads`` caps
-    torch's CPU threads. Returns the contents of ``out/config.json``.
+    ``action_mode`` None takes the env's default. ``timesteps`` overrides the file's
+    ``n_timesteps``; ``eval_freq`` (env steps, default a tenth of the budget) and
+    ``eval_episodes`` set the periodic evaluation. ``threads`` caps torch's CPU threads.
+    Returns the contents of ``out/config.json``.
     """
     import stable_baselines3
     import torch
     from stable_baselines3.common.vec_env import VecNormalize
 
+    action_mode = check_env_mode(env_id, action_mode)
     hp = load_hyperparams(algo, env_id, action_mode)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
@@ -244,6 +281,10 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str =
     if eval_freq < 1 or eval_episodes < 1:
         raise ValueError(f"eval_freq and eval_episodes must be >= 1, got {eval_freq}, "
                          f"{eval_episodes}")
+    if not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be in [0, {MAX_SEED}], got {seed}")
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
     torch.set_num_threads(threads)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -268,6 +309,8 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str =
         vn.save(str(out / "vecnormalize.pkl"))
     config = {"env": env_id, "action_mode": action_mode, "algo": algo, "seed": seed,
               "timesteps": int(model.num_timesteps), "hyperparams": hp,
+              "observation_shape": list(venv.observation_space.shape),
+              "action_shape": list(venv.action_space.shape),
               "wall_seconds": round(seconds, 1), "threads": threads,
               "versions": {"stable_baselines3": stable_baselines3.__version__,
                            "torch": torch.__version__, "gymnasium": gym.__version__}}
@@ -276,18 +319,90 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str =
     return config
 
 
+def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
+    """The ``config.json`` of a run directory that ``train`` wrote, checked before anything in
+    the directory is unpickled: ValueError unless ``out`` holds a config.json with the fields
+    ``train`` writes, a registered env with an action mode it takes, a known algorithm, the
+    model file of ``which`` (``"final"``: model.zip, ``"best"``: best_model.zip), and (when
+    recorded) the observation and action shapes that env gives."""
+    out = Path(out)
+    if which not in ("final", "best"):
+        raise ValueError(f"which must be 'final' or 'best', got {which!r}")
+    if not out.is_dir():
+        raise ValueError(f"{str(out)!r} is not a directory")
+    config_path = out / "config.json"
+    if not config_path.is_file():
+        raise ValueError(f"{str(out)!r} is not a run directory of cparticles train "
+                         "(no config.json)")
+    try:
+        config = json.loads(config_path.read_text())
+    except OSError as exc:
+        raise ValueError(f"cannot read {config_path} ({exc.strerror or exc})") from None
+    except ValueError as exc:  # also UnicodeDecodeError
+        raise ValueError(f"{config_path} is not valid JSON ({exc})") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"{config_path} is not a JSON object")
+    for name, kind in CONFIG_FIELDS.items():
+        if not isinstance(config.get(name), kind) or isinstance(config.get(name), bool):
+            raise ValueError(f"{config_path}: field {name!r} missing or not a "
+                             f"{kind.__name__}")
+    try:
+        check_env_mode(config["env"], config["action_mode"])
+    except ValueError as exc:
+        raise ValueError(f"{config_path}: {exc}") from None
+    if config["algo"] not in ALGOS:
+        raise ValueError(f"{config_path}: algo must be one of {ALGOS}, got {config['algo']!r}")
+    env_kwargs = config["hyperparams"].get("env_kwargs", {})
+    if not isinstance(env_kwargs, dict):
+        raise ValueError(f"{config_path}: hyperparams.env_kwargs must be an object")
+    model = out / ("model.zip" if which == "final" else "best_model.zip")
+    if not model.is_file():
+        raise ValueError(f"{str(out)!r} has no {model.name} (train writes it when a run "
+                         "finishes; was it interrupted?)")
+    try:
+        env = gym.make(config["env"], action_mode=config["action_mode"], **env_kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{config_path}: {config['env']} does not accept its env_kwargs "
+                         f"({exc})") from None
+    shapes = {"observation_shape": env.observation_space.shape,
+              "action_shape": env.action_space.shape}
+    env.close()
+    for name, shape in shapes.items():
+        if name in config and tuple(config[name]) != shape:
+            raise ValueError(f"{config_path}: the run's {name.replace('_', ' ')} is "
+                             f"{tuple(config[name])}, but {config['env']} "
+                             f"({config['action_mode']}) gives {shape}")
+    return {**config, **shapes}
+
+
+def _check_spaces(config: dict[str, Any], model: Any, normalizer: Any) -> None:
+    """ValueError if the loaded model or normalizer was made for other observations or actions
+    than the env of ``config`` (a run directory assembled from different runs)."""
+    for what, space, shape in (("model", model.observation_space, config["observation_shape"]),
+                               ("model", model.action_space, config["action_shape"]),
+                               ("vecnormalize.pkl",
+                                getattr(normalizer, "observation_space", None),
+                                config["observation_shape"])):
+        if space is not None and tuple(space.shape) != tuple(shape):
+            raise ValueError(f"the run's {what} expects shape {tuple(space.shape)}, but "
+                             f"{config['env']} ({config['action_mode']}) gives {tuple(shape)}")
+
+
 def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SEED_START,
              deterministic: bool = True, which: str = "final") -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds from ``seed_start``) with the run in ``out``
     (``which``: ``"final"`` model.zip or ``"best"`` best_model.zip). Returns :func:`summarize`
-    plus the run's identity (env, action_mode, algo, seed, timesteps)."""
+    plus the run's identity (env, action_mode, algo, seed, timesteps).
+
+    The run's files are pickles that run code when loaded: :func:`read_run` checks
+    ``config.json`` first, but only load directories you trust (see the module docstring).
+    """
+    config = read_run(out, which)
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if seed_start < 0:
+        raise ValueError(f"seed_start must be >= 0, got {seed_start}")
     out = Path(out)
-    if which not in ("final", "best"):
-        raise ValueError(f"which must be 'final' or 'best', got {which!r}")
-    config_path = out / "config.json"
-    if not config_path.is_file():
-        raise ValueError(f"{out} is not a training run directory (no config.json)")
-    config = json.loads(config_path.read_text())
     prefix = "" if which == "final" else "best_"
     model = _algo_class(config["algo"]).load(out / f"{prefix}model.zip", device="cpu")
     normalizer = None
@@ -295,6 +410,7 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
     if vn_path.is_file():
         with open(vn_path, "rb") as f:
             normalizer = pickle.load(f)
+    _check_spaces(config, model, normalizer)
     res = run_episodes(sb3_policy(model, normalizer, deterministic), config["env"], episodes,
                        seed_start, config["action_mode"],
                        config["hyperparams"].get("env_kwargs", {}))
@@ -305,26 +421,63 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
 
 
 # ---------------------------------------------------------------------- command line
+TRUST = ("A run directory holds pickles (model.zip, best_model.zip, vecnormalize.pkl) that run "
+         "code when loaded: evaluate only directories that cparticles train wrote and that you "
+         "trust. config.json is checked before anything is unpickled.")
+
+
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles train``."""
-    parser.add_argument("env", choices=ENV_IDS, metavar="ENV_ID", help="environment id")
+    modes = "; ".join(f"{e}: {', '.join(m)}" for e, m in ENV_ACTION_MODES.items())
+    parser.add_argument("env", choices=ALL_ENV_IDS, metavar="ENV_ID",
+                        help=f"environment id: {', '.join(ALL_ENV_IDS)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="SB3 algorithm")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the model and env copies")
-    parser.add_argument("--out", required=True, help="run directory (created)")
-    parser.add_argument("--action-mode", default="force", choices=ACTION_MODES)
-    parser.add_argument("--timesteps", type=int, help="env steps (default: the shipped budget)")
-    parser.add_argument("--eval-freq", type=int, help="env steps between evaluations")
-    parser.add_argument("--eval-episodes", type=int, default=50,
+    parser.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
+                        help="seed of the model; env copy i starts from seed + i")
+    parser.add_argument("--out", required=True, type=new_directory,
+                        help="run directory (created; must not hold a run already)")
+    parser.add_argument("--action-mode", choices=sorted({m for v in ENV_ACTION_MODES.values()
+                                                         for m in v}),
+                        help=f"action mode ({modes}) (default: the env's first)")
+    parser.add_argument("--timesteps", type=int_at_least(1),
+                        help="env steps (default: the shipped budget of the env, mode and algo)")
+    parser.add_argument("--eval-freq", type=int_at_least(1),
+                        help="env steps between evaluations (default: a tenth of --timesteps)")
+    parser.add_argument("--eval-episodes", type=int_at_least(1), default=50,
                         help="episodes per periodic evaluation")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--threads", type=int_at_least(1), default=1, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Before any work: the rl extra, an action mode the env takes, shipped hyperparameters,
+    and an ``--out`` that holds no run yet."""
+    require("stable_baselines3", "torch", command="cparticles train")
+    modes = ENV_ACTION_MODES[args.env]
+    if args.action_mode is None:
+        args.action_mode = modes[0]
+    if args.action_mode not in modes:
+        parser.error(f"argument --action-mode: {args.env} takes {' or '.join(modes)}, "
+                     f"got {args.action_mode!r}")
+    try:
+        load_hyperparams(args.algo, args.env, args.action_mode)
+    except ValueError as exc:
+        parser.error(str(exc))
+    for name in ("config.json", "model.zip"):
+        if (Path(args.out) / name).exists():
+            parser.error(f"argument --out: {args.out!r} already holds a run ({name}); choose "
+                         "another directory")
 
 
 def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles evaluate``."""
-    parser.add_argument("dir", help="run directory written by cparticles train")
-    parser.add_argument("--episodes", type=int, default=100, help="number of episodes")
-    parser.add_argument("--seed-start", type=int, default=HELD_OUT_SEED_START,
+    parser.description = ("evaluate a run directory that cparticles train wrote, on held-out "
+                          f"episodes (rl extra). {TRUST}")
+    parser.add_argument("dir", help="run directory written by cparticles train (trusted: it "
+                        "holds pickles)")
+    parser.add_argument("--episodes", type=int_at_least(1), default=100,
+                        help="number of episodes")
+    parser.add_argument("--seed-start", type=int_at_least(0), default=HELD_OUT_SEED_START,
                         help="seed of the first episode (then +1 each)")
     parser.add_argument("--stochastic", action="store_true",
                         help="sample actions instead of the deterministic policy")
@@ -333,11 +486,27 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print only the JSON line")
 
 
+def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
+                             ) -> None:
+    """Before any work: the rl extra, and a run directory :func:`read_run` accepts."""
+    require("stable_baselines3", "torch", command="cparticles evaluate")
+    try:
+        read_run(args.dir, "best" if args.best else "final")
+    except ValueError as exc:
+        parser.error(f"argument dir: {exc}")
+
+
 def main_train(args: argparse.Namespace) -> int:
-    """``cparticles train``."""
-    config = train(args.env, args.algo, args.seed, args.out, args.action_mode, args.timesteps,
-                   args.eval_freq, args.eval_episodes, progress_bar=not args.no_progress,
-                   threads=args.threads)
+    """``cparticles train``; a directory it created stays only if something was written."""
+    out = Path(args.out)
+    created = not out.exists()
+    try:
+        config = train(args.env, args.algo, args.seed, out, args.action_mode, args.timesteps,
+                       args.eval_freq, args.eval_episodes, progress_bar=not args.no_progress,
+                       threads=args.threads)
+    finally:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
     print(f"trained {config['algo']} on {config['env']} ({config['action_mode']}), seed "
           f"{config['seed']}, {config['timesteps']} steps in {config['wall_seconds']:.0f} s; "
           f"saved to {args.out}")
@@ -357,16 +526,3 @@ def main_evaluate(args: argparse.Namespace) -> int:
               f"mean length {res['mean_length']:.1f} steps")
     print(json.dumps(res))
     return 0
-
-
-def add_parsers(subparsers: Any) -> None:
-    """Register ``train`` and ``evaluate`` on an argparse subparsers object."""
-    p = subparsers.add_parser("train", help="train a Stable-Baselines3 agent (rl extra)",
-                              description="train a Stable-Baselines3 agent with the shipped "
-                                          "hyperparameters")
-    add_train_arguments(p)
-    p.set_defaults(handler=main_train)
-    p = subparsers.add_parser("evaluate", help="evaluate a trained run on held-out episodes",
-                              description="evaluate a run directory of cparticles train")
-    add_evaluate_arguments(p)
-    p.set_defaults(handler=main_evaluate)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from constrained_particles import SimulationDiverged
-from constrained_particles import bench as B
+from cparticles import bench as B
 
 
 def test_alternate_times_every_entry_and_drops_a_diverging_one():

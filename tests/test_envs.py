@@ -440,7 +440,7 @@ def test_demo_cli_json_table_and_gif(tmp_path, capsys):
 
     from PIL import Image
 
-    from constrained_particles.cli import main
+    from cparticles.cli import main
 
     gif = tmp_path / "episode.gif"
     assert main(["demo", "--env", "SliderCrank-v0", "--episodes", "3", "--json",

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from constrained_particles import METHODS, ORDERS, scenes
-from constrained_particles.cli import main as cli_main
+from cparticles.cli import main as cli_main
 from verification import orders as O
 from verification import report as R
 

@@ -64,16 +64,26 @@ def test_pyproject_metadata():
     assert '"numba>=0.59"' in deps
 
 
-def test_wheel_packages_are_the_three_top_level_ones():
-    """setuptools' package discovery with the project's include patterns."""
+def test_wheel_packages_are_the_four_top_level_ones():
+    """setuptools' package discovery with the project's include patterns: the three library
+    packages and the command line above them, whose console script is cparticles.cli:main."""
     from setuptools import find_packages
 
     text = (ROOT / "pyproject.toml").read_text()
     include = re.findall(r'"([^"]+)"', re.search(r"^include = \[(.*)\]$", text, re.M).group(1))
     top = {p.split(".")[0] for p in find_packages(str(ROOT), include=include)}
-    assert top == {"constrained_particles", "envs", "verification"}
-    assert "constrained_particles.bench" not in find_packages(str(ROOT), include=include)
-    assert (ROOT / "constrained_particles" / "bench.py").is_file()  # a module, shipped
+    assert top == {"constrained_particles", "envs", "verification", "cparticles"}
+    assert (ROOT / "cparticles" / "bench.py").is_file()  # a module of a shipped package
+    assert re.search(r'^cparticles = "cparticles\.cli:main"$', text, re.M)
+
+
+def test_python_m_cparticles_is_the_console_script():
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "cparticles", "--version"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == f"cparticles {constrained_particles.__version__}"
 
 
 def test_pprint_registry_lists_the_envs_together():

@@ -14,7 +14,7 @@ from stable_baselines3 import PPO  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
 
 import envs  # noqa: E402, F401
-from constrained_particles import cli  # noqa: E402
+from cparticles import cli  # noqa: E402
 from envs.agents import make_agent  # noqa: E402
 from envs.rewards import SUCCESS_BONUS, TIME_COST  # noqa: E402
 from envs.sb3 import to_sb3  # noqa: E402
@@ -201,11 +201,22 @@ def test_slider_crank_success_needs_the_crank_above():
 
 # ----------------------------------------------------------------------------- train/evaluate
 def test_shipped_hyperparameters_cover_every_env_and_mode():
-    for algo in ("ppo", "sac"):
-        for env_id in envs.ENV_IDS:
-            for mode in ("force", "spring"):
-                hp = load_hyperparams(algo, env_id, mode)
-                assert hp["n_timesteps"] > 0 and hp["n_envs"] >= 1
+    """Every registered id in every action mode its env accepts (found by making it) has PPO
+    and SAC hyperparameters; a mode the env refuses has none."""
+    for env_id in envs.ALL_ENV_IDS:
+        for mode in ("force", "spring", "draw"):
+            try:
+                gym.make(env_id, action_mode=mode).close()
+                accepted = True
+            except ValueError:
+                accepted = False
+            for algo in ("ppo", "sac"):
+                if accepted:
+                    hp = load_hyperparams(algo, env_id, mode)
+                    assert hp["n_timesteps"] > 0 and hp["n_envs"] >= 1
+                else:
+                    with pytest.raises(ValueError, match="action_mode"):
+                        load_hyperparams(algo, env_id, mode)
     with pytest.raises(ValueError, match="algo"):
         load_hyperparams("dqn", "ClothSlide-v0")
 
@@ -230,7 +241,27 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     assert {"success_rate", "mean_return", "mean_length", "episodes"} <= set(res)
     assert res["episodes"] == 5 and res["deterministic"] is False
     assert 0.0 <= res["success_rate"] <= 1.0 and 1 <= res["mean_length"] <= 200
-    assert cli.main(["evaluate", str(tmp_path / "nothing")]) == 2
+    assert config["observation_shape"] == [9] and config["action_shape"] == [1]
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["evaluate", str(tmp_path / "nothing")])
+    assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "spring"), ("ClothPin-v0", None)])
+def test_train_and_evaluate_the_newer_envs(env_id, mode, tmp_path, capsys, monkeypatch):
+    """ChainSwing and ClothPin train and evaluate through the command line too (ClothPin in
+    its only mode, draw, chosen when --action-mode is left out)."""
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "run"
+    argv = ["train", env_id, "--seed", "1", "--out", str(out), "--timesteps", "2048",
+            "--eval-episodes", "2", "--no-progress"]
+    assert cli.main(argv + (["--action-mode", mode] if mode else [])) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["env"] == env_id and config["action_mode"] == (mode or "draw")
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "2", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["env"] == env_id and res["episodes"] == 2
 
 
 def test_median_interval_coverage_matches_the_binomial():

@@ -13,8 +13,8 @@ from constrained_particles import (  # noqa: E402
     ParticleSystem,
     render,
 )
-from constrained_particles.cli import main as cli_main  # noqa: E402
 from constrained_particles.viewer import INTEGRATOR_KEYS, Viewer  # noqa: E402
+from cparticles.cli import main as cli_main  # noqa: E402
 
 
 def press(v, pixel, button=1):

@@ -7,7 +7,8 @@ The same subcommands run as ``python -m verification`` and as ``cparticles verif
     python -m verification energy [--quick] [--json] [--steps N] [--plot PNG] [--quiet]
     python -m verification report --out DIR [--quick] [--quiet]
 
-Progress bars (tqdm, on stderr) show by default when stderr is a terminal.
+Progress bars (tqdm, on stderr) show by default when stderr is a terminal. ``--json`` prints
+one JSON object on one line (the shape is in each subcommand's ``--help``).
 """
 
 from __future__ import annotations
@@ -17,22 +18,24 @@ import json
 import sys
 from collections.abc import Sequence
 
-from constrained_particles.cli import (
+from constrained_particles.arguments import (
     HelpFormatter,
     output_directory,
     output_file,
     progress_enabled,
+    run_command,
 )
-from constrained_particles.extras import MissingExtra, require
+from constrained_particles.extras import require
 
 #: modules each subcommand needs (all from the ``verify`` extra)
 NEEDS = {"orders": ("tqdm",), "pymunk": ("pymunk", "tqdm"), "energy": ("tqdm", "matplotlib"),
          "report": ("pymunk", "tqdm", "matplotlib")}
 
 JSON_HELP = {
-    "orders": 'print {"case": {"method": observed order, ...}, ...} instead of a table',
-    "pymunk": 'print {"scene": {"order": observed order, "errors": {"dt": max position error '
-              'in m, ...}}, ...} instead of a table',
+    "orders": 'print one JSON object on one line, {"case": {"method": observed order, ...}, '
+              '...}, instead of a table',
+    "pymunk": 'print one JSON object on one line, {"scene": {"order": observed order, '
+              '"errors": {"dt": max position error in m, ...}}, ...}, instead of a table',
 }
 
 
@@ -68,9 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=_steps, default=None,
                    help="steps per run (default: 100000, quick: 3000)")
     p.add_argument("--json", action="store_true",
-                   help="print the figures per system and method as JSON instead of a table")
+                   help='print one JSON object on one line, {"system": {"method": {"max_error": '
+                   '..., "trend": ..., ...}, ...}, ...}, instead of a table')
     p.add_argument("--plot", default=None, type=output_file(".png"),
-                   help="also save the energy-error plot to this PNG (checked before any work)")
+                   help="also save the energy-error plot to this PNG (checked before any work; "
+                   "default: no plot)")
     _progress_options(p)
     p = sub.add_parser("report", help="write the Markdown/JSON/PNG verification report",
                        description="run every experiment and write report.md, report.json and "
@@ -89,8 +94,7 @@ def main(args: argparse.Namespace) -> int:
         from .orders import measure_orders, orders_summary, orders_table
 
         results = measure_orders(quick=args.quick, progress=progress)
-        print(json.dumps(orders_summary(results), indent=1) if args.json
-              else orders_table(results))
+        print(json.dumps(orders_summary(results)) if args.json else orders_table(results))
     elif args.verify_command == "pymunk":
         from .pymunk_check import compare_all, pymunk_table
 
@@ -99,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
             print(json.dumps({n: {"order": round(r.order, 3),
                                   "errors": {f"{dt:g}": e for dt, e in zip(r.dts, r.errors,
                                                                            strict=True)}}
-                              for n, r in results.items()}, indent=1))
+                              for n, r in results.items()}))
         else:
             print(pymunk_table(results))
     elif args.verify_command == "energy":
@@ -114,7 +118,7 @@ def main(args: argparse.Namespace) -> int:
             keep = ("max_error", "trend", "oscillation", "trend_ratio", "max_constraint",
                     "diverged_at", "cpu", "steps", "h")
             print(json.dumps(_jsonable({name: {m: {k: r[k] for k in keep} for m, r in per.items()}
-                                        for name, per in results.items()}), indent=1))
+                                        for name, per in results.items()})))
         else:
             print(long_run_table(results))
     else:
@@ -132,14 +136,7 @@ def run(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=HelpFormatter)
     add_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        return main(args)
-    except MissingExtra as exc:  # the message names the command already
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:
-        print(f"python -m verification {args.verify_command}: error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(f"python -m verification {args.verify_command}", lambda: main(args))
 
 
 if __name__ == "__main__":

@@ -15,8 +15,8 @@ os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
 import pygame as pg  # noqa: E402
 
-from constrained_particles.cli import main  # noqa: E402
 from constrained_particles.viewer import Viewer  # noqa: E402
+from cparticles.cli import main  # noqa: E402
 
 HERE = Path(__file__).parent
 

@@ -43,7 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from . import METHODS, ParticleSystem, SimulationDiverged, scenes
+from constrained_particles import METHODS, ParticleSystem, SimulationDiverged, scenes
+from constrained_particles.arguments import int_at_least, progress_enabled
+from constrained_particles.extras import require
 
 DT = 1e-3  #: physics step of the cloth comparison (s)
 #: Steps of DT each timed call advances in the cloth comparison: ``step(DT, steps=CALL_STEPS)``
@@ -385,7 +387,7 @@ def peak_memory_mb(n: int = 128, steps: int = 20) -> float:
     """Peak resident memory (MB) of a fresh process that builds the n x n cloth and steps rk4."""
     code = (
         "import resource\n"
-        "from constrained_particles.bench import our_cloth\n"
+        "from cparticles.bench import our_cloth\n"
         f"s = our_cloth({n})\n"
         f"for _ in range({steps}): s.step({DT}, 'rk4')\n"
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
@@ -520,8 +522,6 @@ def markdown(r: dict[str, Any]) -> str:
 # ---------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles bench``."""
-    from .cli import int_at_least
-
     parser.add_argument("--quick", action="store_true",
                         help="shorter batches, fewer sizes (under a minute)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
@@ -537,8 +537,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Before any work: the ``verify`` extra (pymunk, tqdm)."""
-    from .extras import require
-
     require("pymunk", "tqdm", command="cparticles bench")
 
 
@@ -591,8 +589,6 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
 
 def main(args: argparse.Namespace) -> int:
     """Run every section and print JSON or Markdown."""
-    from .cli import progress_enabled
-
     results = run(args.quick, args.repeats, not args.skip_envs, progress_enabled(args))
     if args.json:
         print(json.dumps(results, indent=2))
@@ -605,6 +601,6 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from .cli import main as cli_main
+    from cparticles.cli import main as cli_main
 
     sys.exit(cli_main(["bench", *sys.argv[1:]]))
