@@ -203,6 +203,14 @@ class Term:
                                  f"got {value!r} (remove the block and add a new one)")
             if bound is not None and value is not None:
                 self._check_indices(name, value, bound)
+        elif name in self.element_fields and value is not None:
+            # a bound block's per-element arrays keep their number of elements
+            old = self.__dict__.get(name)
+            if (self.__dict__.get("_bound_n") is not None and old is not None
+                    and np.shape(value)[:1] != np.shape(old)[:1]):
+                raise ValueError(f"{name}: a block in a system keeps its {len(old)} elements; "
+                                 f"got shape {np.shape(value)} (remove the block and add a new "
+                                 "one)")
         super().__setattr__(name, value)
         if not name.startswith("_"):
             self.__dict__["version"] = self.version + 1

@@ -153,6 +153,19 @@ class ParticleTask:
 
     #: Number of force-action components (subclasses set it).
     force_dim: ClassVar[int] = 1
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # A public array of the task (goals, hold counts, actions, ...) keeps its shape and
+        # dtype: every copy's bookkeeping, compiled or not, reads it as made. Reassigning one
+        # with another is refused here, at the boundary (its values may be edited in place).
+        old = self.__dict__.get(name)
+        if isinstance(old, np.ndarray) and not name.startswith("_") and not (
+                type(value) is np.ndarray and value.shape == old.shape
+                and value.dtype == old.dtype):
+            raise ValueError(f"{name} must stay a {old.dtype} array of shape {old.shape} (edit "
+                             f"it in place instead), got {type(value).__name__} "
+                             f"{getattr(value, 'dtype', '')} {np.shape(value)}")
+        super().__setattr__(name, value)
     #: Farthest distance (m) a particle may travel in one integrator step before the physics step
     #: is split into pieces (subclasses set it from the scene's smallest length).
     step_travel: float = math.inf

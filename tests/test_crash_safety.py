@@ -12,8 +12,9 @@ on a fresh env:
 - reassigned with its first row only;
 - reassigned with a wrong dtype (float32 for floats, float64 for integers and booleans);
 
-and the env is then stepped three times. Each step must return normally or raise a clear error
-(ValueError, TypeError, RuntimeError, which includes SimulationDiverged). The cases run in
+and the env is then stepped three times. The edit may be refused (ValueError, TypeError, or
+AttributeError for a read-only property); each step must return normally or raise a clear
+error (ValueError, TypeError, RuntimeError, which includes SimulationDiverged). The cases run in
 subprocesses, each running many cases; a subprocess killed by a signal (or exiting abnormally)
 names the case it was running, and the remaining cases go on in a new subprocess. Every case
 runs: there is no sampled subset.
@@ -156,7 +157,7 @@ def worker(config: int, cases: list[tuple[int, str]]) -> None:
         env = _make(env_id, kind, kwargs)
         try:
             _edit(env, paths[p], edit)
-        except ALLOWED:
+        except (*ALLOWED, AttributeError):  # (a property without a setter refuses too)
             pass
         for _ in range(STEPS):
             try:
