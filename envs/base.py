@@ -555,6 +555,7 @@ class ParticleTask:
         copies = s.n // self.n
         if self.step_travel == math.inf:
             return np.ones(copies, np.int64), np.ones(s.n, np.int64), 1
+        s.check_arrays()  # (ValueError naming a replaced state array, as a step raises)
         act = s.forces[-1]
         horizon = self.substeps * self.dt
         # the compiled formula reads every particle of every copy without bounds checks: the
