@@ -180,6 +180,25 @@ class ConstantForce(Force):
                       np.linalg.norm(self.force, axis=1))]
 
 
+def _spring_arguments(x: Any, v: Any, F: Any, i: Any, j: Any, ks: Any, kd: Any, rest: Any
+                      ) -> bool:
+    """Whether the compiled spring kernel may run on these arrays: it indexes without bounds
+    checks, so every array must have the shape and dtype it assumes and every index must be
+    inside ``x``."""
+    if not (isinstance(i, np.ndarray) and isinstance(j, np.ndarray)
+            and isinstance(x, np.ndarray)):
+        return False
+    k, n = len(i), len(x)
+    arrays_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (k,)
+                    for a in (ks, kd, rest))
+    states_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 2
+                    and a.shape == (n, 2) for a in (x, v, F))
+    if not (arrays_ok and states_ok and i.shape == j.shape == (k,)
+            and i.dtype == j.dtype == np.int64):
+        return False
+    return k == 0 or (min(i.min(), j.min()) >= 0 and max(i.max(), j.max()) < n)
+
+
 class DampedSpring(Force):
     """Damped springs between particle pairs ``i`` and ``j``: one block for many springs.
 
@@ -241,22 +260,15 @@ class DampedSpring(Force):
         return np.take(x, self.i, axis=0), f
 
     def _kernel_arguments_valid(self, x, v, F) -> bool:
-        """Whether the compiled kernel may run: it indexes without bounds checks, so every
-        array must have the shape and dtype it assumes and every index must be inside ``x``."""
-        i, j = self.i, self.j
-        k, n = len(i), len(x)
-        arrays_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (k,)
-                        for a in (self.ks, self.kd, self.rest))
-        states_ok = all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 2
-                        and a.shape == (n, 2) for a in (x, v, F))
-        if not (arrays_ok and states_ok and j.shape == (k,) and i.dtype == j.dtype == np.int64):
-            return False
-        return k == 0 or (min(i.min(), j.min()) >= 0 and max(i.max(), j.max()) < n)
+        """Whether the compiled kernel may run on the block's current arrays."""
+        return _spring_arguments(x, v, F, self.i, self.j, self.ks, self.kd, self.rest)
 
     def accumulate(self, x, v, mass, F):
-        if _kernels.spring_forces is not None and self._kernel_arguments_valid(x, v, F):
+        args = (self.i, self.j, self.ks, self.kd, self.rest)  # each attribute read once
+        if _kernels.spring_forces is not None and _spring_arguments(x, v, F, *args):
             # the compiled element (see _kernels)
-            _kernels.spring_forces(x, v, self.i, self.j, self.ks, self.kd, self.rest, F)
+            i, j, ks, kd, rest = args
+            _kernels.spring_forces(x, v, i, j, ks, kd, rest, F)
             return
         # the numpy reference: the formula of element_forces, scattered onto both ends
         _, f = self.element_forces(x, v, mass)
@@ -575,7 +587,7 @@ class MouseSpring(Force):
                              f" (system has {bound} particles)")
         new_particle = self.particle.copy()
         new_particle[elements] = particles
-        self.__dict__["particle"] = frozen(new_particle)
+        self._assign_checked("particle", frozen(new_particle))
         self.anchor[elements] = anchors
         self.active[elements] = active
 
@@ -621,7 +633,7 @@ class MouseSpring(Force):
                                  f"{new_particle[unknown].tolist()[:10]} (system has {bound} "
                                  "particles)")
         if particles is not None:
-            self.__dict__["particle"] = frozen(new_particle)
+            self._assign_checked("particle", frozen(new_particle))
         if new_anchor is not None:
             self.anchor[idx] = new_anchor
         if new_active is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+import threading
 from typing import Any
 
 import numpy as np
@@ -281,9 +282,11 @@ class ParticleSystem:
         return out
 
     def __getstate__(self) -> dict[str, Any]:
-        # the compiled pack holds views of the blocks' arrays: rebuilt, never copied
+        # the compiled pack holds views of the blocks' arrays: rebuilt, never copied; a copy
+        # gets its own step lock (made on first use)
         state = self.__dict__.copy()
         state.pop("_packed", None)
+        state.pop("_stepping", None)
         return state
 
     def copy(self) -> ParticleSystem:
@@ -339,6 +342,13 @@ class ParticleSystem:
         (:mod:`constrained_particles.fused`) for ``euler``, ``midpoint``, ``rk4``,
         ``symplectic_euler`` and ``rattle`` with the default ``"cg"`` solver; everything else, and
         ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
+
+        A call reads each state attribute (``x``, ``v``, ``mass``, ``inv_mass``, ``t``) once and
+        steps from what it read, so another thread replacing one meanwhile cannot make it read
+        foreign memory. One system takes one step call at a time: a call made while another
+        thread is stepping the same system raises RuntimeError (a clear error, not a wait: two
+        threads stepping one system at once would each step from the same old state). Use one
+        system per thread, or a lock of your own to take turns.
         """
         dt = check_dt(dt)
         if type(steps) is not int and (isinstance(steps, (bool, np.bool_))
@@ -348,14 +358,32 @@ class ParticleSystem:
             raise ValueError(f"steps must be an integer in [1, 1e9], got {steps!r}")
         integrate = get_method(method)
         project = self.project_each_step if project is None else _flag("project", project)
-        self.check_arrays()
+        lock = self._step_lock()
+        try:
+            self._step(dt, integrate, method, int(steps), project)
+        finally:
+            lock.release()
+
+    def _step_lock(self) -> threading.Lock:
+        """This system's step lock, acquired (released by the caller); RuntimeError if another
+        thread holds it."""
+        lock = self.__dict__.get("_stepping") or self.__dict__.setdefault("_stepping",
+                                                                          threading.Lock())
+        if not lock.acquire(blocking=False):
+            raise RuntimeError("this ParticleSystem is being stepped by another thread: a "
+                               "system takes one step call at a time (use one system per "
+                               "thread, or take turns with a lock)")
+        return lock
+
+    def _step(self, h: float, integrate: Any, method: str, steps: int, project: bool) -> None:
+        """The body of :meth:`step` (arguments checked, the step lock held)."""
+        x, v, mass, inv_mass, t = state = self.x, self.v, self.mass, self.inv_mass, self.t
+        self._check_state(*state)
         solver = self.constraint_solver
-        h = float(dt)
         project = bool(project and self.constraints)
-        if self._fused_step(h, method, int(steps), project, solver=solver):
+        if self._fused_step(h, method, steps, project, solver=solver, state=state):
             return
         lam = solver.lam.copy()
-        x, v, t = self.x, self.v, self.t
         try:
             with np.errstate(all="ignore"):
                 for _ in range(int(steps)):
@@ -377,16 +405,21 @@ class ParticleSystem:
 
     def _fused_step(self, h: float, method: str, steps: int, project: bool,
                     pieces: np.ndarray | None = None,
-                    solver: ConstraintSolver | None = None) -> bool:
+                    solver: ConstraintSolver | None = None,
+                    state: tuple[Any, Any, Any, Any, Any] | None = None) -> bool:
         """Take the steps on the fused kernel if it can (True); False, with nothing changed,
-        if the reference path must. Raises SimulationDiverged, keeping the state."""
+        if the reference path must. Raises SimulationDiverged, keeping the state. ``state``
+        is ``(x, v, mass, inv_mass, t)`` as the caller read them (default: read here)."""
         if not self._fusable(method) or (project and steps > 1):
             return False
+        if state is None:
+            state = self.x, self.v, self.mass, self.inv_mass, self.t
         solver = self.constraint_solver if solver is None else solver
         lam = solver.lam.copy()
         # with projection, the residual is judged after it (as on the reference path)
         status, x, v, failed = fused.run(self, h, method, steps, solver.lam,
-                                         math.inf if project else self.residual_limit, pieces)
+                                         math.inf if project else self.residual_limit, pieces,
+                                         state[:4])
         if status == fused.OK:
             try:
                 if project:
@@ -396,14 +429,14 @@ class ParticleSystem:
             except Exception:
                 solver.lam = lam
                 raise
-            t = self.t
+            t = state[4]
             for _ in range(steps):
                 t = t + h
             self.x, self.v, self.t = x, v, t
             return True
         solver.lam = lam
         if status == fused.DIVERGED:
-            t = self.t
+            t = state[4]
             for _ in range(failed):
                 t = t + h
             raise SimulationDiverged(
@@ -430,32 +463,43 @@ class ParticleSystem:
         if type(steps) is not int or not 1 <= steps <= 10**9:
             raise ValueError(f"steps must be an int in [1, 1e9], got {steps!r}")
         get_method(method)
-        self.check_arrays()
         if method == "rattle" or self.project_each_step:
+            self.check_arrays()
             return False
-        return self._fused_step(float(dt), method, int(steps), False, pieces)
+        lock = self._step_lock()
+        try:
+            state = self.x, self.v, self.mass, self.inv_mass, self.t
+            self._check_state(*state)
+            return self._fused_step(float(dt), method, int(steps), False, pieces, state=state)
+        finally:
+            lock.release()
 
     def check_arrays(self) -> None:
         """ValueError unless the state arrays are consistent: ``x``, ``v`` float64 (n, 2),
         ``mass``, ``inv_mass`` float64 (n,), ``t`` a finite number. Run before every step, so a
         replaced array cannot send the compiled kernels outside their memory."""
-        x, v, mass, inv_mass, f64 = self.x, self.v, self.mass, self.inv_mass, np.float64
+        self._check_state(self.x, self.v, self.mass, self.inv_mass, self.t)
+
+    @staticmethod
+    def _check_state(x: Any, v: Any, mass: Any, inv_mass: Any, t: Any) -> None:
+        """:meth:`check_arrays` of state arrays read once by the caller."""
+        f64 = np.float64
         if (type(x) is np.ndarray and type(v) is np.ndarray and type(mass) is np.ndarray
                 and type(inv_mass) is np.ndarray and x.dtype == f64 and v.dtype == f64
                 and mass.dtype == f64 and inv_mass.dtype == f64 and x.ndim == 2
                 and x.shape[1] == 2 and v.shape == x.shape and mass.shape == inv_mass.shape
-                == x.shape[:1] and type(self.t) is float and math.isfinite(self.t)):
+                == x.shape[:1] and type(t) is float and math.isfinite(t)):
             return  # the usual case, in a few operations
-        n = len(self.x) if isinstance(self.x, np.ndarray) else -1
-        for name, shape in (("x", (n, 2)), ("v", (n, 2)), ("mass", (n,)), ("inv_mass", (n,))):
-            arr = getattr(self, name)
+        n = len(x) if isinstance(x, np.ndarray) and x.ndim else -1
+        for name, arr, shape in (("x", x, (n, 2)), ("v", v, (n, 2)), ("mass", mass, (n,)),
+                                 ("inv_mass", inv_mass, (n,))):
             if not (isinstance(arr, np.ndarray) and arr.dtype == np.float64
                     and arr.shape == shape):
                 raise ValueError(f"{name} must be a float64 array of shape {shape} (x has "
                                  f"{n} rows), got {type(arr).__name__} "
                                  f"{getattr(arr, 'dtype', '')} {np.shape(arr)}")
-        if not (isinstance(self.t, numbers.Real) and np.isfinite(self.t)):
-            raise ValueError(f"t must be a finite number of seconds, got {self.t!r}")
+        if not (isinstance(t, numbers.Real) and np.isfinite(t)):
+            raise ValueError(f"t must be a finite number of seconds, got {t!r}")
 
     def distance_errors(self, x: np.ndarray | None = None) -> np.ndarray:
         """Every constraint row's geometric residual (m) at positions ``x`` (default: the

@@ -55,11 +55,24 @@ MAX_INDEX = 2**40
 
 
 def frozen(arr: np.ndarray) -> np.ndarray:
-    """A read-only view of a private read-only copy of ``arr``: writing to it raises ValueError,
-    and its WRITEABLE flag cannot be switched back on (its base is read-only too)."""
-    base = np.array(arr, copy=True)
-    base.flags.writeable = False
-    return base.view()
+    """An immutable copy of ``arr``: a read-only array over a private ``bytes`` buffer. Writing
+    to it raises ValueError, and neither its WRITEABLE flag nor that of any view of it can be
+    switched back on (numpy refuses: the memory belongs to an immutable object)."""
+    arr = np.ascontiguousarray(arr)
+    return np.frombuffer(arr.tobytes(), dtype=arr.dtype).reshape(arr.shape)
+
+
+def is_frozen(arr: Any) -> bool:
+    """True if ``arr`` is an array made by :func:`frozen` (or a view of one): read-only memory
+    that nothing can make writeable again, so a check of its values holds for good."""
+    if not isinstance(arr, np.ndarray) or arr.flags.writeable:
+        return False
+    base = arr
+    while isinstance(base, np.ndarray):
+        if base.flags.writeable:
+            return False
+        base = base.base
+    return isinstance(base, bytes)
 
 
 def as_index(name: str, value: Any) -> int:
@@ -158,10 +171,11 @@ class Term:
 
     index_fields: ClassVar[tuple[str, ...]] = ()
     element_fields: ClassVar[tuple[str, ...]] = ()
-    #: Bumped whenever an attribute of any term is (re)assigned, so that compiled packs of a
-    #: system (:mod:`constrained_particles.fused`) know when to rebuild. In-place edits of
-    #: arrays need no bump: the packs hold the blocks' own arrays.
-    generation: ClassVar[int] = 0
+    #: This block's version: bumped whenever one of its public attributes is (re)assigned, so
+    #: that the compiled packs of a system (:mod:`constrained_particles.fused`) know when to
+    #: rebuild without scanning any array. In-place edits of parameter arrays need no bump (the
+    #: packs hold the blocks' own arrays); index arrays are immutable (:func:`frozen`).
+    version: int = 0
 
     def __len__(self) -> int:
         """Number of elements (springs, wires, ...) in the block."""
@@ -170,7 +184,9 @@ class Term:
         return len(getattr(self, self.index_fields[0]))
 
     def __setattr__(self, name: str, value: Any) -> None:
-        # Index arrays are read-only; replacing one is validated like the constructor's argument
+        if name == "version":
+            raise AttributeError("version is kept by the block: it counts reassignments")
+        # Index arrays are immutable; replacing one is validated like the constructor's argument
         # and, once the block is bound, against the system's particle count, so that no later
         # evaluation (numpy or compiled) can read outside the state arrays.
         if name in self.index_fields:
@@ -187,8 +203,23 @@ class Term:
                                  f"got {value!r} (remove the block and add a new one)")
             if bound is not None and value is not None:
                 self._check_indices(name, value, bound)
+        elif name in self.element_fields and value is not None:
+            # a bound block's per-element arrays keep their number of elements
+            old = self.__dict__.get(name)
+            if (self.__dict__.get("_bound_n") is not None and old is not None
+                    and np.shape(value)[:1] != np.shape(old)[:1]):
+                raise ValueError(f"{name}: a block in a system keeps its {len(old)} elements; "
+                                 f"got shape {np.shape(value)} (remove the block and add a new "
+                                 "one)")
         super().__setattr__(name, value)
-        Term.generation += 1
+        if not name.startswith("_"):
+            self.__dict__["version"] = self.version + 1
+
+    def _assign_checked(self, name: str, value: Any) -> None:
+        """Set attribute ``name`` to ``value``, already validated by the caller (index arrays
+        :func:`frozen`), and bump :attr:`version` as any assignment does."""
+        super().__setattr__(name, value)
+        self.__dict__["version"] = self.version + 1
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         # copies and unpickled blocks get read-only index arrays again

@@ -39,7 +39,7 @@ from constrained_particles import (
 )
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
-from constrained_particles.terms import ArgumentTypeError
+from constrained_particles.terms import ArgumentTypeError, as_index_array
 
 from . import _measure
 
@@ -153,6 +153,19 @@ class ParticleTask:
 
     #: Number of force-action components (subclasses set it).
     force_dim: ClassVar[int] = 1
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # A public array of the task (goals, hold counts, actions, ...) keeps its shape and
+        # dtype: every copy's bookkeeping, compiled or not, reads it as made. Reassigning one
+        # with another is refused here, at the boundary (its values may be edited in place).
+        old = self.__dict__.get(name)
+        if isinstance(old, np.ndarray) and not name.startswith("_") and not (
+                type(value) is np.ndarray and value.shape == old.shape
+                and value.dtype == old.dtype):
+            raise ValueError(f"{name} must stay a {old.dtype} array of shape {old.shape} (edit "
+                             f"it in place instead), got {type(value).__name__} "
+                             f"{getattr(value, 'dtype', '')} {np.shape(value)}")
+        super().__setattr__(name, value)
     #: Farthest distance (m) a particle may travel in one integrator step before the physics step
     #: is split into pieces (subclasses set it from the scene's smallest length).
     step_travel: float = math.inf
@@ -248,13 +261,6 @@ class ParticleTask:
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
         """A starting state of one copy: positions (n, 2) m, velocities (n, 2) m/s, goal (m)."""
         raise NotImplementedError
-
-    #: Particles (indices within one copy) whose mean x is the coordinate driven to the goal
-    #: (see :meth:`tracked`). Subclasses set it, or override :meth:`tracked` and leave it None
-    #: (the measures then take the numpy reference path); a subclass that does both must
-    #: compute that same mean (the compiled measures use this attribute, the reference
-    #: :meth:`tracked`).
-    tracked_particles: np.ndarray | None = None
 
     def tracked(self, x: np.ndarray) -> np.ndarray:
         """The x coordinate (m) driven to the goal, per copy, from positions (num_envs, n, 2):
@@ -487,10 +493,10 @@ class ParticleTask:
                                self.force_vectors(action, self.positions()[envs]).reshape(-1, 2))
         elif action is None:
             act.set(envs, active=np.zeros(len(envs), bool))
-        elif _measure.ENABLED:  # the spring action, compiled (the reference is below)
-            particles = np.empty(len(envs), np.int64)
+        elif self._grab_ready(act, envs, action, x := self.system.x):  # the spring action,
+            particles = np.empty(len(envs), np.int64)  # compiled (the reference is below)
             c, h = self.center, self.half
-            if _measure.grab(self.system.x, self.n, envs, action, c[0], c[1], h[0], h[1],
+            if _measure.grab(x, self.n, envs, action, c[0], c[1], h[0], h[1],
                              self.grab_radius**2, act.particle, particles, act.anchor,
                              act.active):  # anchors and flags are written in place
                 act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
@@ -502,6 +508,17 @@ class ParticleTask:
             nearest = np.argmin(d2, axis=1)
             act.set_checked(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
                             d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
+
+    def _grab_ready(self, act: Any, envs: np.ndarray, action: np.ndarray, x: Any) -> bool:
+        """True if the compiled spring action may run on these arrays (O(1) checks of what it
+        reads and writes without bounds checks: the mouse block's arrays one per copy, the
+        positions ``x`` of every copy, copies ``envs`` in range, one action of 4 per copy)."""
+        N = self.num_envs
+        return (_measure.ENABLED and _owned(x, np.float64, (N * self.n, 2))
+                and _owned(act.particle, np.int64, (N,)) and _owned(act.anchor, np.float64, (N, 2))
+                and _owned(act.active, np.bool_, (N,)) and _owned(envs, np.int64, envs.shape)
+                and envs.ndim == 1 and _owned(action, np.float64, (len(envs), 4))
+                and (not len(envs) or (envs.min() >= 0 and envs.max() < N)))
 
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Write validated ``actions`` (num_envs, action_dim); copies in the ``idle`` mask get no
@@ -538,23 +555,30 @@ class ParticleTask:
         copies = s.n // self.n
         if self.step_travel == math.inf:
             return np.ones(copies, np.int64), np.ones(s.n, np.int64), 1
+        s.check_arrays()  # (ValueError naming a replaced state array, as a step raises)
         act = s.forces[-1]
         horizon = self.substeps * self.dt
-        if (_kernels.group_pieces is not None and s is self.system
+        # the compiled formula reads every particle of every copy without bounds checks: the
+        # state it reads (each array read once) must be C-ordered float64 of copies * n rows
+        v, inv_mass, total = s.v, s.inv_mass, copies * self.n
+        compiled = (_kernels.group_pieces is not None and s.n == total
+                    and _owned(v, np.float64, (total, 2))
+                    and _owned(inv_mass, np.float64, (total,)))
+        if (compiled and s is self.system and copies == self.num_envs
                 and isinstance(act, ConstantForce) and self._pushed is not None
                 and act.particles is self._pushed[0]
                 and _owned(act.force, np.float64, (len(act.particles), 2))):
             # the same formula, compiled, reading the actuator's rows through the row map
             # (into buffers reused from step to step: only this step's caller reads them)
             out, rows, frow = self._pushed[1:]
-            largest = _kernels.group_pieces(s.v, act.force, frow, s.inv_mass, self.n, horizon,
+            largest = _kernels.group_pieces(v, act.force, frow, inv_mass, self.n, horizon,
                                             self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
         F = np.zeros_like(s.x)
         act.accumulate(s.x, s.v, s.mass, F)
-        if _kernels.group_pieces is not None:  # the same formula, compiled
-            out, rows = np.empty(copies, np.int64), np.empty(s.n, np.int64)
-            largest = _kernels.group_pieces(s.v, F, _NO_ROWS, s.inv_mass, self.n, horizon,
+        if compiled and _owned(F, np.float64, (total, 2)):  # the same formula, compiled
+            out, rows = np.empty(copies, np.int64), np.empty(total, np.int64)
+            largest = _kernels.group_pieces(v, F, _NO_ROWS, inv_mass, self.n, horizon,
                                             self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
         with np.errstate(invalid="ignore", over="ignore"):
@@ -643,11 +667,7 @@ class ParticleTask:
             if largest == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
-            # (the counts are this task's own, >= 1: the kernel is called without re-checking
-            # them; the state arrays are checked as step() checks them)
-            s.check_arrays()
-            if (self.integrator != "rattle" and not s.project_each_step
-                    and s._fused_step(self.dt, self.integrator, self.substeps, False, rows)):
+            if s._step_pieces(self.dt, self.integrator, self.substeps, rows):
                 return np.zeros(self.num_envs, bool)
         except SimulationDiverged:
             pass
@@ -727,8 +747,10 @@ class ParticleTask:
         N, n = self.num_envs, self.n
         s = self.system
         obs = np.empty((N, 4 * n + 1), np.float32)
-        if _measure.ENABLED:
-            _measure.observe(s.x, s.v, n, self.goal, *self._obs_scale(), OBS_LIMIT, obs)
+        state = self._compiled_state()
+        if state is not None and _owned(self.goal, np.float64, (N,)):
+            _measure.observe(state[0], state[1], n, self.goal, *self._obs_scale(), OBS_LIMIT,
+                             obs)
             return obs
         inv_half = 1.0 / self.half
         pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
@@ -759,6 +781,16 @@ class ParticleTask:
             return self._measures(stepped, obs=obs)[0], obs
         return self.measure(stepped), self.observe()
 
+    def _mask(self, mask: np.ndarray | None) -> np.ndarray:
+        """A per-copy mask as the compiled bookkeeping reads it (None: no copy); ValueError
+        for anything but a bool array of shape (num_envs,)."""
+        if mask is None:
+            return self._no_copies
+        if not _owned(mask, np.bool_, (self.num_envs,)):
+            raise ValueError(f"a copy mask must be a bool array of shape ({self.num_envs},), "
+                             f"got {mask!r}")
+        return mask
+
     def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
         """A whole env step in which every copy steps (no reset pending) in one go, for a task
         that has it compiled: raw ``actions`` checked as :meth:`check_actions` checks them,
@@ -775,16 +807,34 @@ class ParticleTask:
         exactly what that path would."""
         return None
 
-    def _compiled_post(self) -> tuple[Any, tuple[np.ndarray, float]] | None:
-        """``(pack, tracking)`` for the compiled measures, or None where the numpy reference
-        must run (compiled bookkeeping off, no tracked particles, or blocks it does not know)."""
+    def _compiled_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The system's ``(x, v, mass)``, each read once, if the compiled bookkeeping may read
+        them without bounds checks (C-ordered float64 arrays of ``num_envs * n`` particles);
+        None otherwise, and when it is off: the numpy reference then runs (and raises on a
+        wrong shape). O(1): the arrays' types and shapes only."""
+        if not _measure.ENABLED:
+            return None
+        s, total = self.system, self.num_envs * self.n
+        x, v, mass = s.x, s.v, s.mass
+        if (_owned(x, np.float64, (total, 2)) and _owned(v, np.float64, (total, 2))
+                and _owned(mass, np.float64, (total,))):
+            return x, v, mass
+        return None
+
+    def _compiled_post(self) -> tuple[Any, tuple[np.ndarray, float], tuple] | None:
+        """``(pack, tracking, (x, v, mass))`` for the compiled measures, or None where the
+        numpy reference must run (compiled bookkeeping off, no tracked particles, blocks it
+        does not know, or arrays not of the shapes and types it reads)."""
         N = self.num_envs
         track = self._tracking() if _measure.ENABLED else None
-        if (track is None or not _owned(self.goal, np.float64, (N,))
+        state = self._compiled_state()
+        if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
                 or not _owned(self.hold, np.int64, (N,))):
             return None
         p = _measure.packed(self.system)
-        return None if p is None else (p, track)
+        if p is None or p.n != self.num_envs * self.n:
+            return None
+        return p, track, state
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -796,13 +846,34 @@ class ParticleTask:
         """
         return self._measures(stepped)[0]
 
+    @property
+    def tracked_particles(self) -> np.ndarray | None:
+        """The particles (indices within one copy) whose mean x is the coordinate driven to
+        the goal (see :meth:`tracked`), as an immutable int64 array. Subclasses set it, or
+        override :meth:`tracked` and leave it None (the measures then take the numpy reference
+        path); a subclass that does both must compute that same mean (the compiled measures
+        use this attribute, the reference :meth:`tracked`). Assigning validates the indices
+        (ValueError or TypeError naming the attribute); the array cannot be edited in place."""
+        return self.__dict__.get("_tracked_particles")
+
+    @tracked_particles.setter
+    def tracked_particles(self, value: Any) -> None:
+        idx = None if value is None else as_index_array("tracked_particles", value)
+        if idx is not None:
+            n = self.__dict__.get("n")
+            if not len(idx) or (n is not None and idx.max() >= n):
+                raise ValueError(f"tracked_particles must be particle indices in [0, {n}) "
+                                 f"within a copy, at least one, got {value!r}")
+        self.__dict__["_tracked_particles"] = idx
+        self._track = None
+
     def _tracking(self) -> tuple[np.ndarray, float] | None:
         """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
-        None if it is not set (a subclass computes :meth:`tracked` its own way)."""
-        if self._track is None and self.tracked_particles is not None:
-            idx = np.ascontiguousarray(self.tracked_particles, dtype=np.int64).reshape(-1)
-            if len(idx) and idx.min() >= 0 and idx.max() < self.n:
-                self._track = (idx, 1.0 / len(idx))
+        None if it is not set (a subclass computes :meth:`tracked` its own way). The indices
+        are immutable: checked against the copy's particle count once."""
+        idx = self.tracked_particles
+        if self._track is None and idx is not None and len(idx) and idx.max() < self.n:
+            self._track = (idx, 1.0 / len(idx))
         return self._track
 
     def _measures(self, stepped: np.ndarray | None = None, blocked: np.ndarray | None = None,
@@ -822,14 +893,12 @@ class ParticleTask:
         s = self.system
         post = self._compiled_post()
         if post is not None:
-            p, track = post
+            p, track, (x, v, mass) = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            args = (s.x, s.v, s.mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
-                    p.fixed, p.wall, walls, self.hold,
-                    self._no_copies if stepped is None else stepped,
-                    self._no_copies if blocked is None else blocked, self.goal_tolerance,
-                    self.rest_speed, self.hold_steps, out, success)
+            args = (x, v, mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
+                    p.fixed, p.wall, walls, self.hold, self._mask(stepped), self._mask(blocked),
+                    self.goal_tolerance, self.rest_speed, self.hold_steps, out, success)
             if obs is None:
                 _measure.measures(*args)
             else:

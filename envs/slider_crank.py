@@ -89,8 +89,9 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``action * max_force`` (N) along the crank's counter-clockwise tangent."""
-        if _measure.ENABLED and len(x) == len(action):  # compiled; the reference is below
-            f = np.empty((len(action), 1, 2))
+        if (_measure.ENABLED and _owned(action, np.float64, (len(action), 1))
+                and _owned(x, np.float64, (len(action), self.n, 2))):  # compiled; the
+            f = np.empty((len(action), 1, 2))  # reference is below
             _measure.crank_push(x, action, self.max_force, f)
             return f
         crank = x[:, 0, :]
@@ -103,9 +104,11 @@ class SliderCrank(ShapedTask, ParticleTask):
         unless a subclass redefines it."""
         if (_measure.ENABLED and type(self).force_vectors is SliderCrank.force_vectors
                 and out.flags.c_contiguous and out.dtype == np.float64
-                and out.shape == (self.num_envs, 2) and action.shape == (self.num_envs, 1)):
-            _measure.crank_push(self.positions(), action, self.max_force,
-                                out.reshape(self.num_envs, 1, 2))
+                and out.shape == (self.num_envs, 2)
+                and _owned(action, np.float64, (self.num_envs, 1))
+                and (state := self._compiled_state()) is not None):
+            _measure.crank_push(state[0].reshape(self.num_envs, self.n, 2), action,
+                                self.max_force, out.reshape(self.num_envs, 1, 2))
             return
         super()._write_forces(action, out)
 
@@ -164,9 +167,10 @@ class SliderCrank(ShapedTask, ParticleTask):
         puts the slider at the goal."""
         N = self.num_envs
         r, L, g = self.radius, self.rod, self.goal
-        if _measure.ENABLED:
+        state = self._compiled_state()
+        if state is not None and _owned(g, np.float64, (N,)):
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            _measure.crank(self.system.x, self.n, g, r, r**2, L**2, height, to_go, below,
+            _measure.crank(state[0], self.n, g, r, r**2, L**2, height, to_go, below,
                            *self._goal_angles())
         else:
             crank = self.positions()[:, 0]
@@ -188,13 +192,13 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and type(self).observe is ParticleTask.observe else None)
         if post is None:
             return super().measure_observe(stepped)
-        p, track = post
-        s, r = self.system, self.radius
+        p, track, (x, v, mass) = post
+        r = self.radius
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
-            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), s.x,
-            s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
-            p.wall, False, self.hold, self._no_copies if stepped is None else stepped,
+            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
+            v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
+            p.wall, False, self.hold, self._mask(stepped),
             self.goal_tolerance, self.rest_speed, self.hold_steps, values[:5], flags[0],
             *self._obs_scale(), OBS_LIMIT, obs)
         return m, obs
@@ -228,12 +232,12 @@ class SliderCrank(ShapedTask, ParticleTask):
         before = self._phi()
         if post is None or before.dtype != np.float64 or before.shape != (self.num_envs,):
             return None
-        p, track = post
-        s, r = self.system, self.radius
+        p, track, (x, v, mass) = post
+        r = self.radius
         values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), s.x,
-            s.v, s.mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
+            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
+            v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
             p.wall, self.hold, self._every_copy, self.goal_tolerance, self.rest_speed,
             self.hold_steps, values[:5], flags[0], *self._obs_scale(), OBS_LIMIT, obs, before,
             float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, values[7], steps,
@@ -267,13 +271,13 @@ class SliderCrank(ShapedTask, ParticleTask):
         track = self._tracking()
         before = self._phi()
         if (ready is None or track is None or before.dtype != np.float64
-                or before.shape != (N,)):
+                or before.shape != (N,) or ready[0].n != N * self.n):
             return None
-        p, common = ready
+        p, (x, v, mass, inv_mass), common = ready
         need, rows, frow = self._pushed[1:]
         if self._scratch is None or self._scratch[2].shape != lam.shape:
             self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
-        x_out, v_out = np.empty_like(s.x), np.empty_like(s.v)
+        x_out, v_out = np.empty_like(x), np.empty_like(v)
         values, flags, obs, m = self._crank_outputs()
         out, height, to_go, reward = values[:5], values[5], values[6], values[7]
         success, below, terminated, truncated, ended = flags
@@ -281,8 +285,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         status, count = _measure.crank_step(
             actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
             self.step_travel, MAX_PIECES, need, rows, *self._scratch[:2],
-            fused.METHOD_CODES[self.integrator], self.substeps, self.dt, s.x, s.v, s.mass,
-            s.inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
+            fused.METHOD_CODES[self.integrator], self.substeps, self.dt, x, v, mass,
+            inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
             self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
             track[0], track[1], self.hold, self._every_copy, self.goal_tolerance,
             self.rest_speed, self.hold_steps, out, success, *self._obs_scale(), OBS_LIMIT, obs,

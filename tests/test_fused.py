@@ -171,36 +171,36 @@ def test_in_place_edits_are_seen_and_replaced_arrays_repacked():
 
 def test_out_of_range_index_never_reaches_compiled_code():
     """Bad indices are refused at the door, block arrays cannot be edited behind the system's
-    back, and the kernel itself checks every index before reading through any."""
+    back, and a pack checks every index once, when it is built, before any call reads
+    through one (the arrays it holds are immutable, so the check holds for good)."""
     s = every_block(2)
     with pytest.raises(ValueError, match="particle"):
         s.forces[7].particle = np.array([10**6])  # replaced attribute: validated
     idx = np.array(s.forces[2].i)
-    s.forces[2].i = idx  # the block keeps its own read-only copy
+    s.forces[2].i = idx  # the block keeps its own immutable copy
     idx[0] = 10**6
     with pytest.raises(ValueError):
         s.forces[2].i[0] = 10**6
+    with pytest.raises(ValueError):
+        s.forces[2].i.flags.writeable = True
     status, *_ = fused.run(s, 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), np.inf)
     assert status == fused.OK
-    # the kernel's own guard: hand it corrupted copies of index arrays directly (spring ends,
-    # an angular spring's third particle, a wire's particle, a rod's second end)
-    p = fused.pack(s)
-    for slot, column in [(2, 0), (2, 1), (3, 2), (7, 0), (8, 1)]:
-        if len(p.args[slot][column]) == 0:
-            continue
-        bad = p.args[slot][column].copy()
+    # an index array forced past the setter (into the block's __dict__, so no new version):
+    # the current pack keeps the arrays it checked; a new pack checks them and refuses
+    for block, name in [(2, "i"), (2, "j"), (3, "c")]:
+        t = s.copy()
+        bad = np.array(getattr(t.forces[block], name))
         bad[0] = 10**6
-        bad.flags.writeable = False  # the same array type as the pack's: no new compilation
-        block = list(p.args[slot])
-        block[column] = bad
-        args = list(p.args)
-        args[slot] = tuple(block)
-        x, v = s.x.copy(), s.v.copy()
-        status, _ = fused._fused_steps(2, 1, 1e-3, fused._F0, fused._I0, x, v, s.mass,
-                                       s.inv_mass, s.constraint_solver.lam.copy(),
-                                       np.empty_like(x), np.empty_like(v), 100.0, 20.0, 1e-10,
-                                       1e6, np.inf, *args, None)
-        assert status == fused.FALLBACK, (slot, column)
+        t.step(1e-3, "rk4")
+        t.forces[block].__dict__[name] = bad
+        status, *_ = fused.run(t, 1e-3, "rk4", 1, t.constraint_solver.lam.copy(), np.inf)
+        assert status == fused.OK  # (the pack's own checked copy)
+        assert fused.pack(t).spring[0].max() < t.n
+        t._packed = None
+        status, *_ = fused.run(t, 1e-3, "rk4", 1, t.constraint_solver.lam.copy(), np.inf)
+        assert status == fused.FALLBACK, (block, name)
+        with pytest.raises((ValueError, IndexError)):
+            t.step(1e-3, "rk4")
 
 
 def test_divergence_keeps_the_state_from_before_the_call():
@@ -444,22 +444,20 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
 
 
 def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
-    """The kernel checks the runs against the index arrays on every call: a packed run that
-    the spring list does not hold sends the step to the reference path."""
+    """The runs are checked against the index arrays when the pack is built (both are
+    immutable, so the check holds for every later call): runs that the spring list does not
+    hold make the pack invalid, and the pack's runs cannot be reopened for writing."""
     s = scenes.cloth(40, 3, wall_x=None)
     p = fused.pack(s)
-    assert len(p.spring[5]) > 0
     si, sj, *rest, runs = p.spring
+    assert len(runs) > 0 and p._consistent()
+    with pytest.raises(ValueError):
+        runs.flags.writeable = True
     bad = np.array(runs)
     bad[0, 1] += 1  # one spring too many
-    p.spring = (si, sj, *rest, fused._ro(bad))
-    p.args = (p.grav, p.const, p.spring, *p.args[3:])
-    status, *_ = fused.run(s, 1e-3, "symplectic_euler", 1, np.zeros(p.m), np.inf)
-    assert status == fused.FALLBACK
-    p.spring = (si, sj, *rest, fused._ro(np.ascontiguousarray(runs[:, :1])))  # no ends column
-    p.args = (p.grav, p.const, p.spring, *p.args[3:])
-    status, *_ = fused.run(s, 1e-3, "symplectic_euler", 1, np.zeros(p.m), np.inf)
-    assert status == fused.FALLBACK
+    for wrong in (bad, np.ascontiguousarray(runs[:, :1])):  # (the second: no ends column)
+        p.spring = (si, sj, *rest, fused._ro(wrong))
+        assert not p._consistent()
 
 
 @pytest.mark.parametrize("method", ["symplectic_euler", "rk4"])
