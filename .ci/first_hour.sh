@@ -21,7 +21,7 @@ ELSEWHERE=$(mktemp -d)  # "another folder": not the checkout
 chmod 755 "$ELSEWHERE"
 SITE=$(python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 as_nobody() { setpriv --reuid="$(id -u nobody)" --regid="$(id -g nobody)" --clear-groups "$@"; }
-say() { printf '\n== first hour: %s\n' "$*"; }
+say() { printf '\n== first hour: %s (%s)\n' "$*" "$(date +%T)"; }
 fail() { printf 'FAIL first hour: %s\n' "$*" >&2; exit 1; }
 
 mapfile -t COMMANDS < <(python - <<'EOF'
