@@ -35,7 +35,7 @@ import numba
 from numba.core import caching
 from numba.core.dispatcher import Dispatcher
 
-__all__ = ["cache_dir", "njit"]
+__all__ = ["cache_dir", "default_cache_dir", "njit"]
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
 
