@@ -97,7 +97,7 @@ import gymnasium as gym
 import envs
 for env_id in envs.ALL_ENV_IDS:
     gym.make(env_id).close()
-print("registered:", ", ".join(envs.ALL_ENV_IDS))")
+print('registered:', ', '.join(envs.ALL_ENV_IDS))")
 
 say "pip uninstall leaves nothing behind"
 python -m pip uninstall --yes constrained-particles
