@@ -30,7 +30,7 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
         numba = None
     if numba is not None:
         ENABLED = True
-        njit = numba.njit(cache=True)
+        from .jit import njit
 
         # ---------------------------------------------------------------- force elements
         @njit

@@ -507,7 +507,6 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
 
 
 if _kernels.ENABLED:
-    import numba
     from numba.core import cgutils, types
     from numba.extending import intrinsic
     from numba.np.arrayobj import make_array
@@ -524,11 +523,11 @@ if _kernels.ENABLED:
     )
 
     # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
-    njit = numba.njit(cache=True)
+    from .jit import njit
     # the per-block helpers of _accel, inlined into it: each call passed dozens of arrays
     # (a call of _accel with nothing to do cost 1.4 us, now 0.7; a single SliderCrank env's
     # physics step 10.7 -> 8.9 us), for some 20 s more of first-run compilation
-    njit_inline = numba.njit(cache=True, inline="always")
+    njit_inline = njit(inline="always")
 
     def _strip(context: Any, builder: Any, ty: Any, value: Any) -> Any:
         """``value`` of type ``ty`` with every array in it (tuples recursively) carrying no

@@ -70,11 +70,8 @@ crank_step: Any = None
 NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 
 if ENABLED:
-    import numba
-
     from constrained_particles._kernels import wall_element
-
-    njit = numba.njit(cache=True)
+    from constrained_particles.jit import njit
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled

@@ -2,6 +2,7 @@
 
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -128,3 +129,124 @@ def test_docs_links_and_images_are_tracked_files():
         for target in local_links(text, images=False) + local_links(text, images=True):
             path = (page.parent / target).resolve().relative_to(ROOT).as_posix()
             assert path in tracked, f"{page.relative_to(ROOT)} links to untracked {target}"
+
+
+# ------------------------------------------------------------------ the Numba cache location
+# Each case runs in a fresh interpreter: constrained_particles.jit decides its directory once
+# per process, from the environment at that time.
+
+JITTED = '''
+from constrained_particles.jit import njit
+
+@njit
+def twice(x):
+    return 2.0 * x
+'''
+
+PROBE = '''
+import sys
+from constrained_particles import jit
+import jitted
+value = jitted.twice(1.5)
+print(jit.cache_dir())
+print(jitted.twice.stats.cache_path)
+stats = jitted.twice.stats
+print(value, sum(stats.cache_misses.values()), sum(stats.cache_hits.values()))
+'''
+
+
+def probe(tmp_path: Path, **environ: str | None) -> subprocess.CompletedProcess:
+    """Compile ``jitted.twice`` (a module in ``tmp_path/src``) in a fresh interpreter with
+    ``environ`` applied to the current environment (None removes a variable)."""
+    import os
+    import sys
+
+    src = tmp_path / "src"
+    src.mkdir(exist_ok=True)
+    (src / "jitted.py").write_text(JITTED)
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(src)])
+    for key, value in environ.items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
+    return subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+
+
+def cached_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.suffix in (".nbi", ".nbc"))
+
+
+def test_numba_cache_honours_numba_cache_dir(tmp_path):
+    out = probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "numba"), XDG_CACHE_HOME=None)
+    assert out.returncode == 0, out.stderr
+    root, path, counts = out.stdout.splitlines()
+    assert root == str(tmp_path / "numba")
+    assert Path(path).parent == tmp_path / "numba"
+    assert counts == "3.0 1 0"  # compiled once, nothing loaded
+    files = cached_files(tmp_path / "numba")  # an index and the machine code
+    assert [p.suffix for p in files] == [".nbc", ".nbi"]
+    assert all(p.name.startswith("jitted.twice-") for p in files)
+    assert cached_files(tmp_path / "src") == []  # nothing next to the source
+    again = probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "numba"), XDG_CACHE_HOME=None)
+    assert again.stdout.splitlines()[2] == "3.0 0 1"  # the second process loads it
+
+
+def test_numba_cache_defaults_to_the_user_cache_directory(tmp_path):
+    import numba
+
+    tag = f"numba-{numba.__version__}-{sys.implementation.cache_tag}"
+    out = probe(tmp_path, XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[0] == str(tmp_path / "xdg" / "constrained-particles" / tag)
+    assert len(cached_files(tmp_path / "xdg")) == 2
+    # no XDG_CACHE_HOME (or a relative one, which the XDG spec says to ignore): ~/.cache
+    for xdg in (None, "relative/path"):
+        out = probe(tmp_path, XDG_CACHE_HOME=xdg, HOME=str(tmp_path / "home"))
+        assert out.returncode == 0, out.stderr
+        expected = tmp_path / "home" / ".cache" / "constrained-particles" / tag
+        assert out.stdout.splitlines()[0] == str(expected)
+    assert not (tmp_path / "relative").exists()
+    assert cached_files(tmp_path / "src") == [] and out.stderr == ""
+
+
+@pytest.mark.parametrize("variable", ["NUMBA_CACHE_DIR", "XDG_CACHE_HOME"])
+def test_unusable_cache_directory_compiles_in_memory_with_one_line(tmp_path, variable):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")  # a folder cannot be made below a file, not even by root
+    out = probe(tmp_path, **{variable: str(blocker / "cache")})
+    assert out.returncode == 0, out.stderr
+    root, path, counts = out.stdout.splitlines()
+    assert root == path == "None" and counts == "3.0 1 0"  # no cache: compiled in memory
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1, out.stderr
+    assert lines[0].startswith("constrained-particles: cache directory") and "memory" in lines[0]
+    assert str(blocker) in lines[0]
+    assert cached_files(tmp_path) == []
+
+
+def test_njit_refuses_a_cache_option():
+    from constrained_particles import jit
+
+    with pytest.raises(ValueError, match="options"):
+        jit.njit(cache=True)
+
+
+def test_every_compiled_function_uses_the_jit_module():
+    """No numba.njit / numba.jit call outside constrained_particles/jit.py in the shipped
+    packages: each would cache into the installed package, or not at all."""
+    offenders = []
+    for package in ("constrained_particles", "envs", "verification"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if path == ROOT / "constrained_particles" / "jit.py":
+                continue
+            text = path.read_text()
+            for pattern in (r"cache\s*=\s*True", r"\bnumba\.n?jit\b",
+                            r"from numba import.*\bn?jit\b"):
+                offenders += [f"{path.relative_to(ROOT)}: {m.group(0)}"
+                              for m in re.finditer(pattern, text)]
+    assert offenders == []
+    kernels = (ROOT / "constrained_particles" / "_kernels.py").read_text()
+    assert "from .jit import njit" in kernels

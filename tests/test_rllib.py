@@ -1,18 +1,20 @@
 """RLlib: one PPO iteration on a local Ray instance, sampled by two EnvRunners on the native env.
 
-Needs the ``ray`` extra (part of ``test``). Starting Ray and two EnvRunner actors dominates the
-run time (30-50 s on a loaded 2-core machine, 2.5 min if the Numba kernels are not cached yet);
-the training itself is a few seconds.
+Needs the ``ray`` extra (not part of ``test``: ray pins its own gymnasium). Starting Ray and two
+EnvRunner actors dominates the run time (30-50 s on a loaded 2-core machine, 2.5 min if the
+Numba kernels are not cached yet); the training itself is a few seconds.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import ray
-from ray.rllib.algorithms.ppo import PPOConfig
 
-import envs.rllib
+ray = pytest.importorskip("ray", reason='needs the ray extra (pip install -e ".[ray,test]")')
+
+from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
+
+import envs.rllib  # noqa: E402
 
 PER_RUNNER = "num_env_steps_sampled_by_runner"
 

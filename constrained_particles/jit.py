@@ -1,0 +1,136 @@
+"""The decorator every compiled function of this project uses: ``numba.njit`` with a disk cache
+in the user's cache directory.
+
+Numba compiles a kernel on its first call; the cache keeps the machine code on disk so that the
+next process loads it in well under a second instead of compiling again (tens of seconds for the
+whole step). Numba's own ``cache=True`` writes next to the source file, that is into the
+installed package (``site-packages/.../__pycache__``), where the files outlive an uninstall and
+fail on a read-only install. Functions decorated with :func:`njit` cache instead in
+
+1. ``$NUMBA_CACHE_DIR`` when that variable is set (Numba's own setting, honoured as Numba does);
+2. otherwise the user's cache directory: ``$XDG_CACHE_HOME`` or ``~/.cache`` on Linux,
+   ``~/Library/Caches`` on macOS, ``%LOCALAPPDATA%`` on Windows, in the sub-folder
+   ``constrained-particles/numba-<numba version>-<python tag>``.
+
+Inside it, each source folder gets its own sub-folder, named as Numba names them. When the chosen
+directory cannot be created or written (a read-only home, say), the kernels compile in memory
+instead: everything works, each new process compiles again, and one line on stderr says so.
+A shared temporary directory is never used: the cache files are pickles, which anyone who can
+write there could replace.
+
+Only the functions decorated here are affected; Numba's settings for other code stay as they are.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numba
+from numba.core import caching
+from numba.core.dispatcher import Dispatcher
+
+__all__ = ["cache_dir", "default_cache_dir", "njit"]
+
+APP = "constrained-particles"  #: the folder name inside the user's cache directory
+
+
+def default_cache_dir() -> Path | None:
+    """The folder :func:`njit` caches in when ``NUMBA_CACHE_DIR`` is not set, or None when the
+    platform's user cache directory is unknown (no home directory)."""
+    if sys.platform == "win32":
+        base = os.environ.get("LOCALAPPDATA", "")
+    elif sys.platform == "darwin":
+        base = os.path.expanduser("~/Library/Caches")
+    else:
+        base = os.environ.get("XDG_CACHE_HOME", "")
+        if not os.path.isabs(base):  # unset, empty or relative: ignored, as the XDG spec says
+            base = os.path.expanduser("~/.cache")
+    if not os.path.isabs(base):  # "~" left unexpanded: no home directory
+        return None
+    tag = sys.implementation.cache_tag or f"py{sys.version_info[0]}{sys.version_info[1]}"
+    return Path(base) / APP / f"numba-{numba.__version__}-{tag}"
+
+
+def _writable(path: Path) -> str | None:
+    """Create ``path`` and write a file in it; None on success, else the reason it failed."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
+@functools.cache
+def cache_dir() -> Path | None:
+    """The directory the compiled kernels are cached in, or None when they compile in memory.
+
+    Decided once per process, on first use (see the module docstring for the order). When no
+    directory is usable, prints one line to stderr saying so and returns None."""
+    configured = numba.config.CACHE_DIR  # Numba reads NUMBA_CACHE_DIR into this at import
+    path = Path(configured).expanduser() if configured else default_cache_dir()
+    reason = "no home directory" if path is None else _writable(path)
+    if reason is None:
+        return path
+    where = "" if path is None else f" {path}"
+    hint = "" if configured else " (set NUMBA_CACHE_DIR to a writable folder to keep them)"
+    print(f"constrained-particles: cache directory{where} not usable ({reason}); compiled "
+          f"kernels are kept in memory only, so each new process compiles them again{hint}",
+          file=sys.stderr)
+    return None
+
+
+class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+    """Numba's cache locator pointing into :func:`cache_dir`, with Numba's own naming of the
+    sub-folder for a source folder and its source stamp (content or time of the file)."""
+
+    def __init__(self, py_func: Callable[..., Any], py_file: str) -> None:
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno
+        root = cache_dir()
+        if root is None:  # pragma: no cover - _cached only builds a cache when there is a dir
+            raise OSError("no cache directory")
+        self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
+
+    def get_cache_path(self) -> str:
+        return self._cache_path
+
+
+class _Impl(caching.CompileResultCacheImpl):
+    _locator_classes = [_Locator]
+
+
+class _Cache(caching.FunctionCache):
+    _impl_class = _Impl
+
+
+def _cached(dispatcher: Any) -> Any:
+    """``dispatcher`` with its disk cache in :func:`cache_dir` (or none: compiled in memory)."""
+    if cache_dir() is None or not isinstance(dispatcher, Dispatcher):
+        return dispatcher  # no usable directory, or NUMBA_DISABLE_JIT gave the plain function
+    try:
+        # what ``Dispatcher.enable_caching`` does, with this module's locator
+        dispatcher._cache = _Cache(dispatcher.py_func)
+    except (OSError, RuntimeError):  # directory gone since cache_dir() checked it
+        pass
+    return dispatcher
+
+
+def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
+    """``numba.njit(**options)`` with the disk cache described in the module docstring.
+
+    Use as ``@njit`` or ``@njit(inline="always")``; ``cache`` is not an option (always on where
+    a cache directory is usable)."""
+    if "cache" in options:
+        raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")
+
+    def decorate(f: Callable[..., Any]) -> Any:
+        return _cached(numba.njit(**options)(f))
+
+    return decorate if func is None else decorate(func)
