@@ -39,7 +39,7 @@ from constrained_particles import (
 )
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
-from constrained_particles.terms import ArgumentTypeError, as_index_array
+from constrained_particles.terms import ArgumentTypeError, as_index_array, is_frozen
 
 from . import _measure
 
@@ -870,8 +870,12 @@ class ParticleTask:
     def _tracking(self) -> tuple[np.ndarray, float] | None:
         """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
         None if it is not set (a subclass computes :meth:`tracked` its own way). The indices
-        are immutable: checked against the copy's particle count once."""
+        are immutable: checked against the copy's particle count once. A copied or unpickled
+        task holds a plain copy of them, which is validated and made immutable again here."""
         idx = self.tracked_particles
+        if idx is not None and not is_frozen(idx):
+            self.tracked_particles = idx
+            idx = self.tracked_particles
         if self._track is None and idx is not None and len(idx) and idx.max() < self.n:
             self._track = (idx, 1.0 / len(idx))
         return self._track
