@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A new user's first hour, in one fresh virtual environment, with the README's two commands read
-# out of README.md (the first ```bash block; `git clone` / `cd` lines skipped, this runs in the
-# checkout):
+# out of README.md (the first ```bash block with more than `git clone` / `cd` lines: this runs
+# in the checkout):
 #   1. command 1 (a regular install and a first run); the run writes nothing into site-packages;
 #      the same install made read-only and run by another user whose home is not writable
 #      (compiles in memory, one line saying so) when this runs as root and can switch users;
@@ -27,14 +27,16 @@ fail() { printf 'FAIL first hour: %s\n' "$*" >&2; exit 1; }
 mapfile -t COMMANDS < <(python - <<'EOF'
 import re
 text = open("README.md", encoding="utf-8").read()
-block = re.search(r"^```bash\n(.*?)^```", text, re.M | re.S).group(1)
-for line in block.splitlines():
-    line = line.strip()
-    if line and not line.startswith(("#", "git clone ", "cd ")):
-        print(line)
+for block in re.finditer(r"^```bash\n(.*?)^```", text, re.M | re.S):
+    lines = [line.strip() for line in block.group(1).splitlines()]
+    lines = [line for line in lines
+             if line and not line.startswith(("#", "git clone ", "cd "))]
+    if lines:  # the first bash block with more than the clone step
+        print("\n".join(lines))
+        break
 EOF
 )
-[ "${#COMMANDS[@]}" -eq 2 ] || fail "README's first bash block should hold 2 commands, found: ${COMMANDS[*]}"
+[ "${#COMMANDS[@]}" -eq 2 ] || fail "README's first bash block of commands should hold 2, found: ${COMMANDS[*]}"
 for c in "${COMMANDS[@]}"; do
     [[ "$c" == "python -m pip install "*" && "* ]] || fail "not 'python -m pip install ... && ...': $c"
 done
