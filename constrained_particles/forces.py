@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from . import _kernels
+from . import kernels
 from .terms import (
     ArgumentTypeError,
     Shape,
@@ -265,10 +265,10 @@ class DampedSpring(Force):
 
     def accumulate(self, x, v, mass, F):
         args = (self.i, self.j, self.ks, self.kd, self.rest)  # each attribute read once
-        if _kernels.spring_forces is not None and _spring_arguments(x, v, F, *args):
-            # the compiled element (see _kernels)
+        if kernels.spring_forces is not None and _spring_arguments(x, v, F, *args):
+            # the compiled element (see kernels)
             i, j, ks, kd, rest = args
-            _kernels.spring_forces(x, v, i, j, ks, kd, rest, F)
+            kernels.spring_forces(x, v, i, j, ks, kd, rest, F)
             return
         # the numpy reference: the formula of element_forces, scattered onto both ends
         _, f = self.element_forces(x, v, mass)

@@ -5,7 +5,7 @@ A system built only from the standard blocks (:class:`~.Gravity`, :class:`~.Cons
 :class:`~.MouseSpring`; :class:`~.CircularWire`, :class:`~.Rod`, :class:`~.LineWire` /
 :class:`~.HorizontalWire`, :class:`~.FixedPoint`) is *packed* into flat per-type arrays, and one
 compiled function then runs ``steps`` steps of ``euler``, ``midpoint``, ``rk4`` or
-``symplectic_euler``: force accumulation (the elements of :mod:`._kernels`), the constraint
+``symplectic_euler``: force accumulation (the elements of :mod:`.kernels`), the constraint
 solve and the integrator update, with no Python between blocks. It follows the reference path
 (:meth:`ParticleSystem.acceleration` and :mod:`.integrators`) formula for formula; only the
 order in which blocks' forces are summed differs (by type here, by block there), at the level
@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import _kernels
+from . import kernels
 from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
 from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
 from .solver import DIRECT_MAX, row_components
@@ -95,7 +95,7 @@ _B0 = np.zeros(0, bool)
 def supported(system: ParticleSystem) -> bool:
     """True when every block of ``system`` is a standard type the fused kernel implements
     (exact types: a subclass may override the formulas, so it takes the reference path)."""
-    return (_kernels.ENABLED
+    return (kernels.ENABLED
             and all(type(f) in _FORCE_TYPES for f in system.forces)
             and all(type(c) in _CONSTRAINT_TYPES for c in system.constraints))
 
@@ -440,7 +440,7 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             ) -> tuple[Packed, tuple[np.ndarray, ...], tuple] | None:
     """The system's :class:`Packed` form, the state ``(x, v, mass, inv_mass)`` to step (read
     from the system once, or the caller's ``state`` read once by it) and the arguments
-    :func:`_fused_steps` takes after the state (``ks, kd, tol, divergence_limit,
+    :func:`fused_steps` takes after the state (``ks, kd, tol, divergence_limit,
     residual_limit`` and the packed blocks), or None where the kernel cannot run: unsupported
     blocks, an index out of range, a parameter array whose shape changed in place, or state
     arrays (and the warm start ``lam``) not C-ordered float64 of the packed sizes. The
@@ -496,22 +496,24 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
     if pieces is None:
-        status, failed = _fused_steps(code, int(steps), h, _F0, _I0, x, v, mass, inv_mass, lam,
+        status, failed = fused_steps(code, int(steps), h, _F0, _I0, x, v, mass, inv_mass, lam,
                                       x_out, v_out, *common, None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
-    status, failed = _fused_steps(code, 0, h, h / pieces, pieces * int(steps), x, v, mass,
+    status, failed = fused_steps(code, 0, h, h / pieces, pieces * int(steps), x, v, mass,
                                   inv_mass, lam, x_out, v_out, *common, p.ws_live)
     return int(status), x_out, v_out, int(failed)
 
 
-if _kernels.ENABLED:
+if kernels.ENABLED:
     from numba.core import cgutils, types
     from numba.extending import intrinsic
     from numba.np.arrayobj import make_array
 
-    from ._kernels import (
+    # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
+    from .jit import njit
+    from .kernels import (
         add_spring,
         angular_element,
         circle_row,
@@ -521,9 +523,6 @@ if _kernels.ENABLED:
         spring_element,
         wall_element,
     )
-
-    # The GIL stays held: no other thread can edit a block's arrays while a kernel reads them.
-    from .jit import njit
     # the per-block helpers of _accel, inlined into it: each call passed dozens of arrays
     # (a call of _accel with nothing to do cost 1.4 us, now 0.7; a single SliderCrank env's
     # physics step 10.7 -> 8.9 us), for some 20 s more of first-run compilation
@@ -1311,7 +1310,7 @@ if _kernels.ENABLED:
                tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ, rod,
                line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A,
                live):  # pragma: no cover - compiled
-        """The step loop of :func:`_fused_steps` (inputs checked, ``ws_q`` prepared by it):
+        """The step loop of :func:`fused_steps` (inputs checked, ``ws_q`` prepared by it):
         ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
         not empty; with ``live`` (the workspace of :func:`_gate`), particle q takes only
         ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only."""
@@ -1459,7 +1458,7 @@ if _kernels.ENABLED:
 
 
     @njit
-    def _fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
+    def fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
                      kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
                      circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
                      ws_q, ws_A, live):  # pragma: no cover - compiled

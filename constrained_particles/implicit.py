@@ -69,7 +69,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import _kernels
+from . import kernels
 from .integrators import METHODS, ORDERS, State
 from .system import IMPLICIT_SOLVERS, SimulationDiverged
 
@@ -346,7 +346,7 @@ class _Filter:
 
         The compiled kernel runs it when Numba is enabled, :func:`_cg_reference` otherwise."""
         warm = np.zeros(0) if self.warm is None else self.warm
-        run = _cg_compiled if _kernels.ENABLED else _cg_reference
+        run = _cg_compiled if kernels.ENABLED else _cg_reference
         dv, iterations, ok = run(A.indptr, A.indices, A.data, P, self.filtered, S, z, b, warm,
                                  tol, CG_FLOOR, max_iterations)
         if not ok:
@@ -410,8 +410,8 @@ def _cg_reference(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, P: 
 
 
 _cg_compiled = None
-if _kernels.ENABLED:
-    njit = _kernels.njit
+if kernels.ENABLED:
+    njit = kernels.njit
 
     @njit
     def _matvec(indptr, indices, data, c, out):  # pragma: no cover - compiled

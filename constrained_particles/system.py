@@ -445,7 +445,7 @@ class ParticleSystem:
                 "by more than residual_limit; state kept as it was before the step")
         return False
 
-    def _step_pieces(self, dt: float, method: str, steps: int, pieces: np.ndarray) -> bool:
+    def step_pieces(self, dt: float, method: str, steps: int, pieces: np.ndarray) -> bool:
         """``steps`` steps of ``dt`` seconds in which particle q takes each step as
         ``pieces[q]`` equal steps (an (n,) int64 array >= 1; coupled particles must share a
         count), on the fused kernel; ``t`` advances by ``steps dt``. Returns False, with nothing

@@ -12,7 +12,7 @@ in one call each, with no Python between:
 
 They read the system's blocks through :func:`constrained_particles.fused.pack`, so they see
 exactly the blocks (and the in-place edits) the compiled step sees, and the wall formula is the
-shared compiled element ``_kernels.wall_element``. The numpy code in :mod:`envs.base` stays the
+shared compiled element ``kernels.wall_element``. The numpy code in :mod:`envs.base` stays the
 reference implementation: it runs when ``CPARTICLES_NUMBA=0`` (``ENABLED`` is then False) or a
 system holds blocks the compiled step does not know, and the tests tie the two together.
 
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from constrained_particles import _kernels
+from constrained_particles import kernels
 
-ENABLED = _kernels.ENABLED  #: True when the compiled bookkeeping is in use
+ENABLED = kernels.ENABLED  #: True when the compiled bookkeeping is in use
 
 
 def packed(system: Any) -> Any:
@@ -43,8 +43,7 @@ def packed(system: Any) -> Any:
     p = fused.pack(system)
     if not p.valid:
         return None
-    if p._refresh:  # several blocks of one type: bring their joined parameters up to date
-        p.refresh()
+    p.refresh()  # several blocks of one type: bring their joined parameters up to date
     return p
 
 
@@ -70,8 +69,8 @@ crank_step: Any = None
 NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 
 if ENABLED:
-    from constrained_particles._kernels import wall_element
     from constrained_particles.jit import njit
+    from constrained_particles.kernels import wall_element
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -318,11 +317,11 @@ if ENABLED:
         return count
 
     # (numba's on-disk cache keys these kernels on this file alone: after editing fused.py or
-    # _kernels.py in a checkout, delete envs/__pycache__/_measure*.nbi and *.nbc, or the
+    # kernels.py in a checkout, delete envs/__pycache__/_measure*.nbi and *.nbc, or the
     # cached kernels here keep the old code compiled in)
-    from constrained_particles._kernels import group_pieces as _group_pieces
     from constrained_particles.fused import OK as _OK
-    from constrained_particles.fused import _fused_steps
+    from constrained_particles.fused import fused_steps
+    from constrained_particles.kernels import group_pieces as _group_pieces
 
     @njit
     def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
@@ -338,8 +337,8 @@ if ENABLED:
         general path takes it, in one call: the ``raw`` actions checked (status
         :data:`NONFINITE`, nothing written, if one is not finite) and clipped into ``action``;
         the crank's push written into the actuator's ``force`` rows; each copy's step
-        splitting (``_kernels.group_pieces`` through the row map ``frow``); ``substeps``
-        fused steps of ``dt`` from ``(x, v)`` into ``(x_out, v_out)`` (``fused._fused_steps``;
+        splitting (``kernels.group_pieces`` through the row map ``frow``); ``substeps``
+        fused steps of ``dt`` from ``(x, v)`` into ``(x_out, v_out)`` (``fused.fused_steps``;
         split copies take their pieces); then :func:`_crank_finish` on the new state.
         Returns ``(status, copies ended)``; a status other than ``fused.OK`` leaves the
         state and the warm start ``lam`` as they were (the caller takes the general path,
@@ -356,7 +355,7 @@ if ENABLED:
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
         if largest == 1:
-            status, _ = _fused_steps(code, substeps, dt, hp[:0], counts[:0], x, v, mass,
+            status, _ = fused_steps(code, substeps, dt, hp[:0], counts[:0], x, v, mass,
                                      inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
                                      residual_limit, grav, const, spring, ang, drag, wall,
                                      mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
@@ -365,7 +364,7 @@ if ENABLED:
             for q in range(rows.shape[0]):
                 hp[q] = dt / rows[q]
                 counts[q] = rows[q] * substeps
-            status, _ = _fused_steps(code, 0, dt, hp, counts, x, v, mass, inv_mass, lam, x_out,
+            status, _ = fused_steps(code, 0, dt, hp, counts, x, v, mass, inv_mass, lam, x_out,
                                      v_out, ks, kd, tol, limit, residual_limit, grav, const,
                                      spring, ang, drag, wall, mouse, circ, rod, line, fixed,
                                      cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,

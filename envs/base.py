@@ -35,7 +35,7 @@ from constrained_particles import (
     ParticleSystem,
     Shape,
     Wall,
-    _kernels,
+    kernels,
 )
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
@@ -561,7 +561,7 @@ class ParticleTask:
         # the compiled formula reads every particle of every copy without bounds checks: the
         # state it reads (each array read once) must be C-ordered float64 of copies * n rows
         v, inv_mass, total = s.v, s.inv_mass, copies * self.n
-        compiled = (_kernels.group_pieces is not None and s.n == total
+        compiled = (kernels.group_pieces is not None and s.n == total
                     and _owned(v, np.float64, (total, 2))
                     and _owned(inv_mass, np.float64, (total,)))
         if (compiled and s is self.system and copies == self.num_envs
@@ -571,14 +571,14 @@ class ParticleTask:
             # the same formula, compiled, reading the actuator's rows through the row map
             # (into buffers reused from step to step: only this step's caller reads them)
             out, rows, frow = self._pushed[1:]
-            largest = _kernels.group_pieces(v, act.force, frow, inv_mass, self.n, horizon,
+            largest = kernels.group_pieces(v, act.force, frow, inv_mass, self.n, horizon,
                                             self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
         F = np.zeros_like(s.x)
         act.accumulate(s.x, s.v, s.mass, F)
         if compiled and _owned(F, np.float64, (total, 2)):  # the same formula, compiled
             out, rows = np.empty(copies, np.int64), np.empty(total, np.int64)
-            largest = _kernels.group_pieces(v, F, _NO_ROWS, inv_mass, self.n, horizon,
+            largest = kernels.group_pieces(v, F, _NO_ROWS, inv_mass, self.n, horizon,
                                             self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
         with np.errstate(invalid="ignore", over="ignore"):
@@ -667,7 +667,7 @@ class ParticleTask:
             if largest == 1:
                 s.step(self.dt, self.integrator, steps=self.substeps)
                 return np.zeros(self.num_envs, bool)
-            if s._step_pieces(self.dt, self.integrator, self.substeps, rows):
+            if s.step_pieces(self.dt, self.integrator, self.substeps, rows):
                 return np.zeros(self.num_envs, bool)
         except SimulationDiverged:
             pass

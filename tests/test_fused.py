@@ -29,13 +29,13 @@ from constrained_particles import (
     Rod,
     SimulationDiverged,
     Wall,
-    _kernels,
     fused,
+    kernels,
     scenes,
 )
 from constrained_particles.integrators import METHODS
 
-pytestmark = pytest.mark.skipif(not _kernels.ENABLED, reason="compiled path disabled "
+pytestmark = pytest.mark.skipif(not kernels.ENABLED, reason="compiled path disabled "
                                 "(CPARTICLES_NUMBA=0): nothing to compare")
 EXPLICIT = ["euler", "midpoint", "rk4", "symplectic_euler"]
 
@@ -246,8 +246,8 @@ def test_subclassed_blocks_take_the_reference_path():
 
 
 def test_environment_variable_turns_the_compiled_path_off():
-    code = ("from constrained_particles import _kernels, fused, scenes; s = scenes.cloth(); "
-            "s.step(1e-3); print(_kernels.ENABLED, fused.supported(s))")
+    code = ("from constrained_particles import kernels, fused, scenes; s = scenes.cloth(); "
+            "s.step(1e-3); print(kernels.ENABLED, fused.supported(s))")
     env = {**os.environ, "CPARTICLES_NUMBA": "0"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                          check=True)
@@ -292,7 +292,7 @@ def test_fused_rattle_on_tiled_pendulums_and_slider_cranks_is_copy_exact():
 
 @pytest.mark.parametrize("method", EXPLICIT)
 def test_per_copy_pieces_step_each_copy_as_it_would_be_stepped_alone(method):
-    """``_step_pieces``: copy i of a tiled scene, split into k_i pieces per step, ends bit for bit
+    """``step_pieces``: copy i of a tiled scene, split into k_i pieces per step, ends bit for bit
     where ``steps * k_i`` separate steps of ``dt / k_i`` of that copy alone leave it, while the
     other copies (with other counts) wait; cloths (CG components), slider-cranks (direct) and
     a scene with every force and constraint type (each type's live list, several blocks of a
@@ -312,7 +312,7 @@ def test_per_copy_pieces_step_each_copy_as_it_would_be_stepped_alone(method):
             alone.append(one)
         pieces = np.repeat(np.array(counts, np.int64), n)
         for _ in range(3):  # several calls: the warm starts carry over as they would alone
-            assert tiled._step_pieces(dt, method, 5, pieces)
+            assert tiled.step_pieces(dt, method, 5, pieces)
             for one, k in zip(alone, counts, strict=True):
                 for _ in range(5 * k):
                     one.step(dt / k, method)
@@ -367,15 +367,15 @@ def test_per_copy_pieces_refuse_what_they_cannot_do():
     s = scenes.wire_mixture(omega=3.0).tile(2)
     x0 = s.x.copy()
     mixed = np.array([1, 2, 2, 2], np.int64)  # the crank and slider of copy 0 are coupled
-    assert not s._step_pieces(1e-3, "rk4", 1, mixed)
-    assert not s._step_pieces(1e-3, "rattle", 1, np.ones(4, np.int64))
+    assert not s.step_pieces(1e-3, "rk4", 1, mixed)
+    assert not s.step_pieces(1e-3, "rattle", 1, np.ones(4, np.int64))
     assert s.x.tobytes() == x0.tobytes() and s.t == 0.0
     for bad in [np.ones(3, np.int64), np.zeros(4, np.int64), np.ones(4), [1, 1, 1, 1]]:
         with pytest.raises(ValueError, match="pieces"):
-            s._step_pieces(1e-3, "rk4", 1, bad)
+            s.step_pieces(1e-3, "rk4", 1, bad)
     for steps in [0, -2, 1.5]:
         with pytest.raises(ValueError, match="steps"):
-            s._step_pieces(1e-3, "rk4", steps, np.ones(4, np.int64))
+            s.step_pieces(1e-3, "rk4", steps, np.ones(4, np.int64))
     assert s.x.tobytes() == x0.tobytes() and s.t == 0.0
 
 
@@ -383,7 +383,7 @@ def test_per_copy_pieces_divergence_keeps_the_state():
     s = scenes.spring_pair(ks=1e7).tile(2)
     x0, v0 = s.x.copy(), s.v.copy()
     with pytest.raises(SimulationDiverged):
-        s._step_pieces(0.05, "euler", 20, np.array([1, 1, 2, 2], np.int64))
+        s.step_pieces(0.05, "euler", 20, np.array([1, 1, 2, 2], np.int64))
     assert s.x.tobytes() == x0.tobytes() and s.v.tobytes() == v0.tobytes() and s.t == 0.0
 
 
@@ -400,7 +400,7 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     blocks = np.zeros((n, 2))
     fused._springs(x, v, blocks, i, j, rest, ks, kd, fused.spring_runs(i, j))
     plain = np.zeros((n, 2))
-    _kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
+    kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert blocks.tobytes() == plain.tobytes()
     d, u = x[i] - x[j], v[i] - v[j]
     length = np.linalg.norm(d, axis=1)
@@ -439,7 +439,7 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
     got, plain = rng.normal(size=(n, 2)), np.zeros((n, 2))
     plain[:] = got  # forces add to what F holds
     fused._springs(x, v, got, i, j, rest, ks, kd, runs)
-    _kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
+    kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert got.tobytes() == plain.tobytes()
 
 

@@ -711,9 +711,9 @@ def test_auto_takes_cg_from_the_documented_size():
 def test_the_compiled_cg_kernel_matches_its_numpy_reference():
     """The same CG inputs (a step of the constrained cloth, cold start) through the compiled
     kernel and the numpy reference: the same iteration count and dv to 1e-12 m/s."""
-    from constrained_particles import _kernels, implicit
+    from constrained_particles import implicit, kernels
 
-    if not _kernels.ENABLED:
+    if not kernels.ENABLED:
         pytest.skip("the compiled kernel is off (CPARTICLES_NUMBA=0)")
     captured = {}
 

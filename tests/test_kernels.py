@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from constrained_particles import DampedSpring, ParticleSystem, _kernels, scenes
+from constrained_particles import DampedSpring, ParticleSystem, kernels, scenes
 
 
 def random_springs(seed: int, n: int = 30, k: int = 120) -> tuple[ParticleSystem, DampedSpring]:
@@ -23,14 +23,14 @@ def random_springs(seed: int, n: int = 30, k: int = 120) -> tuple[ParticleSystem
 
 
 def forces(spring: DampedSpring, x: np.ndarray, v: np.ndarray, kernel) -> np.ndarray:
-    saved = _kernels.spring_forces
-    _kernels.spring_forces = kernel
+    saved = kernels.spring_forces
+    kernels.spring_forces = kernel
     try:
         F = np.zeros_like(x)
         spring.accumulate(x, v, np.ones(len(x)), F)
         return F
     finally:
-        _kernels.spring_forces = saved
+        kernels.spring_forces = saved
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -45,32 +45,32 @@ def test_numpy_path_matches_the_per_element_formula(seed):
     np.testing.assert_allclose(F, expected, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.skipif(_kernels.spring_forces is None,
+@pytest.mark.skipif(kernels.spring_forces is None,
                     reason="compiled kernels off (CPARTICLES_NUMBA=0): nothing to compare")
 @pytest.mark.parametrize("seed", range(5))
 def test_numba_kernel_matches_numpy_path(seed):
     s, spring = random_springs(seed)
     s.x[spring.j[0]] = s.x[spring.i[0]]
-    np.testing.assert_allclose(forces(spring, s.x, s.v, _kernels.spring_forces),
+    np.testing.assert_allclose(forces(spring, s.x, s.v, kernels.spring_forces),
                                forces(spring, s.x, s.v, None), rtol=1e-12, atol=1e-12)
 
 
 def test_numpy_path_steps_a_cloth_like_the_active_path():
     a, b = scenes.cloth(5, 5), scenes.cloth(5, 5)
-    saved = _kernels.spring_forces
+    saved = kernels.spring_forces
     try:
         for _ in range(200):
             a.step(1e-3, "rk4")
-            _kernels.spring_forces = None
+            kernels.spring_forces = None
             b.step(1e-3, "rk4")
-            _kernels.spring_forces = saved
+            kernels.spring_forces = saved
     finally:
-        _kernels.spring_forces = saved
+        kernels.spring_forces = saved
     np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-11)
 
 
 def test_environment_variable_disables_numba():
-    code = "from constrained_particles import _kernels; print(_kernels.spring_forces is None)"
+    code = "from constrained_particles import kernels; print(kernels.spring_forces is None)"
     env = {**os.environ, "CPARTICLES_NUMBA": "0"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True)
@@ -80,7 +80,7 @@ def test_environment_variable_disables_numba():
 def test_group_pieces_matches_the_numpy_rule():
     """The compiled step-splitting rule of envs.base.ParticleTask.pieces against its numpy
     form, on random states including non-finite speeds and counts beyond the cap."""
-    if _kernels.group_pieces is None:
+    if kernels.group_pieces is None:
         pytest.skip("compiled path disabled (CPARTICLES_NUMBA=0)")
     rng = np.random.default_rng(0)
     size, groups, dt, travel, horizon, cap = 3, 400, 0.025, 0.12, 0.05, 8
@@ -89,7 +89,7 @@ def test_group_pieces_matches_the_numpy_rule():
     inv_mass = rng.uniform(0.5, 20, size * groups)
     v[5, 0], v[40, 1], F[77, 0] = np.nan, np.inf, -np.inf
     out, rows = np.empty(groups, np.int64), np.empty(size * groups, np.int64)
-    largest = _kernels.group_pieces(v, F, np.zeros(0, np.int64), inv_mass, size, horizon, dt,
+    largest = kernels.group_pieces(v, F, np.zeros(0, np.int64), inv_mass, size, horizon, dt,
                                     travel, cap, out, rows)
     with np.errstate(invalid="ignore"):
         speed = (np.sqrt(np.sum(v * v, axis=1))
@@ -105,7 +105,7 @@ def test_group_pieces_matches_the_numpy_rule():
 def test_group_pieces_reads_a_force_block_through_its_row_map():
     """Forces given as a block's rows and a per-particle row map (-1: not pushed) split the
     steps exactly as the same forces written out per particle."""
-    if _kernels.group_pieces is None:
+    if kernels.group_pieces is None:
         pytest.skip("compiled path disabled (CPARTICLES_NUMBA=0)")
     rng = np.random.default_rng(1)
     size, groups, dt, travel, horizon, cap = 2, 300, 0.025, 0.12, 0.05, 8
@@ -120,9 +120,9 @@ def test_group_pieces_reads_a_force_block_through_its_row_map():
     dense[pushed] = block
     got, got_rows = np.empty(groups, np.int64), np.empty(n, np.int64)
     want = np.empty(groups, np.int64)
-    largest = _kernels.group_pieces(v, block, frow, inv_mass, size, horizon, dt, travel, cap,
+    largest = kernels.group_pieces(v, block, frow, inv_mass, size, horizon, dt, travel, cap,
                                     got, got_rows)
-    _kernels.group_pieces(v, dense, np.zeros(0, np.int64), inv_mass, size, horizon, dt, travel,
+    kernels.group_pieces(v, dense, np.zeros(0, np.int64), inv_mass, size, horizon, dt, travel,
                           cap, want, np.zeros(0, np.int64))
     assert np.array_equal(got, want) and 1 < len(np.unique(want))
     assert np.array_equal(got_rows, np.repeat(want, size)) and largest == want.max()

@@ -102,11 +102,6 @@ def test_envs_and_verification_do_not_import_the_command_line(package):
     assert not bad, bad
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "envs import private core names: envs/base.py and envs/_measure.py import "
-    "constrained_particles._kernels (group_pieces, wall_element), envs/_measure.py imports "
-    "constrained_particles.fused._fused_steps; the compiled engine is being reworked to "
-    "public names"))
 def test_envs_and_verification_use_only_public_core_names():
     uses = [u for package in ("envs", "verification") for p in sources(package)
             for u in private_core_uses(p.read_text(), str(p.relative_to(ROOT)))]

@@ -248,5 +248,5 @@ def test_every_compiled_function_uses_the_jit_module():
                 offenders += [f"{path.relative_to(ROOT)}: {m.group(0)}"
                               for m in re.finditer(pattern, text)]
     assert offenders == []
-    kernels = (ROOT / "constrained_particles" / "_kernels.py").read_text()
+    kernels = (ROOT / "constrained_particles" / "kernels.py").read_text()
     assert "from .jit import njit" in kernels
