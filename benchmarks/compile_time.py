@@ -178,8 +178,9 @@ def _short(name: str, width: int = 46) -> str:
 
 
 def _child(report: str, argv: list[str]) -> None:
-    """Run ``argv`` (``-m module args`` or ``script args``) in this process with Numba's
-    compile events and cache loads recorded; write the record to ``report`` at exit."""
+    """Run ``argv`` (``-m module args``, ``-c code args`` or ``script args``) in this process
+    with Numba's compile events and cache loads recorded; write the record to ``report`` at
+    exit."""
     from numba.core import caching, event
     from numba.core.dispatcher import Dispatcher
 
@@ -223,11 +224,15 @@ def _child(report: str, argv: list[str]) -> None:
     t0 = (time.process_time(), time.perf_counter())
     status = 0
     try:
-        sys.argv = argv[1:] if argv[0] == "-m" else argv
+        sys.argv = argv[1:] if argv[0] in ("-m", "-c") else argv
         if argv[0] == "-m":
             sys.path.insert(0, os.getcwd())
             sys.argv[0] = argv[1]
             runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
+        elif argv[0] == "-c":
+            sys.path.insert(0, "")
+            sys.argv[0] = "-c"
+            exec(compile(argv[1], "<string>", "exec"), {"__name__": "__main__"})
         else:
             runpy.run_path(argv[0], run_name="__main__")
     except SystemExit as e:
@@ -267,16 +272,17 @@ def run_one(command: str, cache: str, env: dict[str, str] | None = None) -> dict
         os.close(fd)
         argv = [sys.executable, str(Path(__file__).resolve()), CHILD, report, *argv[1:]]
     child_env = dict(os.environ if env is None else env, NUMBA_CACHE_DIR=cache)
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, env=child_env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    stderr = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-    proc.stderr and proc.stderr.close()
+    with tempfile.TemporaryFile() as err:  # a file, not a pipe: a long stderr cannot block
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(argv, env=child_env, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+        err.seek(0)
+        stderr = err.read().decode(errors="replace")
     out: dict[str, Any] = {"command": command, "cpu": usage.ru_utime + usage.ru_stime,
                            "user": usage.ru_utime, "sys": usage.ru_stime, "wall": wall,
-                           "status": os.waitstatus_to_exitcode(status),
+                           "status": proc.returncode,
                            "stderr_tail": stderr[-2000:], "load": os.getloadavg()}
     if report is not None:
         try:
@@ -345,7 +351,8 @@ def _print_run(r: dict[str, Any], top: int) -> None:
           f"{r['wall']:.1f} s, exit {r['status']}, load average "
           + " ".join(f"{x:.2f}" for x in r["load"]))
     if r["status"] != 0:
-        print("   stderr: " + r["stderr_tail"].strip().replace("\n", "\n   "))
+        tail = [line[:200] for line in r["stderr_tail"].strip().splitlines()[-5:]]
+        print("   stderr (end): " + "\n   ".join(tail))
     if "functions" in r:
         print(f"   Numba: {r['compile_cpu']:.1f} s CPU compiling {r['signatures_compiled']} "
               f"signatures ({r['llvm_cpu']:.1f} s of it in LLVM), "
