@@ -4,11 +4,14 @@ Runs each command in a child process that shares one fresh, empty ``NUMBA_CACHE_
 temporary directory, removed afterwards unless ``--keep-cache`` names one), so the first command
 compiles everything it uses, later commands compile only what the earlier ones did not, and a
 repeated command shows the warm cost. Per run it reports the child's CPU seconds (user + sys, from
-``os.wait4``) and wall seconds, and, from Numba's event API inside the child, each dispatcher's
-compiles: CPU seconds exclusive of nested compiles and cache loads (a compile of ``f`` that
-triggers a compile of ``g`` is charged to ``g``), inclusive seconds, the signatures compiled in the
-run and those loaded from the disk cache. Functions marked ``inline="always"`` never compile on
-their own: their cost is inside every caller's.
+``os.wait4``) and wall seconds, and, from Numba's event API inside the child (``numba:compile``
+and ``numba:llvm_lock`` events, and a timer around the cache's ``load_overload``), each
+dispatcher's compiles: CPU seconds exclusive of nested compiles and cache loads (a compile of
+``f`` that triggers a compile of ``g`` is charged to ``g``) and the part of them inside LLVM,
+inclusive seconds, the signatures compiled in the run and those loaded from the disk cache, the
+argument positions where its signatures differ and the functions whose compile triggered it.
+Times are the thread CPU time of the thread that compiles. Functions marked ``inline="always"``
+never compile on their own: their cost is inside every caller's.
 
     python -m benchmarks.compile_time                    # the three default demo runs
     python -m benchmarks.compile_time --json > out.json
