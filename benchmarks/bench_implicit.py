@@ -1,6 +1,6 @@
 """Benchmark (not a test): implicit_euler against the explicit methods on the stiff cloth.
 
-The cloth of issue 3: 15 x 15 particles of 0.01 kg, 0.1 m apart, structural springs of
+The stiff cloth: 15 x 15 particles of 0.01 kg, 0.1 m apart, structural springs of
 ks = 2000 N/m and shear springs (``scenes.cloth`` gives them ks/2 = 1000 N/m; ``--shear-full``
 makes them 2000 N/m too), kd = 0.05 N s/m, no bend springs, no drag, the top row on a horizontal
 wire, gravity. Two scenarios, each simulated for 1 s:
@@ -236,7 +236,7 @@ SOLVER_SIZES = (15, 30, 60, 120)
 
 
 def scaling_cloth(n: int, implicit_solver: str) -> ParticleSystem:
-    """The issue's stiff cloth at n x n particles (hanging, no push) with that linear solver."""
+    """The stiff cloth at n x n particles (hanging, no push) with that linear solver."""
     s = scenes.cloth(n, n, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None, drag=0.0)
     s.implicit_solver = implicit_solver
     return s

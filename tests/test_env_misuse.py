@@ -1,4 +1,4 @@
-"""The environments under misuse and under hostile action sequences (issue 10).
+"""The environments under misuse and under hostile action sequences.
 
 Every env case of the issue has a test: the slider-crank spring-mode explosion no longer happens
 and a step that leaves its constraints is flagged, bad ``gym.make`` arguments get a ValueError

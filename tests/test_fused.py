@@ -1,4 +1,4 @@
-"""The fused compiled step against the readable reference path (issue 11).
+"""The fused compiled step against the readable reference path.
 
 The reference is the Python path: ``integrators.METHODS[name](system, t, x, v, h)``, which calls
 ``system.acceleration`` and the numpy blocks. The fused kernel must agree with it to rounding

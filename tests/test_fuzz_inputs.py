@@ -1,6 +1,6 @@
 """Bad input to the core library: a clear error naming the argument and an unchanged system.
 
-Every case listed in issue 10 (items 2 to 5) has a test here, and hypothesis throws generated
+Each kind of bad input has a test here, and hypothesis throws generated
 bad values, shapes, types and indices at the public constructors and calls. The unchanged
 system is checked by comparing a snapshot of its whole state (arrays, blocks and their arrays)
 before and after the rejected call.

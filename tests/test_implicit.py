@@ -1,4 +1,4 @@
-"""implicit_euler (issue 3): force Jacobians, the KKT step, damping, order, stiff cloth.
+"""implicit_euler: force Jacobians, the KKT step, damping, order, stiff cloth.
 
 Every check compares against something independent of the code under test: central finite
 differences of ``accumulate``, the closed-form backward-Euler energy decay of a linear spring,
@@ -379,7 +379,7 @@ def test_yanked_stiff_cloth_never_gains_energy():
     assert energy[-1] < 0.5 * energy[0]
 
 
-# ---------------------------------------------------------------------- issue 12's fixes
+# ---------------------------------------------------------------------- settling and damping
 def _settled_spring(ks, mass):
     """A particle on a stiff spring to a fixed anchor, released 1 mm stretched, no gravity: the
     motion decays by 1/(1 + (w h)^2) per step into subnormal velocities (below 1e-308 m/s)."""

@@ -1,4 +1,4 @@
-"""rattle (issue 12): the constrained velocity Verlet step, its orders, energy and errors.
+"""rattle: the constrained velocity Verlet step, its orders, energy and errors.
 
 The references are independent of the code under test: the exact pendulum (Jacobi elliptic
 functions) and DOP853 runs of the same ODE through :mod:`verification.orders`, the blocks'
