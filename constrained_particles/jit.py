@@ -19,6 +19,11 @@ A shared temporary directory is never used: the cache files are pickles, which a
 write there could replace.
 
 Only the functions decorated here are affected; Numba's settings for other code stay as they are.
+
+When one of these functions starts compiling (its machine code is in no cache) and stderr is a
+terminal, one line says so, once per process: a first run spends a minute or more compiling, and
+nothing else would tell the user why it waits. Output that is not a terminal (a pipe, a log file,
+the tests) stays silent, as the command line's progress bars do.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numba
-from numba.core import caching
+from numba.core import caching, event
 from numba.core.dispatcher import Dispatcher
 
 __all__ = ["cache_dir", "default_cache_dir", "njit"]
@@ -110,10 +115,44 @@ class _Cache(caching.FunctionCache):
     _impl_class = _Impl
 
 
+#: ``id`` of every dispatcher made by :func:`njit` (they live as long as their modules)
+_OURS: set[int] = set()
+
+
+class _CompileNotice(event.Listener):
+    """Numba's ``numba:compile`` events (a cache miss, then a compile): the first one of a
+    function decorated here prints one line to stderr when it is a terminal."""
+
+    def __init__(self) -> None:
+        self.said = False
+
+    def on_start(self, ev: event.Event) -> None:
+        data = ev.data if isinstance(ev.data, dict) else {}
+        if self.said or id(data.get("dispatcher")) not in _OURS:
+            return
+        self.said = True
+        stream = sys.stderr
+        if stream is None or not stream.isatty():
+            return
+        where = cache_dir()
+        kept = f"cached in {where}" if where is not None else "kept in memory"
+        print(f"constrained-particles: compiling kernels, first run only (a minute or two; "
+              f"{kept}) ...", file=stream, flush=True)
+
+    def on_end(self, ev: event.Event) -> None:
+        pass
+
+
+event.register("numba:compile", _CompileNotice())
+
+
 def _cached(dispatcher: Any) -> Any:
     """``dispatcher`` with its disk cache in :func:`cache_dir` (or none: compiled in memory)."""
-    if cache_dir() is None or not isinstance(dispatcher, Dispatcher):
-        return dispatcher  # no usable directory, or NUMBA_DISABLE_JIT gave the plain function
+    if not isinstance(dispatcher, Dispatcher):
+        return dispatcher  # NUMBA_DISABLE_JIT gave the plain function
+    _OURS.add(id(dispatcher))
+    if cache_dir() is None:
+        return dispatcher  # no usable directory: compiled in memory
     try:
         # what ``Dispatcher.enable_caching`` does, with this module's locator
         dispatcher._cache = _Cache(dispatcher.py_func)

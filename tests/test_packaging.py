@@ -155,9 +155,11 @@ print(value, sum(stats.cache_misses.values()), sum(stats.cache_hits.values()))
 '''
 
 
-def probe(tmp_path: Path, **environ: str | None) -> subprocess.CompletedProcess:
+def probe(tmp_path: Path, stderr: int | None = None,
+          **environ: str | None) -> subprocess.CompletedProcess:
     """Compile ``jitted.twice`` (a module in ``tmp_path/src``) in a fresh interpreter with
-    ``environ`` applied to the current environment (None removes a variable)."""
+    ``environ`` applied to the current environment (None removes a variable); its stderr is
+    captured, or goes to the file descriptor ``stderr``."""
     import os
     import sys
 
@@ -172,7 +174,9 @@ def probe(tmp_path: Path, **environ: str | None) -> subprocess.CompletedProcess:
         else:
             env[key] = value
     return subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300)
+                          stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE if stderr is None else stderr, text=True,
+                          timeout=300)
 
 
 def cached_files(folder: Path) -> list[Path]:
@@ -225,6 +229,44 @@ def test_unusable_cache_directory_compiles_in_memory_with_one_line(tmp_path, var
     assert lines[0].startswith("constrained-particles: cache directory") and "memory" in lines[0]
     assert str(blocker) in lines[0]
     assert cached_files(tmp_path) == []
+
+
+def on_a_terminal(tmp_path: Path, **environ: str | None) -> str:
+    """What :func:`probe` writes to stderr when stderr is a terminal (a pseudo-terminal)."""
+    import os
+    import pty
+
+    main, child = pty.openpty()
+    try:
+        out = probe(tmp_path, stderr=child, **environ)
+        os.close(child)
+        child = -1
+        assert out.returncode == 0
+        text = b""
+        while True:
+            try:
+                chunk = os.read(main, 4096)
+            except OSError:  # Linux: EIO once the child side is closed and drained
+                break
+            if not chunk:
+                break
+            text += chunk
+    finally:
+        os.close(main)
+        if child >= 0:
+            os.close(child)
+    return text.decode()
+
+
+def test_a_first_compile_says_so_once_and_only_on_a_terminal(tmp_path):
+    cache = str(tmp_path / "numba")
+    said = on_a_terminal(tmp_path, NUMBA_CACHE_DIR=cache)  # an empty cache: it compiles
+    assert said.count("compiling kernels") == 1, said
+    assert said.strip().startswith("constrained-particles: compiling kernels") and cache in said
+    assert on_a_terminal(tmp_path, NUMBA_CACHE_DIR=cache) == ""  # loaded from the cache
+    piped = probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "other"))  # compiles, into a pipe
+    assert piped.returncode == 0 and piped.stdout.splitlines()[2] == "3.0 1 0"
+    assert piped.stderr == ""
 
 
 def test_njit_refuses_a_cache_option():
