@@ -97,9 +97,9 @@ say "from another folder ($ELSEWHERE)"
 (cd "$ELSEWHERE" && python -c "
 import gymnasium as gym
 import envs
-for env_id in envs.ALL_ENV_IDS:
+for env_id in envs.ENV_IDS:
     gym.make(env_id).close()
-print('registered:', ', '.join(envs.ALL_ENV_IDS))")
+print('registered:', ', '.join(envs.ENV_IDS))")
 
 say "pip uninstall leaves nothing behind"
 python -m pip uninstall --yes constrained-particles

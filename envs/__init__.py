@@ -8,12 +8,9 @@ Importing this package registers ``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainS
 
 from gymnasium.envs.registration import register, registry
 
-#: The environments the shared tooling loops over (``cparticles demo``, tests/test_envs.py):
-#: action modes "force" and "spring", distance measured along x.
-ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0")
-#: Every registered id: ``ChainSwing-v0`` measures a 2-D distance to its target and
-#: ``ClothPin-v0`` has its own action mode ("draw"); tests/test_new_envs.py covers them.
-ALL_ENV_IDS = (*ENV_IDS, "ChainSwing-v0", "ClothPin-v0")
+#: Every registered id. ClothSlide, SliderCrank and ChainSwing take action modes "force" and
+#: "spring"; ClothPin draws springs ("draw").
+ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0", "ClothPin-v0")
 
 _SPECS = {
     "ClothSlide-v0": dict(entry_point="envs.cparticles:ClothSlideEnv",

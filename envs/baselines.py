@@ -45,7 +45,7 @@ from constrained_particles.arguments import (
     positive_float,
 )
 
-from . import ALL_ENV_IDS
+from . import ENV_IDS
 from .train import ALGOS, ENV_ACTION_MODES, HELD_OUT_SEED_START
 
 #: Held-out episodes per evaluation.
@@ -225,8 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("run", help="train and evaluate the grid", formatter_class=HelpFormatter)
     r.add_argument("--runs", default="runs", type=new_directory,
                    help="folder of the run directories (created)")
-    r.add_argument("--envs", nargs="+", default=list(ALL_ENV_IDS), choices=ALL_ENV_IDS,
-                   metavar="ENV_ID", help=f"env ids, of {', '.join(ALL_ENV_IDS)}")
+    r.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=ENV_IDS,
+                   metavar="ENV_ID", help=f"env ids, of {', '.join(ENV_IDS)}")
     modes = sorted({m for v in ENV_ACTION_MODES.values() for m in v})
     r.add_argument("--modes", nargs="+", default=modes, choices=modes,
                    help="action modes (each env trains in those it takes)")

@@ -21,7 +21,7 @@ import numpy as np
 from constrained_particles.arguments import int_at_least, output_file, time_step
 from constrained_particles.integrators import METHODS
 
-from . import ALL_ENV_IDS, ENV_IDS
+from . import ENV_IDS
 from .agents import AGENTS, make_agent
 from .base import ACTION_MODES
 from .cloth_pin import DRAW_MODES
@@ -32,7 +32,7 @@ BATCH = 64
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
-    parser.add_argument("--env", default=ENV_IDS[0], choices=ALL_ENV_IDS, help="environment id")
+    parser.add_argument("--env", default=ENV_IDS[0], choices=ENV_IDS, help="environment id")
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
                         help="number of episodes")

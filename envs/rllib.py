@@ -40,9 +40,10 @@ from typing import Any
 
 import gymnasium as gym
 
-from . import ENV_IDS
+__all__ = ["ENV_IDS", "configure", "make_env", "register"]
 
-__all__ = ["configure", "make_env", "register"]
+#: The environments this module configures RLlib for (force or spring actions, a goal along x).
+ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0")
 
 #: RLlib's name for our vectorization: each EnvRunner calls the env's vector entry point.
 VECTORIZE_MODE = "vector_entry_point"

@@ -49,7 +49,7 @@ import numpy as np
 from constrained_particles.arguments import int_at_least, new_directory
 from constrained_particles.extras import require
 
-from . import ALL_ENV_IDS
+from . import ENV_IDS
 from .base import ACTION_MODES
 from .cloth_pin import DRAW_MODES
 
@@ -67,7 +67,7 @@ NEAR_GOAL = 0.1
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
 #: The action modes each env takes, its default first (``train`` ships hyperparameters for each).
 ENV_ACTION_MODES: dict[str, tuple[str, ...]] = {
-    env_id: DRAW_MODES if env_id == "ClothPin-v0" else ACTION_MODES for env_id in ALL_ENV_IDS}
+    env_id: DRAW_MODES if env_id == "ClothPin-v0" else ACTION_MODES for env_id in ENV_IDS}
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -89,7 +89,7 @@ def check_env_mode(env_id: str, action_mode: str | None) -> str:
     """The action mode to use (``None``: the env's default); ValueError naming the argument if
     ``env_id`` is not a registered id or does not take ``action_mode``."""
     if env_id not in ENV_ACTION_MODES:
-        raise ValueError(f"env_id must be one of {ALL_ENV_IDS}, got {env_id!r}")
+        raise ValueError(f"env_id must be one of {ENV_IDS}, got {env_id!r}")
     modes = ENV_ACTION_MODES[env_id]
     if action_mode is None:
         return modes[0]
@@ -429,8 +429,8 @@ TRUST = ("A run directory holds pickles (model.zip, best_model.zip, vecnormalize
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles train``."""
     modes = "; ".join(f"{e}: {', '.join(m)}" for e, m in ENV_ACTION_MODES.items())
-    parser.add_argument("env", choices=ALL_ENV_IDS, metavar="ENV_ID",
-                        help=f"environment id: {', '.join(ALL_ENV_IDS)}")
+    parser.add_argument("env", choices=ENV_IDS, metavar="ENV_ID",
+                        help=f"environment id: {', '.join(ENV_IDS)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="SB3 algorithm")
     parser.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
                         help="seed of the model; env copy i starts from seed + i")

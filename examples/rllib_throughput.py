@@ -36,7 +36,7 @@ import ray
 from ray.rllib.algorithms.ppo import PPOConfig
 
 import envs.rllib
-from envs import ENV_IDS
+from envs.rllib import ENV_IDS
 
 
 def positive_int(text: str) -> int:

@@ -25,7 +25,7 @@ from ray.rllib.algorithms.ppo import PPOConfig
 import constrained_particles
 import envs
 import envs.rllib
-from envs import ENV_IDS
+from envs.rllib import ENV_IDS
 
 
 def positive_int(text: str) -> int:

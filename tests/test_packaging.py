@@ -90,7 +90,7 @@ def test_python_m_cparticles_is_the_console_script():
 def test_pprint_registry_lists_the_envs_together():
     listing = gym.pprint_registry(disable_print=True)
     blocks = listing.split("=====")
-    together = [b for b in blocks if all(i in b for i in envs.ALL_ENV_IDS)]
+    together = [b for b in blocks if all(i in b for i in envs.ENV_IDS)]
     assert len(together) == 1
     assert "===== cparticles =====" in listing
     for env_id in envs.ENV_IDS:
@@ -108,7 +108,7 @@ def test_readme_is_a_short_product_page():
     assert 'python -m pip install -e ".[test]" && python -m pytest' in readme
     for command in ("run", "demo", "view", "verify", "bench", "train", "evaluate"):
         assert f"| `cparticles {command}" in readme, f"command table lacks {command}"
-    for env_id in envs.ALL_ENV_IDS:
+    for env_id in envs.ENV_IDS:
         assert f"| `{env_id}` |" in readme, f"task table lacks {env_id}"
 
 
