@@ -61,7 +61,7 @@ new=$(written_since "$marker")
 
 say "read-only install, run by a user whose home is not writable"
 if [ "$(id -u)" = 0 ] && id nobody >/dev/null 2>&1 && command -v setpriv >/dev/null \
-        && as_nobody python -c pass 2>/dev/null; then
+        && as_nobody "$VENV/bin/python" -c pass 2>/dev/null; then
     chmod -R a-w "$SITE"
     set +e
     (cd "$ELSEWHERE" && as_nobody env -u XDG_CACHE_HOME -u NUMBA_CACHE_DIR HOME=/nonexistent \
@@ -75,7 +75,7 @@ if [ "$(id -u)" = 0 ] && id nobody >/dev/null 2>&1 && command -v setpriv >/dev/n
     [ "$(grep -c '^constrained-particles: cache directory' "$ELSEWHERE/stderr")" = 1 ] \
         || fail "expected one line saying the kernels compile in memory"
 else
-    echo "SKIPPED (not checked): needs root, user nobody, setpriv, and an interpreter nobody can run"
+    echo "SKIPPED (not checked): needs root, user nobody, setpriv, and a venv interpreter nobody can run"
 fi
 
 say "command 2: ${COMMANDS[1]}"
