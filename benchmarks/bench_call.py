@@ -24,11 +24,11 @@ import argparse
 import json
 import platform
 import statistics
-import time
 from collections.abc import Callable
 from typing import Any
 
 from constrained_particles import scenes
+from cparticles.bench import alternate
 
 DT = 1e-3  #: physics step (s)
 METHOD = "symplectic_euler"
@@ -49,23 +49,13 @@ def pymunk_scene(n: int) -> Any:
 
 def alternated(calls: dict[str, Callable[[], None]], repeats: int, seconds: float
                ) -> dict[str, list[float]]:
-    """Seconds per call of each entry, one sample per round from a batch lasting at least
-    ``seconds``; the entries take turns within every round (three warm-up calls each first)."""
-    for call in calls.values():
-        for _ in range(3):
-            call()
-    samples: dict[str, list[float]] = {name: [] for name in calls}
-    for _ in range(repeats):
-        for name, call in calls.items():
-            k, t0 = 0, time.perf_counter()
-            while True:
-                call()
-                k += 1
-                elapsed = time.perf_counter() - t0
-                if elapsed >= seconds:
-                    break
-            samples[name].append(elapsed / k)
-    return samples
+    """Seconds per call of each entry, one sample per round (``cparticles bench``'s
+    alternation: batches of at least ``seconds``, entries taking turns, three warm-up calls)."""
+    samples = alternate(calls, repeats, seconds)
+    diverged = [name for name, s in samples.items() if s is None]
+    if diverged:
+        raise RuntimeError(f"the benchmark cloth diverged in {diverged}")
+    return {name: s for name, s in samples.items() if s is not None}
 
 
 def per_call_cost(repeats: int, seconds: float, n: int = 64) -> dict[str, float]:
