@@ -450,9 +450,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Before any work: the rl extra, an action mode the env takes, shipped hyperparameters,
-    and an ``--out`` that holds no run yet."""
-    require("stable_baselines3", "torch", command="cparticles train")
+    """Before any work: an action mode the env takes, shipped hyperparameters, an ``--out``
+    that holds no run yet, then the rl extra (argument mistakes are reported either way)."""
     modes = ENV_ACTION_MODES[args.env]
     if args.action_mode is None:
         args.action_mode = modes[0]
@@ -467,6 +466,7 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
         if (Path(args.out) / name).exists():
             parser.error(f"argument --out: {args.out!r} already holds a run ({name}); choose "
                          "another directory")
+    require("stable_baselines3", "torch", command="cparticles train")
 
 
 def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -488,12 +488,12 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
                              ) -> None:
-    """Before any work: the rl extra, and a run directory :func:`read_run` accepts."""
-    require("stable_baselines3", "torch", command="cparticles evaluate")
+    """Before any work: a run directory :func:`read_run` accepts, then the rl extra."""
     try:
         read_run(args.dir, "best" if args.best else "final")
     except ValueError as exc:
         parser.error(f"argument dir: {exc}")
+    require("stable_baselines3", "torch", command="cparticles evaluate")
 
 
 def main_train(args: argparse.Namespace) -> int:

@@ -454,10 +454,13 @@ HIDE_SB3 = ("import sys; sys.modules['stable_baselines3'] = None; "
                                   ["evaluate", "TMP"]])
 def test_train_without_the_rl_extra_is_a_one_line_hint(argv, tmp_path):
     """A fresh interpreter in which stable_baselines3 cannot be imported (as if the rl extra
-    were not installed): one line naming the extra and the install command of a checkout."""
+    were not installed): one line naming the extra and the install command of a checkout
+    (``evaluate`` gets a run directory whose files pass the checks made before the extra's)."""
     import os
     import subprocess
 
+    (tmp_path / "config.json").write_text(json.dumps(RUN_CONFIG))
+    (tmp_path / "model.zip").write_bytes(b"")
     argv = [a.replace("TMP", str(tmp_path)) for a in argv]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
