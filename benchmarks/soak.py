@@ -24,9 +24,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import envs
 from constrained_particles import CircularWire, FixedPoint, LineWire, Rod
-from envs.base import ACTION_MODES
+from envs.train import ENV_ACTION_MODES
 
 #: Residual (m) above which an unflagged step counts as a failure.
 RESIDUAL = 0.01
@@ -121,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.steps < 1 or args.seed < 0:
         parser.error("--steps must be >= 1 and --seed >= 0")
-    configs = [(env_id, mode, vector) for env_id in envs.ENV_IDS for mode in ACTION_MODES
-               for vector in (False, True)]
+    configs = [(env_id, mode, vector) for env_id, modes in ENV_ACTION_MODES.items()
+               for mode in modes for vector in (False, True)]
     per = max(args.steps // len(configs), 1)
     for k, (env_id, mode, vector) in enumerate(configs):  # warm-up: imports, caches, JIT
         soak(env_id, mode, vector, 2 * VECTOR_ENVS, args.seed + k)
