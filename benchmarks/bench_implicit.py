@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from constrained_particles import METHODS, ParticleSystem, SimulationDiverged, scenes
+from cparticles.bench_scaling import IMPLICIT_SIZES, bench_implicit_scaling, implicit_table
 
 FRAME = Fraction(1, 60)
 EXPLICIT_DIVISORS = (1, 2, 3, 4, 6, 8, 10, 12, 16, 20, 24, 32, 48, 64, 96, 128, 192, 256, 384,
@@ -46,7 +47,7 @@ DURATION = Fraction(1)
 
 
 def stiff_cloth(scenario: str, shear_full: bool = False) -> ParticleSystem:
-    """The issue-3 cloth; ``scenario`` is ``"hanging"`` or ``"pushed"``."""
+    """The stiff cloth of the module docstring; ``scenario`` is ``"hanging"`` or ``"pushed"``."""
     push = {"hanging": 0.0, "pushed": 0.05}[scenario]
     s = scenes.cloth(15, 15, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None, drag=0.0,
                      push=push)
@@ -232,85 +233,6 @@ def scaling(sizes: tuple[int, ...] = SCALING_SIZES, repeats: int = 5) -> list[di
     return out
 
 
-SOLVER_SIZES = (15, 30, 60, 120)
-
-
-def scaling_cloth(n: int, implicit_solver: str) -> ParticleSystem:
-    """The stiff cloth at n x n particles (hanging, no push) with that linear solver."""
-    s = scenes.cloth(n, n, ks=2000.0, mass=0.01, kd=0.05, bend=False, wall_x=None, drag=0.0)
-    s.implicit_solver = implicit_solver
-    return s
-
-
-def bench_implicit_scaling(sizes: tuple[int, ...] = SOLVER_SIZES, repeats: int = 5,
-                           steps: int = 10) -> dict:
-    """implicit_euler's cost per step (ms) on the stiff cloth at n x n particles, h = 1/60 s,
-    with both linear solvers (``implicit_solver="cg"`` and ``"direct"``), and its growth from
-    one size to the next (linear in the particle count is (n2/n1)^2, 4x per doubling).
-
-    A batch is ``steps`` steps of a fresh cloth after one untimed step (which builds the
-    topology's structures; the CG warm start then carries over within the batch), so every
-    batch does the same work. ``repeats`` rounds, each timing every size with both solvers in
-    turn (cg, then direct); the figures are the medians over rounds, which spreads a shared
-    machine's changing load over all of them alike. Also reports CG's median iteration count
-    per step, the solver ``implicit_solver="auto"`` picks, and the largest position difference
-    (m) between the two solvers after the batch."""
-    from constrained_particles import implicit
-
-    times: dict[str, dict[int, list[float]]] = {k: {n: [] for n in sizes}
-                                                for k in ("cg", "direct")}
-    iterations: dict[int, list[int]] = {n: [] for n in sizes}
-    difference: dict[int, float] = {}
-    h = float(FRAME)
-    for _ in range(repeats):
-        for n in sizes:
-            final = {}
-            for solver in ("cg", "direct"):
-                s = scaling_cloth(n, solver)
-                s.step(h, "implicit_euler")
-                asm = implicit._assembly(s)
-                start = time.perf_counter()
-                for _ in range(steps):
-                    s.step(h, "implicit_euler")
-                    if solver == "cg":
-                        iterations[n].append(asm.cg_iterations)
-                times[solver][n].append((time.perf_counter() - start) / steps)
-                if asm.last_solver != solver:
-                    raise RuntimeError(f"{n}x{n}: asked for {solver}, the step used "
-                                       f"{asm.last_solver}")
-                final[solver] = s.x
-            difference[n] = float(np.max(np.abs(final["cg"] - final["direct"])))
-    ms = {k: [1e3 * float(np.median(t[n])) for n in sizes] for k, t in times.items()}
-    pairs = list(zip(sizes[:-1], sizes[1:], strict=True))
-    auto = []
-    for n in sizes:
-        s = scaling_cloth(n, "auto")
-        s.step(h, "implicit_euler")
-        auto.append(implicit._assembly(s).last_solver)
-    return {"sizes": list(sizes), "particles": [n * n for n in sizes], "repeats": repeats,
-            "steps_per_batch": steps, "dt": h, "ms_per_step": ms,
-            "growth": {k: [v[i + 1] / v[i] for i in range(len(pairs))] for k, v in ms.items()},
-            "linear_growth": [(b / a) ** 2 for a, b in pairs],
-            "cg_iterations": [float(np.median(iterations[n])) for n in sizes],
-            "cg_minus_direct_max_m": [difference[n] for n in sizes], "auto_picks": auto}
-
-
-def solver_table(result: dict) -> str:
-    """A plain-text table of :func:`bench_implicit_scaling`'s result."""
-    lines = [f"implicit_euler on the stiff cloth, h = 1/60 s: ms per step (median of "
-             f"{result['repeats']} alternated batches of {result['steps_per_batch']} steps)",
-             f"{'cloth':>8}{'cg':>10}{'growth':>8}{'direct':>10}{'growth':>8}{'linear':>8}"
-             f"{'CG its':>8}{'auto':>8}{'|cg-direct| m':>15}"]
-    for k, n in enumerate(result["sizes"]):
-        grow = [f"{result['growth'][s][k - 1]:.2f}x" if k else "" for s in ("cg", "direct")]
-        linear = f"{result['linear_growth'][k - 1]:.2f}x" if k else ""
-        lines.append(f"{f'{n}x{n}':>8}{result['ms_per_step']['cg'][k]:>10.2f}{grow[0]:>8}"
-                     f"{result['ms_per_step']['direct'][k]:>10.2f}{grow[1]:>8}{linear:>8}"
-                     f"{result['cg_iterations'][k]:>8.0f}{result['auto_picks'][k]:>8}"
-                     f"{result['cg_minus_direct_max_m'][k]:>15.1e}")
-    return "\n".join(lines)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tol", type=float, default=0.01, help="visual tolerance in metres")
@@ -324,11 +246,11 @@ def main() -> None:
                         f"at {', '.join(f'{n}x{n}' for n in SCALING_SIZES)}")
     parser.add_argument("--solvers", action="store_true",
                         help="instead: implicit_euler's cost per step with CG and the direct "
-                        f"solve at {', '.join(f'{n}x{n}' for n in SOLVER_SIZES)}")
+                        f"solve at {', '.join(f'{n}x{n}' for n in IMPLICIT_SIZES)}")
     args = parser.parse_args()
     if args.solvers:
         result = bench_implicit_scaling(repeats=args.repeats)
-        print(solver_table(result))
+        print(implicit_table(result))
         print(json.dumps(result, indent=1))
         return
     if args.scaling:

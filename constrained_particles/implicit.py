@@ -62,7 +62,7 @@ acts, and that stored energy appears within a step.
 from __future__ import annotations
 
 import weakref
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.linalg
@@ -504,6 +504,16 @@ def _assembly(system: ParticleSystem) -> _Assembly:
     if cached is None or cached.solver is not solver or cached.key != key:
         cached = _ASSEMBLIES[system] = _Assembly(system, solver, key)
     return cached
+
+
+def last_solve(system: ParticleSystem) -> dict[str, Any]:
+    """How ``system``'s latest implicit_euler step solved its linear system: ``solver``
+    (``"cg"`` or ``"direct"``; ``""`` before the first step), ``cg_iterations`` (of that step's
+    conjugate gradients, 0 for a direct solve) and ``cg_failures`` (steps since the topology
+    was built whose CG did not converge and fell back to the direct solve)."""
+    asm = _assembly(system)
+    return {"solver": asm.last_solver, "cg_iterations": asm.cg_iterations,
+            "cg_failures": asm.cg_failures}
 
 
 #: SuperLU settings, tried in order: a fill-reducing ordering of the KKT's symmetric structure

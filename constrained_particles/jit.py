@@ -43,6 +43,10 @@ from numba.core.dispatcher import Dispatcher
 __all__ = ["cache_dir", "default_cache_dir", "njit"]
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
+#: The options :func:`njit` gives every function by default, in the name of each cache folder
+#: (numba's cache index does not record them, so code compiled with other options is never
+#: loaded in their place)
+FLAVOUR = "nogil"
 
 
 def default_cache_dir() -> Path | None:
@@ -101,7 +105,8 @@ class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         root = cache_dir()
         if root is None:  # pragma: no cover - _cached only builds a cache when there is a dir
             raise OSError("no cache directory")
-        self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
+        # numba's cache index does not record options such as nogil: a folder per set of them
+        self._cache_path = str(root / f"{self.get_suitable_cache_subpath(py_file)}-{FLAVOUR}")
 
     def get_cache_path(self) -> str:
         return self._cache_path
@@ -165,9 +170,12 @@ def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
     """``numba.njit(**options)`` with the disk cache described in the module docstring.
 
     Use as ``@njit`` or ``@njit(inline="always")``; ``cache`` is not an option (always on where
-    a cache directory is usable)."""
+    a cache directory is usable). ``nogil`` defaults to True: a compiled call releases the GIL,
+    so that independent systems (the shards of a threaded vector env) step on several threads."""
     if "cache" in options:
         raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")
+
+    options.setdefault("nogil", True)
 
     def decorate(f: Callable[..., Any]) -> Any:
         return _cached(numba.njit(**options)(f))

@@ -24,6 +24,10 @@ Sections, in the order printed:
     cost per particle-step for 32 / 64 / 128 square cloths, peak memory of the 128 x 128 cloth,
     ClothSlide-v0 as single env, SyncVectorEnv(64), AsyncVectorEnv(2) and native vector env(64),
     and the error of rk4 and pymunk at equal CPU time.
+(e) threads: the native vector env with 512 copies at 1, 2 and all cores' threads, beside two
+    busy processes against one (the machine's own control); see :mod:`cparticles.bench_scaling`.
+(f) implicit Euler's cost per step on the stiff cloth at 15 x 15 to 120 x 120, with the
+    conjugate-gradient and the direct solve; see :mod:`cparticles.bench_scaling`.
 
 Progress goes to stderr (tqdm) when it is a terminal; ``--quiet`` turns it off.
 """
@@ -516,6 +520,11 @@ def markdown(r: dict[str, Any]) -> str:
               f"{d['cloth']}x{d['cloth']} cloth, {d['seconds']:g} s): rk4 error "
               f"{d['rk4_error_at_equal_time']:.2e} m, pymunk (30 iterations) error "
               f"{d['pymunk_error_at_equal_time']:.2e} m."]
+    from cparticles import bench_scaling as S
+
+    if "threads" in r:
+        lines += S.threads_markdown(r["threads"])
+    lines += ["", S.implicit_table(r["implicit_scaling"])]
     return "\n".join(lines)
 
 
@@ -528,8 +537,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int_at_least(MIN_REPEATS), default=MIN_REPEATS,
                         help=f"timed batches per figure, alternated (at least {MIN_REPEATS})")
     parser.add_argument("--skip-envs", action="store_true",
-                        help="skip the environment sections (small envs, vector scaling and "
-                        "vector modes)")
+                        help="skip the environment sections (small envs, vector scaling, "
+                        "vector modes and threads)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bar (it shows by default when stderr is a terminal)")
     parser.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)
@@ -543,16 +552,21 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
         progress: bool = False, *, sizes: list[int] | None = None,
         copies: tuple[int, ...] = VECTOR_COPIES, seconds: float | None = None,
-        accuracy_n: int = ACCURACY_N, accuracy_seconds: float = ACCURACY_SECONDS
-        ) -> dict[str, Any]:
+        accuracy_n: int = ACCURACY_N, accuracy_seconds: float = ACCURACY_SECONDS,
+        threads: bool = True, thread_copies: int = 512) -> dict[str, Any]:
     """Every section; the JSON document ``cparticles bench --json`` prints. ``sizes`` (cloth
     sizes of section (a)), ``copies`` (section (c)), ``seconds`` (per timed batch),
-    ``accuracy_n`` and ``accuracy_seconds`` (the equal-accuracy runs) override the defaults."""
+    ``accuracy_n`` and ``accuracy_seconds`` (the equal-accuracy runs), ``threads`` (section
+    (e) on or off) and ``thread_copies`` (its copies) override the defaults. ``quick`` times
+    implicit Euler at 15 x 15 and 30 x 30 only."""
     seconds = (0.05 if quick else 0.3) if seconds is None else seconds
     sizes = ([20, 64] if quick else [10, 20, 40, 64]) if sizes is None else sizes
     methods = [OURS, "rk4"] if quick else [m for m in METHODS if m != "implicit_euler"]
-    units = (len(sizes) * repeats + 5 + repeats + 2
-             + (repeats * (1 + len(VECTOR_ENVS) * len(copies)) + repeats if envs else 0))
+    from cparticles import bench_scaling as S
+
+    units = (len(sizes) * repeats + 5 + repeats + 2 + repeats
+             + (repeats * (1 + len(VECTOR_ENVS) * len(copies)) + repeats if envs else 0)
+             + (repeats * len(S.THREAD_ENVS) if envs and threads else 0))
     bar = Progress(units, progress)
     try:
         bar.section("accuracy")
@@ -580,6 +594,12 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
             results["vector_speedup"] = results["envs"]["vector_speedup"]
         bar.section("accuracy at equal time")
         results["accuracy"] = bench_accuracy_at_equal_time(progress=bar)
+        if envs and threads:
+            results["threads"] = S.bench_threads(S.THREAD_ENVS, thread_copies, repeats,
+                                                 2 * seconds, bar)
+        bar.section("implicit Euler")
+        results["implicit_scaling"] = S.bench_implicit_scaling(
+            S.IMPLICIT_SIZES[:2] if quick else S.IMPLICIT_SIZES, repeats, progress=bar)
     finally:
         bar.close()
     results["settings"] = {"quick": quick, "repeats": repeats, "batch_seconds": seconds,

@@ -5,10 +5,10 @@ A :class:`ParticleTask` holds ``num_envs`` copies of one scene as a single
 constraint Jacobian, one derivative evaluation for all copies), writes the agents' actions into the
 tiled actuator blocks (``ConstantForce.force`` rows or ``MouseSpring`` elements), and measures the
 task on every copy at once. :class:`ParticleEnv` is the task with one copy behind the
-``gymnasium.Env`` interface; :class:`ParticleVectorEnv` is the same task with N copies behind the
-``gymnasium.vector.VectorEnv`` interface (the native vector env, in the style of gymnasium's
-``CartPoleVectorEnv``). Both therefore run the same code, and the vector env's copy ``i`` reproduces
-a single env seeded with ``seed + i``, like ``SyncVectorEnv``.
+``gymnasium.Env`` interface; :class:`envs.vector.ParticleVectorEnv` is the same task with N copies
+behind the ``gymnasium.vector.VectorEnv`` interface (the native vector env, in the style of
+gymnasium's ``CartPoleVectorEnv``). Both therefore run the same code, and the vector env's copy
+``i`` reproduces a single env seeded with ``seed + i``, like ``SyncVectorEnv``.
 
 Coordinates: an env's *view box* ``(xmin, ymin, xmax, ymax)`` (metres) maps onto normalized scene
 coordinates ``[-1, 1]^2``. Observed positions, the observed goal and the spring action's grab and
@@ -25,9 +25,6 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from gymnasium.utils import seeding
-from gymnasium.vector import AutoresetMode, VectorEnv
-from gymnasium.vector.utils import batch_space
 
 from constrained_particles import (
     ConstantForce,
@@ -127,6 +124,36 @@ def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
     Non-empty whenever ``high - low > 2 gap`` (see :func:`check_goal_range`).
     """
     return away(rng.random(), low, high, x0, gap)
+
+
+def checked_actions(actions: Any, num_envs: int, action_dim: int, single: bool = False
+                    ) -> np.ndarray:
+    """``actions`` for ``num_envs`` copies validated and clipped, as a (num_envs, action_dim)
+    float64 array (see :meth:`ParticleTask.check_actions`, which this is)."""
+    shape = (action_dim,) if single else (num_envs, action_dim)
+    if (type(actions) is np.ndarray and actions.dtype.kind == "f"
+            and actions.shape == shape):  # the usual case, checked in a few operations
+        if _measure.ENABLED and actions.flags.c_contiguous and actions.dtype.char in "fd":
+            a = np.empty((num_envs, action_dim))
+            if not _measure.clip_actions(actions, a):
+                raise ValueError(f"action must be finite, got {actions!r}")
+            return a
+        a = actions.astype(np.float64).reshape(num_envs, action_dim)
+        if not np.isfinite(a).all():
+            raise ValueError(f"action must be finite, got {actions!r}")
+        return np.clip(a, -1.0, 1.0, out=a)
+    try:
+        raw = np.asarray(actions)
+        if raw.dtype.kind not in "iuf":
+            raise TypeError
+        a = raw.astype(np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"action must be numeric, got {actions!r}") from None
+    if a.shape != shape:
+        raise ValueError(f"action must have shape {shape}, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"action must be finite, got {actions!r}")
+    return np.clip(a, -1.0, 1.0).reshape(num_envs, action_dim)
 
 
 class ParticleTask:
@@ -442,30 +469,7 @@ class ParticleTask:
         wrong copy. ValueError for a wrong shape or a NaN/inf entry (nothing is changed then);
         finite values outside [-1, 1] are clipped into the action Box.
         """
-        shape = (self.action_dim,) if single else (self.num_envs, self.action_dim)
-        if (type(actions) is np.ndarray and actions.dtype.kind == "f"
-                and actions.shape == shape):  # the usual case, checked in a few operations
-            if _measure.ENABLED and actions.flags.c_contiguous and actions.dtype.char in "fd":
-                a = np.empty((self.num_envs, self.action_dim))
-                if not _measure.clip_actions(actions, a):
-                    raise ValueError(f"action must be finite, got {actions!r}")
-                return a
-            a = actions.astype(np.float64).reshape(self.num_envs, self.action_dim)
-            if not np.isfinite(a).all():
-                raise ValueError(f"action must be finite, got {actions!r}")
-            return np.clip(a, -1.0, 1.0, out=a)
-        try:
-            raw = np.asarray(actions)
-            if raw.dtype.kind not in "iuf":
-                raise TypeError
-            a = raw.astype(np.float64)
-        except (TypeError, ValueError, OverflowError):
-            raise ValueError(f"action must be numeric, got {actions!r}") from None
-        if a.shape != shape:
-            raise ValueError(f"action must have shape {shape}, got shape {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be finite, got {actions!r}")
-        return np.clip(a, -1.0, 1.0).reshape(self.num_envs, self.action_dim)
+        return checked_actions(actions, self.num_envs, self.action_dim, single)
 
     def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
         """Write :meth:`force_vectors` of every copy's ``action`` into the tiled actuator's
@@ -1095,158 +1099,3 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         state = self.__dict__.copy()
         state.update(_renderer=None, _window=None, _clock=None)
         return state
-
-
-class ParticleVectorEnv(_Rendering, VectorEnv):
-    """The native vector env: ``num_envs`` copies stepped as one system.
-
-    Autoreset is ``NEXT_STEP`` (a copy that ended is reset by the following ``step``, which
-    ignores its action and returns its first observation with reward 0); truncation after
-    ``max_episode_steps`` is handled here. Copy ``i`` draws its randomness from its own generator,
-    seeded with ``seed + i`` by ``reset(seed=seed)``, so it reproduces a single env (and
-    ``SyncVectorEnv``) seeded the same way. ``reset(options={"reset_mask": mask})`` resets only
-    the masked copies and writes only their slices.
-    """
-
-    task_class: ClassVar[type[ParticleTask]]
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 20,
-                                          "autoreset_mode": AutoresetMode.NEXT_STEP}
-
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: Any) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
-                             f"None, got {render_mode!r}")
-        self.task = self.task_class(num_envs, **kwargs)
-        self.num_envs = self.task.num_envs
-        self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
-                                                integer=True)
-        self.render_mode = render_mode
-        self.metadata = {**self.metadata,
-                         "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
-        self.single_action_space = self.task.single_action_space
-        self.single_observation_space = self.task.single_observation_space
-        self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self._renderer = None
-        self._rngs: list[np.random.Generator] | None = None
-        self.steps = np.zeros(self.num_envs, dtype=np.int64)
-        self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        self._info_keys: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
-
-    def _seed_copies(self, seed: int | Sequence[int | None] | None) -> None:
-        N = self.num_envs
-        seeds = ([seed + i for i in range(N)] if isinstance(seed, (int, np.integer))
-                 else [None] * N if seed is None else list(seed))
-        if len(seeds) != N:
-            raise ValueError(f"seed must be an int, None or a list of {N} seeds, got {seed!r}")
-        if self._rngs is None:
-            self._rngs = [seeding.np_random(
-                int(self.np_random.integers(2**63)) if s is None else s)[0] for s in seeds]
-        else:
-            self._rngs = [r if s is None else seeding.np_random(s)[0]
-                          for r, s in zip(self._rngs, seeds, strict=True)]
-
-    def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
-                ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
-        m, obs = self.task.measure_observe(stepped)
-        return obs, self._info(m, diverged), m
-
-    def _info(self, m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
-        """The info dict of measures ``m``: every measure but ``speed``, ``diverged``, and a
-        mask (all True) per key, as gymnasium's vector envs give them."""
-        info = _info(m, diverged)
-        keys = tuple(info)
-        if keys != self._info_keys[0]:  # the mask names, made once per set of keys
-            self._info_keys = (keys, tuple(f"_{k}" for k in keys))
-        masks = np.ones((len(keys), self.num_envs), bool)  # one allocation, a row per key
-        info.update(zip(self._info_keys[1], masks, strict=True))
-        return info
-
-    def reset(self, *, seed: int | Sequence[int | None] | None = None,
-              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every copy, or those in ``options["reset_mask"]`` (a (num_envs,) bool array)."""
-        super().reset(seed=seed if isinstance(seed, (int, np.integer)) else None)
-        self._seed_copies(seed)
-        mask = np.ones(self.num_envs, bool)
-        if options is not None and "reset_mask" in options:
-            mask = np.asarray(options["reset_mask"])
-            if mask.shape != (self.num_envs,) or mask.dtype != bool or not mask.any():
-                raise ValueError("options['reset_mask'] must be a bool array of shape "
-                                 f"({self.num_envs},) with at least one True")
-        envs = np.flatnonzero(mask)
-        self.task.reset_envs(envs, [self._rngs[i] for i in envs])
-        self.steps[mask] = 0
-        self._autoreset[mask] = False
-        obs, info, _ = self._result(np.zeros(self.num_envs, bool))
-        return obs, info
-
-    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                          dict[str, Any]]:
-        """Step every copy; copies that ended on the previous step are reset instead."""
-        if self._rngs is None:
-            raise gym.error.ResetNeeded("call reset() before step()")
-        # (count_nonzero: any() in a fraction of the time)
-        calm_start = not np.count_nonzero(self._autoreset)  # the usual step: no copy resets
-        if calm_start:  # the task's compiled whole step, where it has one (the same values)
-            done = self.task._step_all(actions, self.steps, self.max_episode_steps)
-            if done is not None:
-                obs, m, reward, terminated, truncated, self._autoreset, _ = done
-                return obs, reward, terminated, truncated, self._info(
-                    m, np.zeros(self.num_envs, bool))
-        a = self.task.check_actions(actions)
-        if calm_start:
-            self.task.apply(a)
-            diverged = self.task.simulate()
-            calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks to apply
-            done = self.task._finish_step(self.steps, self.max_episode_steps) if calm else None
-            if done is not None:  # the task's compiled end of the step (the same values)
-                obs, m, reward, terminated, truncated, self._autoreset, _ = done
-                return obs, reward, terminated, truncated, self._info(m, diverged)
-            resetting = self._autoreset  # (all False; not written below)
-        else:
-            calm = False
-            resetting = self._autoreset.copy()
-            envs = np.flatnonzero(resetting)
-            starts = self.task.sample_starts([self._rngs[i] for i in envs])
-            self.task.write_starts(envs, *starts)
-            self.task.apply(a, idle=resetting)
-            if (len(envs) == self.num_envs  # every copy starts anew: no physics to keep
-                    and type(self.task).simulate is ParticleTask.simulate):
-                self.task.pass_time()
-                diverged = np.zeros(self.num_envs, bool)
-            else:
-                diverged = self.task.simulate()
-                # the resetting copies were stepped along (no actuation); put their start back
-                self.task.write_starts(envs, *starts)
-                diverged[resetting] = False
-        obs, info, m = self._result(diverged,
-                                    self.task._every_copy if calm else ~resetting & ~diverged)
-        reward = self.task.reward(m)
-        self.steps += 1
-        if calm:
-            terminated = m["is_success"].copy()
-            truncated = self.steps >= self.max_episode_steps
-        else:
-            self.steps[resetting] = 0
-            terminated = m["is_success"] & ~diverged & ~resetting
-            truncated = ((self.steps >= self.max_episode_steps) | diverged) & ~resetting
-            reward[resetting] = 0.0
-        self._autoreset = terminated | truncated
-        return obs, reward, terminated, truncated, info
-
-    def render(self) -> list[np.ndarray] | None:
-        """One (H, W, 3) uint8 frame per copy (``render_mode="rgb_array"``)."""
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass it to make_vec()")
-            return None
-        return [self._frame(i) for i in range(self.num_envs)]
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        state["_renderer"] = None
-        return state
-
-    def __repr__(self) -> str:
-        name = self.spec.id if self.spec is not None else type(self).__name__
-        return f"{type(self).__name__}({name}, num_envs={self.num_envs})"

@@ -21,12 +21,12 @@ from constrained_particles import (
 from .base import (
     ParticleEnv,
     ParticleTask,
-    ParticleVectorEnv,
     check_goal_range,
     check_positive,
     uniform_away,
 )
 from .cloth_slide import SUCCESS_BONUS
+from .vector import ParticleVectorEnv
 
 #: Valid values of the ``target`` argument.
 TARGETS = ("lateral", "swingup")
@@ -325,8 +325,9 @@ class ChainSwingEnv(ParticleEnv):
 
 class ChainSwingVectorEnv(ParticleVectorEnv):
     """``num_envs`` ChainSwing copies stepped as one particle system (see
-    :class:`ChainSwingEnv`). Takes the single env's keyword arguments plus ``num_envs`` and
-    ``max_episode_steps`` (default 200)."""
+    :class:`ChainSwingEnv`). Takes the single env's keyword arguments plus ``num_envs``,
+    ``max_episode_steps`` (default 200) and ``num_threads`` (default 1; see
+    :class:`~envs.vector.ParticleVectorEnv`)."""
 
     task_class = ChainSwing
 

@@ -15,12 +15,12 @@ from .base import (
     OBS_LIMIT,
     ParticleEnv,
     ParticleTask,
-    ParticleVectorEnv,
     check_positive,
     check_range,
 )
 from .chain_swing import track_success
 from .cloth_slide import SUCCESS_BONUS, _hanging_equilibrium
+from .vector import ParticleVectorEnv
 
 #: Valid values of ClothPin's ``action_mode`` argument.
 DRAW_MODES = ("draw",)
@@ -551,8 +551,8 @@ class ClothPinEnv(ParticleEnv):
 
 class ClothPinVectorEnv(ParticleVectorEnv):
     """``num_envs`` ClothPin copies stepped as one particle system (see :class:`ClothPinEnv`).
-    Takes the single env's keyword arguments plus ``num_envs`` and ``max_episode_steps``
-    (default 200)."""
+    Takes the single env's keyword arguments plus ``num_envs``, ``max_episode_steps``
+    (default 200) and ``num_threads`` (default 1; see :class:`~envs.vector.ParticleVectorEnv`)."""
 
     task_class = ClothPin
 

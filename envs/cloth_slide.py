@@ -12,12 +12,12 @@ from constrained_particles import ParticleSystem, Wall, scenes
 from .base import (
     ParticleEnv,
     ParticleTask,
-    ParticleVectorEnv,
     check_goal_range,
     check_positive,
     uniform_away,
 )
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
+from .vector import ParticleVectorEnv
 
 __all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSlideEnv",
            "ClothSlideVectorEnv"]
@@ -316,8 +316,9 @@ class ClothSlideEnv(ParticleEnv):
 class ClothSlideVectorEnv(ParticleVectorEnv):
     """``num_envs`` ClothSlide copies stepped as one particle system (see :class:`ClothSlideEnv`).
 
-    Takes the same keyword arguments as the single env, plus ``num_envs`` and
-    ``max_episode_steps`` (default 200).
+    Takes the same keyword arguments as the single env, plus ``num_envs``,
+    ``max_episode_steps`` (default 200) and ``num_threads`` (default 1; see
+    :class:`~envs.vector.ParticleVectorEnv`).
     """
 
     task_class = ClothSlide

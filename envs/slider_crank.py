@@ -15,7 +15,6 @@ from .base import (
     OBS_LIMIT,
     ParticleEnv,
     ParticleTask,
-    ParticleVectorEnv,
     _measured,
     _owned,
     away,
@@ -24,6 +23,7 @@ from .base import (
     scaled,
 )
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
+from .vector import ParticleVectorEnv
 
 
 class SliderCrank(ShapedTask, ParticleTask):
@@ -451,8 +451,9 @@ class SliderCrankEnv(ParticleEnv):
 
 class SliderCrankVectorEnv(ParticleVectorEnv):
     """``num_envs`` SliderCrank copies stepped as one particle system (see
-    :class:`SliderCrankEnv`). Takes the single env's keyword arguments plus ``num_envs`` and
-    ``max_episode_steps`` (default 200)."""
+    :class:`SliderCrankEnv`). Takes the single env's keyword arguments plus ``num_envs``,
+    ``max_episode_steps`` (default 200) and ``num_threads`` (default 1; see
+    :class:`~envs.vector.ParticleVectorEnv`)."""
 
     task_class = SliderCrank
 

@@ -7,6 +7,7 @@ import pytest
 
 from constrained_particles import SimulationDiverged
 from cparticles import bench as B
+from cparticles import bench_scaling as S
 
 
 def test_alternate_times_every_entry_and_drops_a_diverging_one():
@@ -55,8 +56,15 @@ def test_json_carries_the_headline_keys(monkeypatch):
     monkeypatch.setattr(B, "bench_env_modes", lambda *a, **k: {"vector_speedup": 1.0})
     monkeypatch.setattr(B, "bench_accuracy_at_equal_time", lambda progress=None: {})
     monkeypatch.setattr(B, "bench_scaling", lambda *a, **k: {"scaling_ratio": 1.0})
+    monkeypatch.setattr(S, "IMPLICIT_SIZES", (4, 8))
     out = json.loads(json.dumps(B.run(repeats=1, sizes=[4], copies=(1, 2), seconds=0.0,
-                                      accuracy_n=4, accuracy_seconds=0.02)))
+                                      accuracy_n=4, accuracy_seconds=0.02, thread_copies=4)))
+    assert out["implicit_scaling"]["sizes"] == [4, 8]
+    for env_id in S.THREAD_ENVS:
+        row = out["threads"][env_id]
+        assert set(row["speedup"]) == {str(k) for k in S.thread_counts()}
+        assert row["speedup"]["1"] == 1.0 and row["control_speedup"] > 0
+        assert row["of_control"] > 0 and row["control_one_process"] > 0
     assert out["pymunk_ratio_equal_accuracy"]["4"] > 0
     assert set(out["pymunk_ratio"]) == {"1", "10"}
     assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.SMALL_ENVS}
@@ -82,3 +90,16 @@ def test_work_factor_counts_the_pieces_the_env_decides():
     w = B.work_factor("SliderCrank-v0", 16, steps=60)
     assert 1.0 < w <= MAX_PIECES
     assert B.work_factor("ClothSlide-v0", 2, steps=3) == 1.0
+
+
+def test_implicit_scaling_times_both_solvers_and_they_agree():
+    """At 4x4 and 8x8 (tiny: auto picks the direct solve) both solvers run, the growth is
+    the ratio of the costs, and CG lands within its tolerance of the direct solve."""
+    r = S.bench_implicit_scaling((4, 8), repeats=1, steps=2)
+    assert r["linear_growth"] == [4.0] and r["auto_picks"] == ["direct", "direct"]
+    for solver in ("cg", "direct"):
+        ms = r["ms_per_step"][solver]
+        assert all(t > 0 for t in ms)
+        assert r["growth"][solver] == [pytest.approx(ms[1] / ms[0])]
+    assert max(r["cg_minus_direct_max_m"]) < 1e-6
+    assert "8x8" in S.implicit_table(r)

@@ -43,6 +43,9 @@ CONFIGS = [(env_id, kind, {"action_mode": mode})
                                  ("ChainSwing-v0", ("force", "spring")),
                                  ("ClothPin-v0", ("draw",)))
            for mode in modes for kind in ("single", "vector")]
+# the threaded vector env: two shards of one copy each, stepped on two threads
+CONFIGS += [("ClothSlide-v0", "vector", {"action_mode": "force", "num_threads": 2}),
+            ("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads": 2})]
 EDITS = ("huge", "negative", "nan", "inf", "one_row", "dtype")
 ALLOWED = (ValueError, TypeError, RuntimeError)
 STEPS = 3
@@ -207,7 +210,8 @@ def _failures(config: int) -> tuple[int, list[str]]:
 
 
 @pytest.mark.parametrize("config", range(len(CONFIGS)),
-                         ids=[f"{c[0]}-{c[1]}-{c[2]['action_mode']}" for c in CONFIGS])
+                         ids=[f"{c[0]}-{c[1]}-{c[2]['action_mode']}"
+                              f"{'-threads' if 'num_threads' in c[2] else ''}" for c in CONFIGS])
 def test_no_public_array_edit_crashes(config: int) -> None:
     count, failures = _failures(config)
     assert count >= 6 * 10, f"only {count} cases found: the walk misses the env's arrays"
