@@ -1457,7 +1457,7 @@ if kernels.ENABLED:
         return OK, steps
 
 
-    @njit
+    @njit(nogil=True)
     def fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
                      kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
                      circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,

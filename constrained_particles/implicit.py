@@ -446,7 +446,7 @@ if kernels.ENABLED:
             total += rx * sx + ry * sy
         return total
 
-    @njit
+    @njit(nogil=True)
     def _cg_compiled(indptr, indices, data, P, fidx, S, z, b, warm, tol, floor,
                      max_iterations):  # pragma: no cover - compiled
         """The compiled twin of :func:`_cg_reference` (same arguments and results)."""

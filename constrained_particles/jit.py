@@ -43,10 +43,10 @@ from numba.core.dispatcher import Dispatcher
 __all__ = ["cache_dir", "default_cache_dir", "njit"]
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
-#: The options :func:`njit` gives every function by default, in the name of each cache folder
-#: (numba's cache index does not record them, so code compiled with other options is never
-#: loaded in their place)
-FLAVOUR = "nogil"
+#: A tag in the name of each cache folder, changed when the options given to :func:`njit` change
+#: (numba's cache index does not record options such as ``nogil``: without it, code compiled
+#: with the old options would be loaded in place of the new)
+FLAVOUR = "o2"
 
 
 def default_cache_dir() -> Path | None:
@@ -105,7 +105,6 @@ class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         root = cache_dir()
         if root is None:  # pragma: no cover - _cached only builds a cache when there is a dir
             raise OSError("no cache directory")
-        # numba's cache index does not record options such as nogil: a folder per set of them
         self._cache_path = str(root / f"{self.get_suitable_cache_subpath(py_file)}-{FLAVOUR}")
 
     def get_cache_path(self) -> str:
@@ -170,12 +169,12 @@ def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
     """``numba.njit(**options)`` with the disk cache described in the module docstring.
 
     Use as ``@njit`` or ``@njit(inline="always")``; ``cache`` is not an option (always on where
-    a cache directory is usable). ``nogil`` defaults to True: a compiled call releases the GIL,
-    so that independent systems (the shards of a threaded vector env) step on several threads."""
+    a cache directory is usable). Give ``nogil=True`` to an entry point that runs long enough
+    (a whole step: hundreds of microseconds) for other threads to use the released GIL, such
+    as the shards of a threaded vector env; a short call keeps it, since every release lets
+    another thread take the GIL and makes this one wait for it on return."""
     if "cache" in options:
         raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")
-
-    options.setdefault("nogil", True)
 
     def decorate(f: Callable[..., Any]) -> Any:
         return _cached(numba.njit(**options)(f))

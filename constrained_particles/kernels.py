@@ -159,7 +159,7 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                            np.ascontiguousarray(kd, dtype=np.float64),
                            np.ascontiguousarray(rest, dtype=np.float64), F)
 
-        @njit
+        @njit(nogil=True)
         def group_pieces(v: np.ndarray, F: np.ndarray, frow: np.ndarray, inv_mass: np.ndarray,
                          size: int, horizon: float, dt: float, travel: float, max_pieces: int,
                          out: np.ndarray, rows: np.ndarray) -> int:  # pragma: no cover

@@ -20,9 +20,10 @@ affects them alike.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import statistics
+import subprocess
+import sys
 import time
 from typing import Any
 
@@ -78,15 +79,58 @@ def _rate(vec: Any, batches: Any, seconds: float, copies: int) -> float:
             return k * copies / elapsed
 
 
-def _busy(env_id: str, copies: int, commands: Any, results: Any) -> None:
-    """A control process: steps its own vector env (one thread) from a shared start time for
-    the seconds it is told, and reports its rate; None ends it."""
+def _busy(env_id: str, copies: int) -> None:
+    """A control process (``python -m cparticles.bench_scaling busy ENV COPIES``): steps its
+    own vector env (one thread); for each line ``START SECONDS`` on stdin, from the wall-clock
+    time START for SECONDS, then prints its rate (env-steps/s). Ends at the end of stdin."""
     vec, batches = _vector(env_id, copies, 1)
-    results.put("ready")
-    while (order := commands.get()) is not None:
-        start_at, seconds = order
+    print("ready", flush=True)
+    for line in sys.stdin:
+        start_at, seconds = (float(v) for v in line.split())
         time.sleep(max(start_at - time.time(), 0.0))
-        results.put(_rate(vec, batches, seconds, copies))
+        print(_rate(vec, batches, seconds, copies), flush=True)
+
+
+class _Control:
+    """The busy control processes of one env, started at once and ended on exit."""
+
+    def __init__(self, env_id: str, copies: int, count: int = 2) -> None:
+        command = [sys.executable, "-m", "cparticles.bench_scaling", "busy", env_id, str(copies)]
+        self.procs = [subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                       text=True) for _ in range(count)]
+
+    def __enter__(self) -> _Control:
+        for p in self.procs:  # each has compiled (or loaded) its kernels and warmed up
+            if self._line(p) != "ready":
+                raise RuntimeError("a control process did not start")
+        return self
+
+    @staticmethod
+    def _line(p: subprocess.Popen) -> str:
+        assert p.stdout is not None
+        line = p.stdout.readline().strip()
+        if not line:
+            raise RuntimeError(f"a control process ended (exit code {p.wait()})")
+        return line
+
+    def rate(self, busy: int, seconds: float) -> float:
+        """Summed env-steps per second of the first ``busy`` processes stepping together."""
+        start_at = time.time() + 0.05
+        for p in self.procs[:busy]:
+            assert p.stdin is not None
+            p.stdin.write(f"{start_at!r} {seconds!r}\n")
+            p.stdin.flush()
+        return sum(float(self._line(p)) for p in self.procs[:busy])
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self.procs:
+            if p.stdin is not None:
+                p.stdin.close()
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:  # pragma: no cover - a stuck control process
+                p.kill()
+                p.wait()
 
 
 def bench_threads(env_ids: tuple[str, ...] = THREAD_ENVS, copies: int = THREAD_COPIES,
@@ -97,38 +141,21 @@ def bench_threads(env_ids: tuple[str, ...] = THREAD_ENVS, copies: int = THREAD_C
     counts = thread_counts()
     out: dict[str, Any] = {"cores": cores(), "copies": copies, "threads": counts,
                            "repeats": repeats, "batch_seconds": seconds}
-    context = multiprocessing.get_context("spawn")  # a clean interpreter: no inherited threads
     for env_id in env_ids:
         if progress is not None:
             progress.section(f"threads {env_id}")
         made = {k: _vector(env_id, copies, k) for k in counts}
-        commands = [context.Queue() for _ in range(2)]
-        results = context.Queue()
-        workers = [context.Process(target=_busy, args=(env_id, copies, c, results), daemon=True)
-                   for c in commands]
         rates: dict[Any, list[float]] = {**{k: [] for k in counts}, "one": [], "two": []}
         try:
-            for w in workers:
-                w.start()
-            for _ in workers:
-                results.get(timeout=600)  # both have compiled (or loaded) and warmed up
-            for _ in range(repeats):
-                for k in counts:
-                    rates[k].append(_rate(*made[k], seconds, copies))
-                for label, busy in (("one", commands[:1]), ("two", commands)):
-                    start_at = time.time() + 0.05
-                    for c in busy:
-                        c.put((start_at, seconds))
-                    rates[label].append(sum(results.get(timeout=600) for _ in busy))
-                if progress is not None:
-                    progress.update()
+            with _Control(env_id, copies) as control_processes:
+                for _ in range(repeats):
+                    for k in counts:
+                        rates[k].append(_rate(*made[k], seconds, copies))
+                    rates["one"].append(control_processes.rate(1, seconds))
+                    rates["two"].append(control_processes.rate(2, seconds))
+                    if progress is not None:
+                        progress.update()
         finally:
-            for c in commands:
-                c.put(None)
-            for w in workers:
-                w.join(timeout=30)
-                if w.is_alive():  # pragma: no cover - a stuck control process
-                    w.terminate()
             for vec, _ in made.values():
                 vec.close()
         control = [b / a for a, b in zip(rates["one"], rates["two"], strict=True)]
@@ -239,3 +266,10 @@ def implicit_table(result: dict[str, Any]) -> str:
                      f"{result['cg_iterations'][k]:>8.0f}{result['auto_picks'][k]:>8}"
                      f"{result['cg_minus_direct_max_m'][k]:>15.1e}")
     return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["busy"] and len(sys.argv) == 4:
+        _busy(sys.argv[2], int(sys.argv[3]))
+    else:
+        sys.exit("usage: python -m cparticles.bench_scaling busy ENV_ID COPIES")

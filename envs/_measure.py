@@ -78,7 +78,7 @@ if ENABLED:
         if not d <= residual[i]:
             residual[i] = d
 
-    @njit
+    @njit(nogil=True)
     def _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
                   walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps,
                   out, success):  # pragma: no cover - compiled
@@ -153,7 +153,7 @@ if ENABLED:
                     hold[i] = 0
             success[i] = hold[i] >= hold_steps
 
-    @njit
+    @njit(nogil=True)
     def _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
         """Write ``obs`` (N, 4 n + 1) float32: ``(x - c) / h``, ``v / h``, the goal's
         ``(goal - c_x) / h_x``, each computed in float64 (``ix, iy`` = 1 / h), rounded to
@@ -267,7 +267,7 @@ if ENABLED:
             out[i] = r + bonus * (1.0 if success[i] else 0.0)
             before[i] = phi[i]
 
-    @njit
+    @njit(nogil=True)
     def _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
                           walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps, out,
                           success, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
@@ -276,7 +276,7 @@ if ENABLED:
                   hold, stepped, blocked, tolerance, rest_speed, hold_steps, out, success)
         _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
 
-    @njit
+    @njit(nogil=True)
     def _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
                                 goal, track, track_scale, circ, rod, line, fixed, wall, walls,
                                 hold, stepped, tolerance, rest_speed, hold_steps, out, success,
@@ -289,7 +289,7 @@ if ENABLED:
                           walls, hold, stepped, below, tolerance, rest_speed, hold_steps, out,
                           success, cx, cy, ix, iy, limit, obs)
 
-    @njit
+    @njit(nogil=True)
     def _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n, goal,
                       track, track_scale, circ, rod, line, fixed, wall, hold, every, tolerance,
                       rest_speed, hold_steps, out, success, cx, cy, ix, iy, limit, obs, before,
@@ -323,7 +323,7 @@ if ENABLED:
     from constrained_particles.fused import fused_steps
     from constrained_particles.kernels import group_pieces as _group_pieces
 
-    @njit
+    @njit(nogil=True)
     def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
                     hp, counts, code, substeps, dt, x, v, mass, inv_mass, lam, lam_saved, x_out,
                     v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
