@@ -4,7 +4,7 @@ A :class:`ParticleTask` holds ``num_envs`` copies of one scene as a single
 :class:`~constrained_particles.ParticleSystem` built with ``system.tile(num_envs)`` (block-diagonal
 constraint Jacobian, one derivative evaluation for all copies), writes the agents' actions into the
 tiled actuator blocks (``ConstantForce.force`` rows or ``MouseSpring`` elements), and measures the
-task on every copy at once. :class:`ParticleEnv` is the task with one copy behind the
+task on every copy at once. :class:`envs.single.ParticleEnv` is the task with one copy behind the
 ``gymnasium.Env`` interface; :class:`envs.vector.ParticleVectorEnv` is the same task with N copies
 behind the ``gymnasium.vector.VectorEnv`` interface (the native vector env, in the style of
 gymnasium's ``CartPoleVectorEnv``). Both therefore run the same code, and the vector env's copy
@@ -22,7 +22,6 @@ import math
 from collections.abc import Iterator, Sequence
 from typing import Any, ClassVar
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
@@ -36,9 +35,14 @@ from constrained_particles import (
 )
 from constrained_particles.integrators import METHODS
 from constrained_particles.system import SimulationDiverged
-from constrained_particles.terms import ArgumentTypeError, as_index_array, is_frozen
+from constrained_particles.terms import as_index_array, is_frozen
 
 from . import _measure
+from .checks import (
+    _owned,
+    check_positive,
+    checked_actions,
+)
 
 #: Valid values of the ``action_mode`` argument.
 ACTION_MODES = ("force", "spring")
@@ -51,109 +55,6 @@ MIN_DT = 1e-6
 #: Most pieces one physics step is split into when particles move fast (see
 #: :meth:`ParticleTask.pieces`); a copy that would need more is left to the divergence check.
 MAX_PIECES = 64
-
-
-def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: bool = False,
-                   minimum: float = 0.0, maximum: float = 1e6) -> Any:
-    """``value`` as a finite number > 0 (>= 0 if ``allow_zero``; an int if ``integer``), at least
-    ``minimum`` and at most ``maximum`` (default 1e6, the systems' divergence limit), else
-    ValueError naming ``name`` (ArgumentTypeError, also a ValueError, for a non-number).
-
-    The bounds keep derived quantities (1 / dt, r^2, frame rates, arrays) representable: an
-    overflowing or underflowing argument gets this ValueError, never an OverflowError.
-    """
-    bound = ">= 0" if allow_zero else "> 0"
-    if isinstance(value, (bool, np.bool_)) or not isinstance(
-            value, (int, np.integer) if integer else (int, float, np.integer, np.floating)):
-        raise ArgumentTypeError(f"{name} must be {'an integer' if integer else 'a number'} "
-                                f"{bound}, got {value!r}")
-    if not (math.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
-        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
-    if value < minimum or value > maximum:
-        raise ValueError(f"{name} must be in [{minimum:g}, {maximum:g}], got {value!r}")
-    return int(value) if integer else float(value)
-
-
-def check_range(name: str, value: Any) -> tuple[float, float]:
-    """``value`` as a finite ``(low, high)`` pair with ``low <= high``, else ValueError."""
-    try:
-        low, high = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (low, high) pair of numbers, got {value!r}") from None
-    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
-    return low, high
-
-
-def check_goal_range(goal_range: Any, min_distance: Any) -> tuple[tuple[float, float], float]:
-    """Validate a goal range and the minimum start-to-goal distance (m) drawn inside it."""
-    low, high = check_range("goal_range", goal_range)
-    gap = check_positive("min_distance", min_distance, allow_zero=True)
-    if gap > 0 and high - low <= 2 * gap:
-        raise ValueError(f"goal_range {goal_range!r} must be wider than twice min_distance = "
-                         f"{gap:g} m, or no goal could be that far from some starts")
-    return (low, high), gap
-
-
-def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
-    """True if ``a`` is a C-ordered ndarray of ``dtype`` and ``shape``, as the task made it:
-    the compiled bookkeeping reads (and writes) such arrays without bounds checks, so one a
-    user replaced with another shape takes the numpy path and its checks instead."""
-    return (type(a) is np.ndarray and a.dtype == dtype and a.shape == shape
-            and a.flags.c_contiguous)
-
-
-def scaled(u: float, low: float, high: float) -> float:
-    """``low + (high - low) u``: how numpy's ``uniform(low, high)`` maps its double ``u`` in
-    [0, 1) (so a ``u`` drawn by ``rng.random()`` gives ``rng.uniform(low, high)`` bit for bit)."""
-    return low + (high - low) * u
-
-
-def away(u: float, low: float, high: float, x0: float, gap: float) -> float:
-    """:func:`uniform_away` from its draw ``u`` in [0, 1)."""
-    left = max(0.0, min(x0 - gap, high) - low)
-    right = max(0.0, high - max(x0 + gap, low))
-    w = scaled(u, 0.0, left + right)
-    return low + w if w < left else max(x0 + gap, low) + (w - left)
-
-
-def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
-                 gap: float) -> float:
-    """One draw, uniform on ``[low, high]`` minus ``(x0 - gap, x0 + gap)``.
-
-    Non-empty whenever ``high - low > 2 gap`` (see :func:`check_goal_range`).
-    """
-    return away(rng.random(), low, high, x0, gap)
-
-
-def checked_actions(actions: Any, num_envs: int, action_dim: int, single: bool = False
-                    ) -> np.ndarray:
-    """``actions`` for ``num_envs`` copies validated and clipped, as a (num_envs, action_dim)
-    float64 array (see :meth:`ParticleTask.check_actions`, which this is)."""
-    shape = (action_dim,) if single else (num_envs, action_dim)
-    if (type(actions) is np.ndarray and actions.dtype.kind == "f"
-            and actions.shape == shape):  # the usual case, checked in a few operations
-        if _measure.ENABLED and actions.flags.c_contiguous and actions.dtype.char in "fd":
-            a = np.empty((num_envs, action_dim))
-            if not _measure.clip_actions(actions, a):
-                raise ValueError(f"action must be finite, got {actions!r}")
-            return a
-        a = actions.astype(np.float64).reshape(num_envs, action_dim)
-        if not np.isfinite(a).all():
-            raise ValueError(f"action must be finite, got {actions!r}")
-        return np.clip(a, -1.0, 1.0, out=a)
-    try:
-        raw = np.asarray(actions)
-        if raw.dtype.kind not in "iuf":
-            raise TypeError
-        a = raw.astype(np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"action must be numeric, got {actions!r}") from None
-    if a.shape != shape:
-        raise ValueError(f"action must have shape {shape}, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"action must be finite, got {actions!r}")
-    return np.clip(a, -1.0, 1.0).reshape(num_envs, action_dim)
 
 
 class ParticleTask:
@@ -960,142 +861,3 @@ def _measured(out: np.ndarray, success: np.ndarray) -> dict[str, np.ndarray]:
     """The measures dict from the compiled measures' output rows (see ``_measure.measures``)."""
     return {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
             "constraint_residual": out[3], "is_success": success}
-
-
-def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
-    out = m.copy()
-    out.pop("speed", None)
-    out["diverged"] = diverged
-    return out
-
-
-class _Rendering:
-    """Drawing through constrained_particles.render (pygame-ce imported lazily)."""
-
-    task: ParticleTask
-    metadata: dict[str, Any]
-
-    def _frame(self, i: int, surface: Any = None) -> np.ndarray | None:
-        from constrained_particles.render import Renderer
-
-        if getattr(self, "_renderer", None) is None:
-            self._renderer = Renderer(bounds=self.task.view, size=FRAME_SIZE)
-        system, extra, status = self.task.drawing(i)
-        if surface is None:
-            return self._renderer.rgb_array(system, extra=extra, forces=True, hud=status)
-        self._renderer.draw(surface, system, extra=extra, forces=True, hud=status)
-        return None
-
-
-class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
-    """A single environment: its task with one copy. Subclasses set ``task_class``."""
-
-    task_class: ClassVar[type[ParticleTask]]
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
-                                          "render_fps": 20}
-
-    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
-                             f"None, got {render_mode!r}")
-        self.task = self.task_class(1, **kwargs)
-        self.action_space = self.task.single_action_space
-        self.observation_space = self.task.single_observation_space
-        self.render_mode = render_mode
-        self.metadata = {**self.metadata,
-                         "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
-        self._renderer = None
-        self._window = None
-        self._clock = None
-
-    def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
-                ) -> tuple[np.ndarray, dict[str, Any]]:
-        m, obs = self.task.measure_observe(stepped)
-        values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
-        info = {k: v for k, v in values.items() if k != "speed"}
-        info["diverged"] = diverged.item()
-        self._last, self._values = m, values
-        return obs[0], info
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
-              ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``."""
-        super().reset(seed=seed)
-        self.task.reset_envs([0], [self.np_random])
-        self.task.system.t = 0.0  # the episode's time (a vector env's copies share one clock)
-        obs, info = self._result(np.zeros(1, bool))
-        if self.render_mode == "human":
-            self.render()
-        return obs, info
-
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Apply ``action`` for one env step (``substeps`` physics steps)."""
-        a = self.task.check_actions(action, single=True)
-        self.task.apply(a)
-        diverged = self.task.simulate()
-        obs, info = self._result(diverged, ~diverged)
-        reward = self.task.reward_one(self._last, self._values)
-        terminated = info["is_success"] and not info["diverged"]
-        if self.render_mode == "human":
-            self.render()
-        return obs, reward, terminated, info["diverged"], info
-
-    def get_state(self) -> dict[str, Any]:
-        """The full simulation state, for planning: restore it with :meth:`set_state`.
-
-        Holds positions ``x`` (m), velocities ``v`` (m/s), time ``t`` (s), ``goal`` (m), the last
-        clipped ``action``, the constraint solver's warm start ``lam`` and the state of
-        ``np_random``. The ``TimeLimit`` wrapper's step counter is not part of it.
-        """
-        state = self.task.get_state(0)
-        state["np_random"] = self.np_random.bit_generator.state
-        return state
-
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Restore a state from :meth:`get_state`; ValueError naming the field if any field is
-        malformed, and then nothing changes (``np_random`` included)."""
-        if isinstance(state, dict) and "np_random" in state:
-            trial = type(self.np_random.bit_generator)()
-            try:
-                trial.state = state["np_random"]
-            except (TypeError, ValueError, KeyError, OverflowError):
-                raise ValueError(f"state['np_random'] must be the state of a "
-                                 f"{type(trial).__name__} from get_state(), got "
-                                 f"{state['np_random']!r}") from None
-        self.task.set_state(0, state)
-        if "np_random" in state:
-            self.np_random.bit_generator.state = state["np_random"]
-
-    def render(self) -> np.ndarray | None:
-        """``"rgb_array"``: an (H, W, 3) uint8 frame; ``"human"``: draw into a pygame window."""
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")
-            return None
-        if self.render_mode == "rgb_array":
-            return self._frame(0)
-        import pygame
-
-        if self._window is None:
-            pygame.display.init()
-            pygame.display.set_caption(type(self).__name__)
-            self._window = pygame.display.set_mode(FRAME_SIZE)
-            self._clock = pygame.time.Clock()
-        pygame.event.pump()
-        self._frame(0, self._window)
-        pygame.display.flip()
-        self._clock.tick(self.metadata["render_fps"])
-        return None
-
-    def close(self) -> None:
-        """Close the pygame window, if any (safe to call twice)."""
-        if self._window is not None:
-            import pygame
-
-            pygame.display.quit()
-            self._window = None
-            self._clock = None
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        state.update(_renderer=None, _window=None, _clock=None)
-        return state

@@ -18,14 +18,10 @@ from constrained_particles import (
     scenes,
 )
 
-from .base import (
-    ParticleEnv,
-    ParticleTask,
-    check_goal_range,
-    check_positive,
-    uniform_away,
-)
+from .base import ParticleTask
+from .checks import check_goal_range, check_positive, uniform_away
 from .cloth_slide import SUCCESS_BONUS
+from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 #: Valid values of the ``target`` argument.

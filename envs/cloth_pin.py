@@ -11,15 +11,11 @@ from gymnasium import spaces
 
 from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
 
-from .base import (
-    OBS_LIMIT,
-    ParticleEnv,
-    ParticleTask,
-    check_positive,
-    check_range,
-)
+from .base import OBS_LIMIT, ParticleTask
 from .chain_swing import track_success
+from .checks import check_positive, check_range
 from .cloth_slide import SUCCESS_BONUS, _hanging_equilibrium
+from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 #: Valid values of ClothPin's ``action_mode`` argument.

@@ -9,14 +9,10 @@ import scipy.optimize
 
 from constrained_particles import ParticleSystem, Wall, scenes
 
-from .base import (
-    ParticleEnv,
-    ParticleTask,
-    check_goal_range,
-    check_positive,
-    uniform_away,
-)
+from .base import ParticleTask
+from .checks import check_goal_range, check_positive, uniform_away
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
+from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 __all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSlideEnv",

@@ -10,19 +10,10 @@ import numpy as np
 from constrained_particles import Drag, ParticleSystem, fused, scenes
 
 from . import _measure
-from .base import (
-    MAX_PIECES,
-    OBS_LIMIT,
-    ParticleEnv,
-    ParticleTask,
-    _measured,
-    _owned,
-    away,
-    check_goal_range,
-    check_positive,
-    scaled,
-)
+from .base import MAX_PIECES, OBS_LIMIT, ParticleTask, _measured
+from .checks import _owned, away, check_goal_range, check_positive, scaled
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
+from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 
@@ -133,7 +124,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         :meth:`_linkage_values`) and the goal (m). Three uniform doubles, drawn in one call
         (the same three that three calls of ``rng.random()`` return): the crank angle
         ~ U(-pi, pi), the angular speed ~ U(+-max_start_speed / radius), and the goal's draw
-        (:func:`~envs.base.uniform_away`)."""
+        (:func:`~envs.checks.uniform_away`)."""
         u_angle, u_speed, u_goal = rng.random(3).tolist()
         angle = scaled(u_angle, -np.pi, np.pi)
         omega = scaled(u_speed, -1.0, 1.0) * self.max_start_speed / self.radius

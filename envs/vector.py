@@ -28,7 +28,9 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .base import ParticleTask, _info, _Rendering, check_positive, checked_actions
+from .base import ParticleTask
+from .checks import check_positive, checked_actions
+from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
 DEFAULT_THREADS = 1

@@ -590,7 +590,7 @@ def test_a_subclass_start_is_used_by_batched_resets():
 def test_scaled_draws_are_numpys_uniform_bit_for_bit():
     """envs.base.scaled of a ``rng.random()`` draw (the starts' scalar draws) is exactly what
     Generator.uniform returns from the same stream, for ranges of every sign and size."""
-    from envs.base import scaled
+    from envs.checks import scaled
 
     bounds = [(-np.pi, np.pi), (-1.0, 1.0), (0.0, 0.37), (0.8, 1.05), (-1e-3, 5e3), (2.0, 2.0)]
     for seed in range(5):

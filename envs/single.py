@@ -1,0 +1,150 @@
+"""The single environment: a task with one copy behind ``gymnasium.Env``, and the drawing both
+it and the native vector env (:mod:`envs.vector`) use."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from .base import FRAME_SIZE, ParticleTask
+
+
+def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
+    out = m.copy()
+    out.pop("speed", None)
+    out["diverged"] = diverged
+    return out
+
+
+class _Rendering:
+    """Drawing through constrained_particles.render (pygame-ce imported lazily)."""
+
+    task: ParticleTask
+    metadata: dict[str, Any]
+
+    def _frame(self, i: int, surface: Any = None) -> np.ndarray | None:
+        from constrained_particles.render import Renderer
+
+        if getattr(self, "_renderer", None) is None:
+            self._renderer = Renderer(bounds=self.task.view, size=FRAME_SIZE)
+        system, extra, status = self.task.drawing(i)
+        if surface is None:
+            return self._renderer.rgb_array(system, extra=extra, forces=True, hud=status)
+        self._renderer.draw(surface, system, extra=extra, forces=True, hud=status)
+        return None
+
+
+class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
+    """A single environment: its task with one copy. Subclasses set ``task_class``."""
+
+    task_class: ClassVar[type[ParticleTask]]
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
+                                          "render_fps": 20}
+
+    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
+                             f"None, got {render_mode!r}")
+        self.task = self.task_class(1, **kwargs)
+        self.action_space = self.task.single_action_space
+        self.observation_space = self.task.single_observation_space
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata,
+                         "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
+        self._renderer = None
+        self._window = None
+        self._clock = None
+
+    def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
+                ) -> tuple[np.ndarray, dict[str, Any]]:
+        m, obs = self.task.measure_observe(stepped)
+        values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
+        info = {k: v for k, v in values.items() if k != "speed"}
+        info["diverged"] = diverged.item()
+        self._last, self._values = m, values
+        return obs[0], info
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``."""
+        super().reset(seed=seed)
+        self.task.reset_envs([0], [self.np_random])
+        self.task.system.t = 0.0  # the episode's time (a vector env's copies share one clock)
+        obs, info = self._result(np.zeros(1, bool))
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply ``action`` for one env step (``substeps`` physics steps)."""
+        a = self.task.check_actions(action, single=True)
+        self.task.apply(a)
+        diverged = self.task.simulate()
+        obs, info = self._result(diverged, ~diverged)
+        reward = self.task.reward_one(self._last, self._values)
+        terminated = info["is_success"] and not info["diverged"]
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, info["diverged"], info
+
+    def get_state(self) -> dict[str, Any]:
+        """The full simulation state, for planning: restore it with :meth:`set_state`.
+
+        Holds positions ``x`` (m), velocities ``v`` (m/s), time ``t`` (s), ``goal`` (m), the last
+        clipped ``action``, the constraint solver's warm start ``lam`` and the state of
+        ``np_random``. The ``TimeLimit`` wrapper's step counter is not part of it.
+        """
+        state = self.task.get_state(0)
+        state["np_random"] = self.np_random.bit_generator.state
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore a state from :meth:`get_state`; ValueError naming the field if any field is
+        malformed, and then nothing changes (``np_random`` included)."""
+        if isinstance(state, dict) and "np_random" in state:
+            trial = type(self.np_random.bit_generator)()
+            try:
+                trial.state = state["np_random"]
+            except (TypeError, ValueError, KeyError, OverflowError):
+                raise ValueError(f"state['np_random'] must be the state of a "
+                                 f"{type(trial).__name__} from get_state(), got "
+                                 f"{state['np_random']!r}") from None
+        self.task.set_state(0, state)
+        if "np_random" in state:
+            self.np_random.bit_generator.state = state["np_random"]
+
+    def render(self) -> np.ndarray | None:
+        """``"rgb_array"``: an (H, W, 3) uint8 frame; ``"human"``: draw into a pygame window."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")
+            return None
+        if self.render_mode == "rgb_array":
+            return self._frame(0)
+        import pygame
+
+        if self._window is None:
+            pygame.display.init()
+            pygame.display.set_caption(type(self).__name__)
+            self._window = pygame.display.set_mode(FRAME_SIZE)
+            self._clock = pygame.time.Clock()
+        pygame.event.pump()
+        self._frame(0, self._window)
+        pygame.display.flip()
+        self._clock.tick(self.metadata["render_fps"])
+        return None
+
+    def close(self) -> None:
+        """Close the pygame window, if any (safe to call twice)."""
+        if self._window is not None:
+            import pygame
+
+            pygame.display.quit()
+            self._window = None
+            self._clock = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state.update(_renderer=None, _window=None, _clock=None)
+        return state
