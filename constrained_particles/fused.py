@@ -60,6 +60,15 @@ if TYPE_CHECKING:
 
 #: Integrators the fused kernel runs, with their codes.
 METHOD_CODES = {"euler": 0, "midpoint": 1, "rk4": 2, "symplectic_euler": 3, "rattle": 4}
+#: Butcher tableaus of the explicit Runge-Kutta methods the fused step runs in one stage loop:
+#: stage i's state is ``y + h sum_j A[i, j] k_j`` and the step ``y + (h / D) sum_j W[j] k_j``
+#: (W integers over a common denominator D, summed left to right: the arithmetic of
+#: :func:`constrained_particles.integrators.rk4` and ``midpoint`` term for term).
+MIDPOINT_A = np.array([[0.0, 0.0], [0.5, 0.0]])
+MIDPOINT_W, MIDPOINT_D = np.array([0.0, 1.0]), 1.0
+RK4_A = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.0],
+                  [0.0, 0.0, 1.0, 0.0]])
+RK4_W, RK4_D = np.array([1.0, 2.0, 2.0, 1.0]), 6.0
 #: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
 #: them): convergence and stall tolerances as fractions of the system's size, and iterations.
 RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
@@ -1368,70 +1377,54 @@ if kernels.ENABLED:
                         else:
                             vs[q, d] = v[q, d] + hq * a1[q, d]
                             xs[q, d] = x[q, d] + hq * vs[q, d]
-            elif method == 1:  # explicit midpoint
-                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
+            else:  # explicit Runge-Kutta (midpoint, rk4): one stage loop over the tableau
+                if method == 1:
+                    tab_a, tab_w, tab_d = MIDPOINT_A, MIDPOINT_W, MIDPOINT_D
+                else:
+                    tab_a, tab_w, tab_d = RK4_A, RK4_W, RK4_D
+                stages = tab_w.shape[0]
+                kv = (vs2, vs3, vs)  # the velocities of stages 1, 2, 3 (stage 0's is v)
+                ka = (a1, a2, a3, a4)  # the accelerations of stages 0, 1, 2, 3
+                for stage in range(stages):
+                    if stage > 0:  # its state: y + h sum_j A[stage, j] k_j (nonzero terms)
+                        out_v = kv[stage - 1]
+                        for i in range(n if live is None else live[4][0]):
+                            q = i if live is None else live[1][i]
+                            hq = hp[q] if per_particle else h
+                            for d in range(2):
+                                px, pv = x[q, d], v[q, d]
+                                for j in range(stage):
+                                    c = tab_a[stage, j]
+                                    if c != 0.0:
+                                        kx = v[q, d] if j == 0 else kv[j - 1][q, d]
+                                        px += (c * hq) * kx
+                                        pv += (c * hq) * ka[j][q, d]
+                                xs[q, d], out_v[q, d] = px, pv
+                        sx, sv = xs, out_v
+                    else:
+                        sx, sv = x, v
+                    if not _accel(sx, sv, mass, inv_mass, w2, grav, const, spring, ang, drag,
+                                  wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
+                                  comp_ptr, ks, kd, tol, lam, ka[stage], C, Cdot, Jv, Jdv, b,
+                                  work, A, tmp, live):
+                        return FALLBACK, step
+                # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
                 for i in range(n if live is None else live[4][0]):
                     q = i if live is None else live[1][i]
-                    half = 0.5 * (hp[q] if per_particle else h)
+                    scale = (hp[q] if per_particle else h) / tab_d
                     for d in range(2):
-                        xs[q, d] = x[q, d] + half * v[q, d]
-                        vs2[q, d] = v[q, d] + half * a1[q, d]
-                if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
-                    hq = hp[q] if per_particle else h
-                    for d in range(2):
-                        xs[q, d] = x[q, d] + hq * vs2[q, d]
-                        vs[q, d] = v[q, d] + hq * a2[q, d]
-            else:  # rk4, every stage from the step's initial state
-                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
-                    half = 0.5 * (hp[q] if per_particle else h)
-                    for d in range(2):
-                        vs2[q, d] = v[q, d] + half * a1[q, d]  # k2x
-                        xs[q, d] = x[q, d] + half * v[q, d]
-                if not _accel(xs, vs2, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a2, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
-                    half = 0.5 * (hp[q] if per_particle else h)
-                    for d in range(2):
-                        vs3[q, d] = v[q, d] + half * a2[q, d]  # k3x
-                        xs[q, d] = x[q, d] + half * vs2[q, d]
-                if not _accel(xs, vs3, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a3, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
-                    hq = hp[q] if per_particle else h
-                    for d in range(2):
-                        vs[q, d] = v[q, d] + hq * a3[q, d]  # k4x
-                        xs[q, d] = x[q, d] + hq * vs3[q, d]
-                if not _accel(xs, vs, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a4, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
-                    return FALLBACK, step
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
-                    sixth = (hp[q] if per_particle else h) / 6.0
-                    for d in range(2):
-                        k1x, k2x, k3x, k4x = v[q, d], vs2[q, d], vs3[q, d], vs[q, d]
-                        xs[q, d] = x[q, d] + sixth * (((k1x + 2.0 * k2x) + 2.0 * k3x) + k4x)
-                        vs[q, d] = v[q, d] + sixth * (((a1[q, d] + 2.0 * a2[q, d])
-                                                       + 2.0 * a3[q, d]) + a4[q, d])
+                        tx, tv, first = 0.0, 0.0, True
+                        for j in range(stages):
+                            wj = tab_w[j]
+                            if wj != 0.0:
+                                kx = v[q, d] if j == 0 else kv[j - 1][q, d]
+                                if first:
+                                    tx, tv, first = wj * kx, wj * ka[j][q, d], False
+                                else:
+                                    tx += wj * kx
+                                    tv += wj * ka[j][q, d]
+                        xs[q, d] = x[q, d] + scale * tx
+                        vs[q, d] = v[q, d] + scale * tv
             # divergence: non-finite, beyond the limit, or off the constraints
             if live is None and n >= FLAT_MIN:
                 if _beyond_flat(xs, vs, limit):
