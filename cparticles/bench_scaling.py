@@ -51,9 +51,11 @@ def thread_counts() -> list[int]:
 
 
 # ---------------------------------------------------------------- (e) threads
-def _vector(env_id: str, copies: int, threads: int) -> tuple[Any, Any]:
+def _vector(env_id: str, copies: int, threads: int, warmup: int | None = None
+            ) -> tuple[Any, Any]:
     """A reset native vector env, warmed up through an episode's end (so every path the timed
-    steps take has loaded its compiled code), and its cycle of random action batches."""
+    steps take has loaded its compiled code; ``warmup`` steps instead if given), and its cycle
+    of random action batches."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the ids)
@@ -63,7 +65,9 @@ def _vector(env_id: str, copies: int, threads: int) -> tuple[Any, Any]:
                        num_threads=threads)
     vec.reset(seed=0)
     batches = _random_batches(vec, 0)
-    for _ in range((gym.spec(env_id).max_episode_steps or 0) + 2):
+    if warmup is None:
+        warmup = (gym.spec(env_id).max_episode_steps or 0) + 2
+    for _ in range(warmup):
         vec.step(next(batches))
     return vec, batches
 
@@ -79,11 +83,12 @@ def _rate(vec: Any, batches: Any, seconds: float, copies: int) -> float:
             return k * copies / elapsed
 
 
-def _busy(env_id: str, copies: int) -> None:
-    """A control process (``python -m cparticles.bench_scaling busy ENV COPIES``): steps its
-    own vector env (one thread); for each line ``START SECONDS`` on stdin, from the wall-clock
-    time START for SECONDS, then prints its rate (env-steps/s). Ends at the end of stdin."""
-    vec, batches = _vector(env_id, copies, 1)
+def _busy(env_id: str, copies: int, warmup: int | None) -> None:
+    """A control process (``python -m cparticles.bench_scaling busy ENV COPIES [WARMUP]``):
+    steps its own vector env (one thread); for each line ``START SECONDS`` on stdin, from the
+    wall-clock time START for SECONDS, then prints its rate (env-steps/s). Ends at the end of
+    stdin."""
+    vec, batches = _vector(env_id, copies, 1, warmup)
     print("ready", flush=True)
     for line in sys.stdin:
         start_at, seconds = (float(v) for v in line.split())
@@ -94,8 +99,9 @@ def _busy(env_id: str, copies: int) -> None:
 class _Control:
     """The busy control processes of one env, started at once and ended on exit."""
 
-    def __init__(self, env_id: str, copies: int, count: int = 2) -> None:
-        command = [sys.executable, "-m", "cparticles.bench_scaling", "busy", env_id, str(copies)]
+    def __init__(self, env_id: str, copies: int, warmup: int | None, count: int = 2) -> None:
+        command = [sys.executable, "-m", "cparticles.bench_scaling", "busy", env_id, str(copies),
+                   *([] if warmup is None else [str(warmup)])]
         self.procs = [subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                        text=True) for _ in range(count)]
 
@@ -134,20 +140,21 @@ class _Control:
 
 
 def bench_threads(env_ids: tuple[str, ...] = THREAD_ENVS, copies: int = THREAD_COPIES,
-                  repeats: int = 5, seconds: float = 0.5, progress: Any = None
-                  ) -> dict[str, Any]:
+                  repeats: int = 5, seconds: float = 0.5, progress: Any = None,
+                  warmup: int | None = None) -> dict[str, Any]:
     """Section (e): for each env, env-steps per second at each thread count, the speedups over
-    one thread, and the two-process control (see the module docstring)."""
+    one thread, and the two-process control (see the module docstring). ``warmup``: untimed
+    steps of every env before timing (default: through the end of an episode)."""
     counts = thread_counts()
     out: dict[str, Any] = {"cores": cores(), "copies": copies, "threads": counts,
                            "repeats": repeats, "batch_seconds": seconds}
     for env_id in env_ids:
         if progress is not None:
             progress.section(f"threads {env_id}")
-        made = {k: _vector(env_id, copies, k) for k in counts}
+        made = {k: _vector(env_id, copies, k, warmup) for k in counts}
         rates: dict[Any, list[float]] = {**{k: [] for k in counts}, "one": [], "two": []}
         try:
-            with _Control(env_id, copies) as control_processes:
+            with _Control(env_id, copies, warmup) as control_processes:
                 for _ in range(repeats):
                     for k in counts:
                         rates[k].append(_rate(*made[k], seconds, copies))
@@ -269,7 +276,7 @@ def implicit_table(result: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["busy"] and len(sys.argv) == 4:
-        _busy(sys.argv[2], int(sys.argv[3]))
+    if sys.argv[1:2] == ["busy"] and len(sys.argv) in (4, 5):
+        _busy(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) == 5 else None)
     else:
-        sys.exit("usage: python -m cparticles.bench_scaling busy ENV_ID COPIES")
+        sys.exit("usage: python -m cparticles.bench_scaling busy ENV_ID COPIES [WARMUP]")

@@ -104,9 +104,10 @@ def test_implicit_scaling_times_both_solvers_and_they_agree():
 
 
 def test_thread_section_reports_speedups_and_the_control():
-    """One env at 4 copies, one round of zero-length batches (at least one step each): every
-    thread count, the speedups over one thread and the two-process control are there."""
-    r = S.bench_threads(("SliderCrank-v0",), copies=4, repeats=1, seconds=0.0)
+    """One env at 4 copies, two warm-up steps, one round of zero-length batches (at least one
+    step each): every thread count, the speedups over one thread and the two-process control
+    are there."""
+    r = S.bench_threads(("SliderCrank-v0",), copies=4, repeats=1, seconds=0.0, warmup=2)
     row = r["SliderCrank-v0"]
     assert r["threads"] == S.thread_counts() and r["cores"] >= 1
     assert set(row["speedup"]) == set(S.thread_counts()) and row["speedup"][1] == 1.0
