@@ -171,15 +171,16 @@ if ENABLED:
             obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
 
     @njit
-    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, current, particles, anchors, active):
-        # pragma: no cover - compiled
+    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
+              active):  # pragma: no cover - compiled
         """The spring action of copies ``envs``: for each, the particle of the copy nearest the
         grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
-        the target ``c + h * action[2:]`` (``anchors[envs]``, m) and whether the particle is
-        within ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and
-        ``active`` are the mouse-spring block's own arrays, written in place; True if some
-        copy's particle differs from its entry of ``current`` (the block's particle array),
-        which the caller must then replace."""
+        the target ``x_p + reach * u`` (``anchors[envs]``, m), ``u`` the pull ``action[2:]``
+        scaled down onto the unit disc if longer than 1, and whether the particle is within
+        ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and ``active``
+        are the mouse-spring block's own arrays, written in place; True if some copy's particle
+        differs from its entry of ``current`` (the block's particle array), which the caller
+        must then replace."""
         changed = False
         for e in range(envs.shape[0]):
             i = envs[e]
@@ -196,8 +197,13 @@ if ENABLED:
                     best = k
             particles[e] = best
             changed |= current[i] != best
-            anchors[i, 0] = cx + hx * action[e, 2]
-            anchors[i, 1] = cy + hy * action[e, 3]
+            ux, uy = action[e, 2], action[e, 3]
+            norm2 = ux * ux + uy * uy
+            if norm2 > 1.0:
+                scale = 1.0 / math.sqrt(norm2)
+                ux, uy = ux * scale, uy * scale
+            anchors[i, 0] = x[best, 0] + reach * ux
+            anchors[i, 1] = x[best, 1] + reach * uy
             active[i] = d2 <= r2
         return changed
 

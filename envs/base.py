@@ -52,6 +52,9 @@ OBS_LIMIT = 10.0
 FRAME_SIZE = (600, 400)
 #: Shortest physics step (s) an env accepts.
 MIN_DT = 1e-6
+#: The registered episode length (env steps): a diverged step's penalty covers the cost of
+#: playing on for this many steps (see :attr:`ParticleTask.divergence_penalty`).
+EPISODE_STEPS = 200
 #: Most pieces one physics step is split into when particles move fast (see
 #: :meth:`ParticleTask.pieces`); a copy that would need more is left to the divergence check.
 MAX_PIECES = 64
@@ -94,6 +97,17 @@ class ParticleTask:
                              f"it in place instead), got {type(value).__name__} "
                              f"{getattr(value, 'dtype', '')} {np.shape(value)}")
         super().__setattr__(name, value)
+    #: The most reward one step of playing on can cost before success (a task's time cost, or its
+    #: per-step distance cost at the farthest): see :attr:`divergence_penalty`.
+    step_cost: float = 0.0
+
+    @property
+    def divergence_penalty(self) -> float:
+        """Reward subtracted on a diverged step, which ends the episode as terminated: the cost
+        of playing on for a whole episode (``EPISODE_STEPS * step_cost``), so that diverging is
+        never a cheaper way out than playing on."""
+        return EPISODE_STEPS * self.step_cost
+
     #: Farthest distance (m) a particle may travel in one integrator step before the physics step
     #: is split into pieces (subclasses set it from the scene's smallest length).
     step_travel: float = math.inf
@@ -116,9 +130,14 @@ class ParticleTask:
         self.residual_limit = (math.inf if residual_limit == math.inf else
                                check_positive("residual_limit", residual_limit))
         self.max_force = check_positive("max_force", max_force)
-        self.grab_radius = check_positive("grab_radius", grab_radius)
+        self.grab_radius = (math.inf if grab_radius == math.inf else
+                            check_positive("grab_radius", grab_radius))
         self.mouse_ks = check_positive("mouse_ks", mouse_ks)
         self.mouse_kd = check_positive("mouse_kd", mouse_kd, allow_zero=True)
+        #: Distance (m) from the grabbed particle to the spring action's target at a pull of
+        #: 1 (``max_force / mouse_ks``): the spring pulls a particle at rest with at most
+        #: ``max_force`` newtons.
+        self.spring_reach = self.max_force / self.mouse_ks
         self.goal_tolerance = check_positive("goal_tolerance", goal_tolerance)
         self.rest_speed = check_positive("rest_speed", rest_speed)
         self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
@@ -402,16 +421,21 @@ class ParticleTask:
             particles = np.empty(len(envs), np.int64)  # compiled (the reference is below)
             c, h = self.center, self.half
             if _measure.grab(x, self.n, envs, action, c[0], c[1], h[0], h[1],
-                             self.grab_radius**2, act.particle, particles, act.anchor,
-                             act.active):  # anchors and flags are written in place
+                             self.grab_radius**2, self.spring_reach, act.particle, particles,
+                             act.anchor, act.active):  # anchors and flags written in place
                 act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
         else:
-            # the spring action: the nearest particle within grab_radius of the grab point
+            # the spring action: the particle nearest the grab point (within grab_radius), and
+            # a target spring_reach * pull from it, the pull clipped to the unit disc
             x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]
             grab = self.to_world(action[:, :2])
             d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
             nearest = np.argmin(d2, axis=1)
-            act.set_checked(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
+            pull = action[:, 2:]
+            norm2 = pull[:, 0] * pull[:, 0] + pull[:, 1] * pull[:, 1]
+            pull = pull * np.where(norm2 > 1.0, 1.0 / np.sqrt(norm2), 1.0)[:, None]
+            target = x[np.arange(len(envs)), nearest] + self.spring_reach * pull
+            act.set_checked(envs, envs * self.n + nearest, target,
                             d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
 
     def _grab_ready(self, act: Any, envs: np.ndarray, action: np.ndarray, x: Any) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -60,7 +61,7 @@ class ChainSwing(ParticleTask):
                  goal_range: tuple[float, float] | None = None,
                  min_distance: float | None = None, start_angle: float = 0.1,
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05, hold_steps: int = 5,
-                 grab_radius: float = 0.2, mouse_ks: float = 5.0,
+                 grab_radius: float = math.inf, mouse_ks: float = 5.0,
                  mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
         if target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
@@ -95,6 +96,9 @@ class ChainSwing(ParticleTask):
         self.view = (-self.travel - 0.3, -reach, self.travel + 0.3, reach)
         #: The tracked coordinate is the tip's x (m).
         self.tracked_particles = np.array([self.links])
+        #: The per-step distance cost at the farthest (m): the tip is within ``length`` of the
+        #: carrier, the carrier and the target within ``travel`` of x = 0.
+        self.step_cost = 2.0 * (self.travel + self.length)
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -250,8 +254,11 @@ class ChainSwingEnv(ParticleEnv):
     1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
        steps (success, ``info["is_success"]``).
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty``: 200 steps of the per-step distance cost at
+       the farthest (``2 (travel + length)`` m), so diverging is never a cheaper way out
+       than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (the
     largest distance in m by which the carrier leaves its wire or a rod its length),

@@ -14,7 +14,8 @@ from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, sce
 from .base import OBS_LIMIT, ParticleTask
 from .chain_swing import track_success
 from .checks import check_positive, check_range
-from .cloth_slide import SUCCESS_BONUS, _hanging_equilibrium
+from .cloth_slide import _hanging_equilibrium
+from .rewards import ShapedTask
 from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
@@ -24,7 +25,7 @@ DRAW_MODES = ("draw",)
 SLOT_SIZE = 7
 
 
-class ClothPin(ParticleTask):
+class ClothPin(ShapedTask, ParticleTask):
     """The ClothPin physics and task for ``num_envs`` copies (see :class:`ClothPinEnv`).
 
     One copy's particles: the cloth (``nx * ny``, row-major from the top row on the wire), then
@@ -210,16 +211,18 @@ class ClothPin(ParticleTask):
         drawing being valid; returns the mask of copies that placed one.
 
         A drawing is refused (nothing changes) when the budget is spent, an end neither snaps to
-        a particle nor lies in the anchor region, both ends are the same particle, or neither
-        end is a cloth particle. A new anchor is the copy's next parked anchor, moved to the
-        drawn point. The rest length is the distance between the two ends as placed.
+        a particle nor lies in the anchor region, or the spring would not join the cloth to an
+        anchor (both ends on the cloth, or neither): only such a spring can hold the cloth
+        against the push, so no other uses up the budget. A new anchor is the copy's next
+        parked anchor, moved to the drawn point. The rest length is the distance between the
+        two ends as placed.
         """
         N = len(envs)
         ends = np.stack([self.resolve(envs, self.to_world(action[:, 0:2])),
                          self.resolve(envs, self.to_world(action[:, 2:4]))], axis=1)
-        cloth_end = np.any((ends >= 0) & (ends < self.cloth_n), axis=1)
+        on_cloth = (ends >= 0) & (ends < self.cloth_n)
         new = ends == -2
-        ok = (np.all(ends != -1, axis=1) & (ends[:, 0] != ends[:, 1]) & cloth_end
+        ok = (np.all(ends != -1, axis=1) & (on_cloth.sum(axis=1) == 1)
               & (new.sum(axis=1) <= 1) & (self.placed[envs] < self.max_springs))
         if not ok.any():
             return ok
@@ -387,11 +390,15 @@ class ClothPin(ParticleTask):
         m["placed"] = self.placed_now.copy()
         return track_success(self, m, stepped)
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed - wall_penalty * wall_force / weight - spring_cost * placed
-        + 10 * is_success``."""
-        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
-                / self.weight - self.spring_cost * m["placed"] + SUCCESS_BONUS * m["is_success"])
+    def potential(self, m: dict[str, Any]) -> Any:
+        """Cost to go ``Phi = d + s``: distance to the goal (m) plus the cloth's RMS particle
+        speed (m/s)."""
+        return m["distance"] + m["speed"]
+
+    def penalties(self, m: dict[str, Any]) -> Any:
+        """``wall_penalty F_wall / (M g) + spring_cost placed``, per copy (arrays) or for one
+        copy (numbers: see ``reward_one``)."""
+        return self.wall_penalty * m["wall_force"] / self.weight + self.spring_cost * m["placed"]
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` with only its placed springs, the anchor region, the goal and a status."""
@@ -430,9 +437,12 @@ class ClothPinEnv(ParticleEnv):
     ``action_mode="draw"``): the two ends of the spring in normalized scene coordinates (see
     below), its stiffness ``ks = ks_lo (ks_hi / ks_lo)^((stiffness + 1) / 2)`` N/m (log-uniform
     over ``ks_range``), damping ``spring_kd``, and a trigger: the spring is drawn when
-    ``draw > 0``. A drawing is refused (nothing happens, nothing is charged) when the budget is
-    spent, an end neither snaps to a particle nor lies in the anchor region, both ends are the
-    same particle, or neither end is a cloth particle. Springs cannot be removed.
+    ``draw > 0``. A drawing is refused (nothing happens, nothing is charged, the budget is
+    unchanged) when the budget is spent, an end neither snaps to a particle nor lies in the
+    anchor region, or the spring would not join the cloth to an anchor (both ends on the cloth,
+    or neither end on it): only a spring to an anchor can hold the cloth against the push, so a
+    drawing that cannot help never uses up the budget. Refusals cost nothing, so that exploring
+    drawings is never punished. Springs cannot be removed.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -458,11 +468,17 @@ class ClothPinEnv(ParticleEnv):
 
     ## Rewards
 
-    Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) - spring_cost * placed + 10 *
-    success``, with ``d`` the distance (m) from the cloth's centre of mass to the goal, ``s`` the
-    RMS speed of the cloth particles (m/s), ``F_wall`` the wall's total contact force (N),
-    ``M g`` the cloth's weight (N), ``placed`` 1 on a step that places a spring, and ``success``
-    1 on the step that completes the success test (see Episode End).
+    Every step (see ``envs.rewards``, as ClothSlide):
+
+        r = 10 (Phi - Phi') - 0.1 - wall_penalty * F_wall / (M g) - spring_cost * placed
+            + 10 * success
+
+    with the potential ``Phi = d + s`` before the step and ``Phi'`` after it (potential-based
+    shaping: it sums over an episode to ``10 (Phi_0 - Phi_T)``), ``d`` the distance (m) from
+    the cloth's centre of mass to the goal, ``s`` the RMS speed of the cloth particles (m/s), a
+    time cost of 0.1 per step, ``F_wall`` the wall's total contact force (N), ``M g`` the
+    cloth's weight (N), ``placed`` 1 on a step that places a spring, and ``success`` 1 on the
+    step that completes the success test (see Episode End).
 
     ## Starting State
 
@@ -475,8 +491,10 @@ class ClothPinEnv(ParticleEnv):
     1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
        steps (success, ``info["is_success"]``).
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
     distance off the wire, m),
@@ -539,7 +557,10 @@ class ClothPinEnv(ParticleEnv):
 
     ## Version History
 
-    * v0: Initial version.
+    * v0: Initial version. Before any release, the reward became potential-based shaping with
+      a time cost (it was ``-d - 0.1 s - penalties`` per step), a drawing that does not join
+      the cloth to an anchor is refused instead of using up the budget, the rest test became
+      windowed and a diverged step ends the episode as terminated with a penalty.
     """
 
     task_class = ClothPin

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,7 @@ class ClothSlide(ShapedTask, ParticleTask):
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
                  max_force: float = 1.0, goal_range: tuple[float, float] = (-0.6, 0.6),
                  min_distance: float = 0.3, goal_tolerance: float = 0.05,
-                 rest_speed: float = 0.05, hold_steps: int = 5, grab_radius: float = 0.2,
+                 rest_speed: float = 0.05, hold_steps: int = 5, grab_radius: float = math.inf,
                  mouse_ks: float = 20.0, mouse_kd: float = 0.5,
                  residual_limit: float = 0.01) -> None:
         try:
@@ -242,8 +243,10 @@ class ClothSlideEnv(ParticleEnv):
        ``hold_steps`` consecutive steps (success, ``info["is_success"]``): resting against a
        wall is not rest.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
     distance off the wire, m),

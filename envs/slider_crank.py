@@ -28,7 +28,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                  max_force: float = 2.0, goal_range: tuple[float, float] = (0.8, 1.05),
                  min_distance: float = 0.1, max_start_speed: float = 2.0,
                  goal_tolerance: float = 0.02, rest_speed: float = 0.05,
-                 hold_steps: int = 5, grab_radius: float = 0.2, mouse_ks: float = 20.0,
+                 hold_steps: int = 5, grab_radius: float = math.inf, mouse_ks: float = 20.0,
                  mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
         self.radius = check_positive("radius", radius, minimum=1e-3, maximum=1e3)
         self.rod = check_positive("rod", rod, minimum=1e-3, maximum=1e3)
@@ -378,8 +378,10 @@ class SliderCrankEnv(ParticleEnv):
        dead centre (slider at 0.5 m or 1.1 m, where the slider's motion reverses), and holding
        it above needs a steady force ``m g cos(theta)`` against gravity.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``crank_height`` (m), ``crank_to_go`` (m),
     ``kinetic_energy`` (J), ``constraint_residual`` (the largest distance in m by
