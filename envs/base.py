@@ -115,7 +115,7 @@ class ParticleTask:
     def __init__(self, num_envs: int, *, action_mode: str, dt: float, substeps: int,
                  integrator: str, max_force: float, grab_radius: float, mouse_ks: float,
                  mouse_kd: float, goal_tolerance: float, rest_speed: float,
-                 hold_steps: int, residual_limit: float = 0.01) -> None:
+                 hold_steps: int, residual_limit: float = 0.01, rest_window: int = 10) -> None:
         self.num_envs = check_positive("num_envs", num_envs, integer=True, maximum=10**6)
         self._every = np.arange(self.num_envs)
         self._one_piece = np.ones(self.num_envs, np.int64)
@@ -141,6 +141,10 @@ class ParticleTask:
         self.goal_tolerance = check_positive("goal_tolerance", goal_tolerance)
         self.rest_speed = check_positive("rest_speed", rest_speed)
         self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
+        self.rest_window = check_positive("rest_window", rest_window, integer=True,
+                                          maximum=10**4)
+        #: Weight of the newest velocity in the moving averages of the rest test.
+        self._alpha = 1.0 / self.rest_window
 
         scene = self.build_scene()
         scene.residual_limit = self.residual_limit
@@ -172,6 +176,9 @@ class ParticleTask:
         self.rows_per_copy = len(scene.forces[-1])
         self.goal = np.zeros(self.num_envs)
         self.hold = np.zeros(self.num_envs, dtype=np.int64)
+        #: Each particle's moving average velocity (num_envs * n, 2) in m/s, the rest test's
+        #: (see :meth:`_measures`).
+        self.mean_v = np.zeros((self.num_envs * n, 2))
         self.action = np.zeros((self.num_envs, self.action_dim))
         self._row_env = np.concatenate(
             [np.repeat(np.arange(self.num_envs), c.n_rows // self.num_envs)
@@ -289,6 +296,7 @@ class ParticleTask:
         rows = (envs[:, None] * n + np.arange(n)).reshape(-1)
         self.system.x[rows] = x.reshape(-1, 2)
         self.system.v[rows] = v.reshape(-1, 2)
+        self.mean_v[rows] = v.reshape(-1, 2)
         self.goal[envs] = goal
         self.hold[envs] = 0
         self.action[envs] = 0.0
@@ -309,7 +317,7 @@ class ParticleTask:
         rows = self._row_env == i
         return {"t": float(self.system.t), "x": self.system.x[sl].copy(),
                 "v": self.system.v[sl].copy(), "goal": float(self.goal[i]),
-                "hold": int(self.hold[i]),
+                "hold": int(self.hold[i]), "mean_v": self.mean_v[sl].copy(),
                 "action": self.action[i].copy(), "lam": self._lam()[rows].copy()}
 
     def set_state(self, i: int, state: dict[str, Any]) -> None:
@@ -330,6 +338,7 @@ class ParticleTask:
         self.system.t = float(values["t"])
         self.goal[i] = float(values["goal"])
         self.hold[i] = values["hold"]
+        self.mean_v[sl] = values["mean_v"]
         self.action[i] = values["action"]
         self._actuate_rows(i, values["action"])
         lam = self._lam()
@@ -339,10 +348,11 @@ class ParticleTask:
         """The validated fields of one copy's ``state`` (see :meth:`set_state`)."""
         if not isinstance(state, dict):
             raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
-        missing = {"t", "x", "v", "goal", "hold", "action", "lam"} - set(state)
+        missing = {"t", "x", "v", "goal", "hold", "mean_v", "action", "lam"} - set(state)
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
-        arrays = {"x": (self.n, 2), "v": (self.n, 2), "action": (self.action_dim,),
+        arrays = {"x": (self.n, 2), "v": (self.n, 2), "mean_v": (self.n, 2),
+                  "action": (self.action_dim,),
                   "lam": (int(np.sum(self._row_env == 0)),), "t": (), "goal": ()}
         values: dict[str, Any] = {}
         for key, shape in arrays.items():
@@ -758,7 +768,7 @@ class ParticleTask:
         track = self._tracking() if _measure.ENABLED else None
         state = self._compiled_state()
         if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
-                or not _owned(self.hold, np.int64, (N,))):
+                or not self._rest_owned()):
             return None
         p = _measure.packed(self.system)
         if p is None or p.n != self.num_envs * self.n:
@@ -830,7 +840,8 @@ class ParticleTask:
             out = np.empty((5, N))
             success = np.empty(N, bool)
             args = (x, v, mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
-                    p.fixed, p.wall, walls, self.hold, self._mask(stepped), self._mask(blocked),
+                    p.fixed, p.wall, walls, self._rest(), self._mask(stepped),
+                    self._mask(blocked),
                     self.goal_tolerance, self.rest_speed, self.hold_steps, out, success)
             if obs is None:
                 _measure.measures(*args)
@@ -855,7 +866,8 @@ class ParticleTask:
                     wall.accumulate(s.x, s.v, s.mass, F)
                 wall_force = np.abs(F[:, 0]).reshape(N, n).sum(axis=1)
         if stepped is not None:
-            settled = (distance < self.goal_tolerance) & (speed < self.rest_speed)
+            settled = (distance < self.goal_tolerance) & (self.advance_rest(stepped)
+                                                          < self.rest_speed)
             settled &= ~(wall_force > 0)  # resting against a wall is not rest
             if blocked is not None:
                 settled &= ~blocked
@@ -864,6 +876,33 @@ class ParticleTask:
                 "kinetic_energy": 0.5 * (s.mass.reshape(N, n) * v2).sum(axis=1),
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}, wall_force
+
+    def _rest(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The rest test's state as the compiled measures take it: ``(hold, mean_v, alpha)``."""
+        return self.hold, self.mean_v, self._alpha
+
+    def _rest_owned(self) -> bool:
+        """True if the compiled measures may read and write the rest test's arrays."""
+        N = self.num_envs
+        return (_owned(self.hold, np.int64, (N,))
+                and _owned(self.mean_v, np.float64, (N * self.n, 2)))
+
+    def advance_rest(self, stepped: np.ndarray, count: int | None = None) -> np.ndarray:
+        """Move the ``stepped`` copies' moving average velocities ``1 / rest_window`` of the
+        way to the particles' velocities; returns every copy's *rest speed*, the RMS (m/s)
+        of the averages of its first ``count`` particles (default all). The rest test
+        compares it with ``rest_speed``: an average over about ``rest_window`` steps, so a
+        policy's own zero-mean action noise averages out while a drift or a swing does not.
+        (The numpy reference of the compiled measures.)"""
+        N, n = self.num_envs, self.n
+        rows = np.repeat(stepped, n)
+        mv = self.mean_v[rows]
+        mv += (self.system.v[rows] - mv) * self._alpha
+        self.mean_v[rows] = mv
+        k = n if count is None else count
+        avg = self.mean_v.reshape(N, n, 2)[:, :k]
+        return np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)
+                       * (1.0 / k))
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` as a drawable single system, its goal marker and a status line."""

@@ -30,15 +30,17 @@ CASES = [("ClothSlide-v0", "force"), ("ClothSlide-v0", "spring"),
 
 def both(monkeypatch: pytest.MonkeyPatch, task: ParticleTask, fn):
     """``fn()`` with the compiled path, then with the numpy reference, each from the same hold
-    counts (restored afterwards to the compiled run's)."""
-    hold = task.hold.copy()
+    counts and moving average velocities of the rest test."""
+    hold, mean_v = task.hold.copy(), task.mean_v.copy()
     fast = fn()
-    after = task.hold.copy()
-    task.hold[:] = hold
+    after, mean_after = task.hold.copy(), task.mean_v.copy()
+    task.hold[:], task.mean_v[:] = hold, mean_v
     with monkeypatch.context() as m:
         m.setattr(_measure, "ENABLED", False)
         ref = fn()
     assert np.array_equal(task.hold, after), "hold counts differ"
+    np.testing.assert_allclose(task.mean_v, mean_after, rtol=0, atol=1e-12,
+                               err_msg="moving average velocities differ")
     return fast, ref
 
 

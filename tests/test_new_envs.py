@@ -216,7 +216,7 @@ def test_pickled_env_continues_identically(env_id, kwargs):
 @pytest.mark.parametrize(("env_id", "kwargs"), CASES[:1] + CASES[3:], ids=["chain", "pin"])
 def test_native_vector_env_matches_single_envs(env_id, kwargs):
     exact = env_id == "ClothPin-v0"
-    N, limit = 4, 90 if exact else 45
+    N, limit = 4, 90 if exact else 70
     native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
                           max_episode_steps=limit, **kwargs)
     sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", max_episode_steps=limit,
