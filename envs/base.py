@@ -71,11 +71,14 @@ class ParticleTask:
     Common arguments (validated here; a bad value raises ValueError):
     ``action_mode`` (``"force"`` or ``"spring"``), ``dt`` (physics step, s), ``substeps``
     (physics steps per env step), ``integrator`` (a name in ``constrained_particles.METHODS``),
-    ``max_force`` (N, the force of action 1), ``grab_radius`` (m), ``mouse_ks`` (N/m) and
+    ``max_force`` (N, the force of action 1; a spring action's pull at rest is at most this),
+    ``grab_radius`` (m, ``inf``: every grab takes the nearest particle), ``mouse_ks`` (N/m) and
     ``mouse_kd`` (N s/m) of the spring action, and the success test: within ``goal_tolerance``
-    (m) of the goal with RMS particle speed below ``rest_speed`` (m/s) for ``hold_steps``
-    consecutive env steps. ``residual_limit`` (m, default 0.01; ``inf`` switches the check off):
-    a physics step that leaves any constraint by more than this distance counts as diverged.
+    (m) of the goal and at rest, the RMS of the particles' velocities averaged over about
+    ``rest_window`` steps below ``rest_speed`` (m/s), for ``hold_steps`` consecutive env steps
+    (see :meth:`advance_rest`). ``residual_limit`` (m, default 0.01; ``inf`` switches the
+    check off): a physics step that leaves any constraint by more than this distance counts as
+    diverged.
 
     A physics step is split into equal pieces when a particle could travel more than
     :attr:`step_travel` metres in it (see :meth:`pieces`), so fast motion, whatever the actions,
