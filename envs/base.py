@@ -446,7 +446,7 @@ class ParticleTask:
             nearest = np.argmin(d2, axis=1)
             pull = action[:, 2:]
             norm2 = pull[:, 0] * pull[:, 0] + pull[:, 1] * pull[:, 1]
-            pull = pull * np.where(norm2 > 1.0, 1.0 / np.sqrt(norm2), 1.0)[:, None]
+            pull = pull * (1.0 / np.sqrt(np.maximum(norm2, 1.0)))[:, None]  # (x 1.0: exact)
             target = x[np.arange(len(envs)), nearest] + self.spring_reach * pull
             act.set_checked(envs, envs * self.n + nearest, target,
                             d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
