@@ -80,11 +80,18 @@ if ENABLED:
 
     @njit(nogil=True)
     def _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                  walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps,
+                  walls, rest, stepped, blocked, tolerance, rest_speed, hold_steps,
                   out, success):  # pragma: no cover - compiled
         """Fill ``out`` (5, N) with distance (m), speed (m/s), kinetic energy (J), constraint
-        residual (m) and wall force (N) per copy, advance ``hold`` of the ``stepped`` copies
-        and write ``success = hold >= hold_steps``.
+        residual (m) and wall force (N) per copy, advance the rest test of the ``stepped``
+        copies and write ``success = hold >= hold_steps``.
+
+        ``rest = (hold, mean_v, alpha)``: the counts of consecutive settled steps (N,), each
+        particle's moving average velocity (N n, 2) m/s and its weight ``alpha`` (1 /
+        ``rest_window``). A stepped copy's averages move ``alpha`` of the way to the
+        velocities (``mean_v + (v - mean_v) alpha``); it is settled, and its count advances
+        (else restarts at 0), if within ``tolerance`` of the goal with the RMS of the
+        averages below ``rest_speed``, not ``blocked`` and touching no wall.
 
         ``track`` holds the particles (within a copy) whose mean x, ``track_scale`` times their
         sum, is driven to ``goal``. ``walls``: compute the walls' contact force and let a step
@@ -144,10 +151,18 @@ if ENABLED:
                     for k in range(i * n, (i + 1) * n):
                         f += abs(fx[k])
                     wall_force[i] = f
+        hold, mean_v, alpha = rest
         for i in range(N):
             if stepped[i]:
-                if (distance[i] < tolerance and speed[i] < rest_speed and not blocked[i]
-                        and not wall_force[i] > 0.0):
+                d2 = 0.0
+                for k in range(i * n, (i + 1) * n):
+                    mx = mean_v[k, 0] + (v[k, 0] - mean_v[k, 0]) * alpha
+                    my = mean_v[k, 1] + (v[k, 1] - mean_v[k, 1]) * alpha
+                    mean_v[k, 0] = mx
+                    mean_v[k, 1] = my
+                    d2 += mx * mx + my * my
+                if (distance[i] < tolerance and math.sqrt(d2 * (1.0 / n)) < rest_speed
+                        and not blocked[i] and not wall_force[i] > 0.0):
                     hold[i] += 1
                 else:
                     hold[i] = 0
@@ -171,15 +186,16 @@ if ENABLED:
             obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
 
     @njit
-    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, current, particles, anchors, active):
-        # pragma: no cover - compiled
+    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
+              active):  # pragma: no cover - compiled
         """The spring action of copies ``envs``: for each, the particle of the copy nearest the
         grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
-        the target ``c + h * action[2:]`` (``anchors[envs]``, m) and whether the particle is
-        within ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and
-        ``active`` are the mouse-spring block's own arrays, written in place; True if some
-        copy's particle differs from its entry of ``current`` (the block's particle array),
-        which the caller must then replace."""
+        the target ``x_p + reach * u`` (``anchors[envs]``, m), ``u`` the pull ``action[2:]``
+        scaled down onto the unit disc if longer than 1, and whether the particle is within
+        ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and ``active``
+        are the mouse-spring block's own arrays, written in place; True if some copy's particle
+        differs from its entry of ``current`` (the block's particle array), which the caller
+        must then replace."""
         changed = False
         for e in range(envs.shape[0]):
             i = envs[e]
@@ -196,8 +212,13 @@ if ENABLED:
                     best = k
             particles[e] = best
             changed |= current[i] != best
-            anchors[i, 0] = cx + hx * action[e, 2]
-            anchors[i, 1] = cy + hy * action[e, 3]
+            ux, uy = action[e, 2], action[e, 3]
+            norm2 = ux * ux + uy * uy
+            if norm2 > 1.0:
+                scale = 1.0 / math.sqrt(norm2)
+                ux, uy = ux * scale, uy * scale
+            anchors[i, 0] = x[best, 0] + reach * ux
+            anchors[i, 1] = x[best, 1] + reach * uy
             active[i] = d2 <= r2
         return changed
 
@@ -269,29 +290,29 @@ if ENABLED:
 
     @njit(nogil=True)
     def _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                          walls, hold, stepped, blocked, tolerance, rest_speed, hold_steps, out,
+                          walls, rest, stepped, blocked, tolerance, rest_speed, hold_steps, out,
                           success, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
         """:func:`_measures` then :func:`_observe` (one call from Python instead of two)."""
         _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall, walls,
-                  hold, stepped, blocked, tolerance, rest_speed, hold_steps, out, success)
+                  rest, stepped, blocked, tolerance, rest_speed, hold_steps, out, success)
         _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
 
     @njit(nogil=True)
     def _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
                                 goal, track, track_scale, circ, rod, line, fixed, wall, walls,
-                                hold, stepped, tolerance, rest_speed, hold_steps, out, success,
+                                rest, stepped, tolerance, rest_speed, hold_steps, out, success,
                                 cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
         """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
         slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
         after a step in one call."""
         _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target)
         _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                          walls, hold, stepped, below, tolerance, rest_speed, hold_steps, out,
+                          walls, rest, stepped, below, tolerance, rest_speed, hold_steps, out,
                           success, cx, cy, ix, iy, limit, obs)
 
     @njit(nogil=True)
     def _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n, goal,
-                      track, track_scale, circ, rod, line, fixed, wall, hold, every, tolerance,
+                      track, track_scale, circ, rod, line, fixed, wall, rest, every, tolerance,
                       rest_speed, hold_steps, out, success, cx, cy, ix, iy, limit, obs, before,
                       scale, time_cost, bonus, reward, steps, max_steps, terminated, truncated,
                       ended):  # pragma: no cover - compiled
@@ -303,7 +324,7 @@ if ENABLED:
         ``ended`` either. Returns how many copies ended."""
         _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
                                 goal, track, track_scale, circ, rod, line, fixed, wall, False,
-                                hold, every, tolerance, rest_speed, hold_steps, out, success,
+                                rest, every, tolerance, rest_speed, hold_steps, out, success,
                                 cx, cy, ix, iy, limit, obs)
         phi = to_go + out[1]  # SliderCrank.potential
         _shaped_reward(before, phi, success, phi[:0], scale, time_cost, bonus, reward)
@@ -329,7 +350,7 @@ if ENABLED:
                     v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
                     wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n,
                     ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go, below, seen,
-                    target, n, goal, track, track_scale, hold, every, tolerance, rest_speed,
+                    target, n, goal, track, track_scale, rest, every, tolerance, rest_speed,
                     hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs, before, scale,
                     time_cost, bonus, reward, steps, max_steps, terminated, truncated, ended):
         # pragma: no cover - compiled
@@ -375,7 +396,7 @@ if ENABLED:
             return status, 0
         return status, _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x_out,
                                      v_out, mass, n, goal, track, track_scale, circ, rod, line,
-                                     fixed, wall, hold, every, tolerance, rest_speed,
+                                     fixed, wall, rest, every, tolerance, rest_speed,
                                      hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs,
                                      before, scale, time_cost, bonus, reward, steps, max_steps,
                                      terminated, truncated, ended)

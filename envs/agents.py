@@ -85,9 +85,9 @@ class ScriptedAgent:
         if t.action_mode == "force":
             a = self.force_action(F, x)
         else:
-            # a spring from the particle's position to an anchor F / ks ahead of it
+            # grab the particle where it is and pull it with F (the target F / ks ahead of it)
             p = x[:, self.spring_particle]
-            a = np.concatenate([t.to_normalized(p), t.to_normalized(p + F / t.mouse_ks)], axis=1)
+            a = np.concatenate([t.to_normalized(p), F / t.max_force], axis=1)
         a = np.clip(a, -1.0, 1.0).astype(np.float32)
         return a if np.ndim(obs) > 1 else a[0]
 

@@ -52,6 +52,9 @@ OBS_LIMIT = 10.0
 FRAME_SIZE = (600, 400)
 #: Shortest physics step (s) an env accepts.
 MIN_DT = 1e-6
+#: The registered episode length (env steps): a diverged step's penalty covers the cost of
+#: playing on for this many steps (see :attr:`ParticleTask.divergence_penalty`).
+EPISODE_STEPS = 200
 #: Most pieces one physics step is split into when particles move fast (see
 #: :meth:`ParticleTask.pieces`); a copy that would need more is left to the divergence check.
 MAX_PIECES = 64
@@ -68,11 +71,14 @@ class ParticleTask:
     Common arguments (validated here; a bad value raises ValueError):
     ``action_mode`` (``"force"`` or ``"spring"``), ``dt`` (physics step, s), ``substeps``
     (physics steps per env step), ``integrator`` (a name in ``constrained_particles.METHODS``),
-    ``max_force`` (N, the force of action 1), ``grab_radius`` (m), ``mouse_ks`` (N/m) and
+    ``max_force`` (N, the force of action 1; a spring action's pull at rest is at most this),
+    ``grab_radius`` (m, ``inf``: every grab takes the nearest particle), ``mouse_ks`` (N/m) and
     ``mouse_kd`` (N s/m) of the spring action, and the success test: within ``goal_tolerance``
-    (m) of the goal with RMS particle speed below ``rest_speed`` (m/s) for ``hold_steps``
-    consecutive env steps. ``residual_limit`` (m, default 0.01; ``inf`` switches the check off):
-    a physics step that leaves any constraint by more than this distance counts as diverged.
+    (m) of the goal and at rest, the RMS of the particles' velocities averaged over about
+    ``rest_window`` steps below ``rest_speed`` (m/s), for ``hold_steps`` consecutive env steps
+    (see :meth:`advance_rest`). ``residual_limit`` (m, default 0.01; ``inf`` switches the
+    check off): a physics step that leaves any constraint by more than this distance counts as
+    diverged.
 
     A physics step is split into equal pieces when a particle could travel more than
     :attr:`step_travel` metres in it (see :meth:`pieces`), so fast motion, whatever the actions,
@@ -94,6 +100,17 @@ class ParticleTask:
                              f"it in place instead), got {type(value).__name__} "
                              f"{getattr(value, 'dtype', '')} {np.shape(value)}")
         super().__setattr__(name, value)
+    #: The most reward one step of playing on can cost before success (a task's time cost, or its
+    #: per-step distance cost at the farthest): see :attr:`divergence_penalty`.
+    step_cost: float = 0.0
+
+    @property
+    def divergence_penalty(self) -> float:
+        """Reward subtracted on a diverged step, which ends the episode as terminated: the cost
+        of playing on for a whole episode (``EPISODE_STEPS * step_cost``), so that diverging is
+        never a cheaper way out than playing on."""
+        return EPISODE_STEPS * self.step_cost
+
     #: Farthest distance (m) a particle may travel in one integrator step before the physics step
     #: is split into pieces (subclasses set it from the scene's smallest length).
     step_travel: float = math.inf
@@ -101,7 +118,7 @@ class ParticleTask:
     def __init__(self, num_envs: int, *, action_mode: str, dt: float, substeps: int,
                  integrator: str, max_force: float, grab_radius: float, mouse_ks: float,
                  mouse_kd: float, goal_tolerance: float, rest_speed: float,
-                 hold_steps: int, residual_limit: float = 0.01) -> None:
+                 hold_steps: int, residual_limit: float = 0.01, rest_window: int = 10) -> None:
         self.num_envs = check_positive("num_envs", num_envs, integer=True, maximum=10**6)
         self._every = np.arange(self.num_envs)
         self._one_piece = np.ones(self.num_envs, np.int64)
@@ -116,12 +133,21 @@ class ParticleTask:
         self.residual_limit = (math.inf if residual_limit == math.inf else
                                check_positive("residual_limit", residual_limit))
         self.max_force = check_positive("max_force", max_force)
-        self.grab_radius = check_positive("grab_radius", grab_radius)
+        self.grab_radius = (math.inf if grab_radius == math.inf else
+                            check_positive("grab_radius", grab_radius))
         self.mouse_ks = check_positive("mouse_ks", mouse_ks)
         self.mouse_kd = check_positive("mouse_kd", mouse_kd, allow_zero=True)
+        #: Distance (m) from the grabbed particle to the spring action's target at a pull of
+        #: 1 (``max_force / mouse_ks``): the spring pulls a particle at rest with at most
+        #: ``max_force`` newtons.
+        self.spring_reach = self.max_force / self.mouse_ks
         self.goal_tolerance = check_positive("goal_tolerance", goal_tolerance)
         self.rest_speed = check_positive("rest_speed", rest_speed)
         self.hold_steps = check_positive("hold_steps", hold_steps, integer=True)
+        self.rest_window = check_positive("rest_window", rest_window, integer=True,
+                                          maximum=10**4)
+        #: Weight of the newest velocity in the moving averages of the rest test.
+        self._alpha = 1.0 / self.rest_window
 
         scene = self.build_scene()
         scene.residual_limit = self.residual_limit
@@ -153,6 +179,9 @@ class ParticleTask:
         self.rows_per_copy = len(scene.forces[-1])
         self.goal = np.zeros(self.num_envs)
         self.hold = np.zeros(self.num_envs, dtype=np.int64)
+        #: Each particle's moving average velocity (num_envs * n, 2) in m/s, the rest test's
+        #: (see :meth:`_measures`).
+        self.mean_v = np.zeros((self.num_envs * n, 2))
         self.action = np.zeros((self.num_envs, self.action_dim))
         self._row_env = np.concatenate(
             [np.repeat(np.arange(self.num_envs), c.n_rows // self.num_envs)
@@ -270,6 +299,7 @@ class ParticleTask:
         rows = (envs[:, None] * n + np.arange(n)).reshape(-1)
         self.system.x[rows] = x.reshape(-1, 2)
         self.system.v[rows] = v.reshape(-1, 2)
+        self.mean_v[rows] = v.reshape(-1, 2)
         self.goal[envs] = goal
         self.hold[envs] = 0
         self.action[envs] = 0.0
@@ -290,7 +320,7 @@ class ParticleTask:
         rows = self._row_env == i
         return {"t": float(self.system.t), "x": self.system.x[sl].copy(),
                 "v": self.system.v[sl].copy(), "goal": float(self.goal[i]),
-                "hold": int(self.hold[i]),
+                "hold": int(self.hold[i]), "mean_v": self.mean_v[sl].copy(),
                 "action": self.action[i].copy(), "lam": self._lam()[rows].copy()}
 
     def set_state(self, i: int, state: dict[str, Any]) -> None:
@@ -311,6 +341,7 @@ class ParticleTask:
         self.system.t = float(values["t"])
         self.goal[i] = float(values["goal"])
         self.hold[i] = values["hold"]
+        self.mean_v[sl] = values["mean_v"]
         self.action[i] = values["action"]
         self._actuate_rows(i, values["action"])
         lam = self._lam()
@@ -320,10 +351,11 @@ class ParticleTask:
         """The validated fields of one copy's ``state`` (see :meth:`set_state`)."""
         if not isinstance(state, dict):
             raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
-        missing = {"t", "x", "v", "goal", "hold", "action", "lam"} - set(state)
+        missing = {"t", "x", "v", "goal", "hold", "mean_v", "action", "lam"} - set(state)
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
-        arrays = {"x": (self.n, 2), "v": (self.n, 2), "action": (self.action_dim,),
+        arrays = {"x": (self.n, 2), "v": (self.n, 2), "mean_v": (self.n, 2),
+                  "action": (self.action_dim,),
                   "lam": (int(np.sum(self._row_env == 0)),), "t": (), "goal": ()}
         values: dict[str, Any] = {}
         for key, shape in arrays.items():
@@ -402,16 +434,21 @@ class ParticleTask:
             particles = np.empty(len(envs), np.int64)  # compiled (the reference is below)
             c, h = self.center, self.half
             if _measure.grab(x, self.n, envs, action, c[0], c[1], h[0], h[1],
-                             self.grab_radius**2, act.particle, particles, act.anchor,
-                             act.active):  # anchors and flags are written in place
+                             self.grab_radius**2, self.spring_reach, act.particle, particles,
+                             act.anchor, act.active):  # anchors and flags written in place
                 act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
         else:
-            # the spring action: the nearest particle within grab_radius of the grab point
+            # the spring action: the particle nearest the grab point (within grab_radius), and
+            # a target spring_reach * pull from it, the pull clipped to the unit disc
             x = self.positions() if len(envs) == self.num_envs else self.positions()[envs]
             grab = self.to_world(action[:, :2])
             d2 = np.sum((x - grab[:, None, :]) ** 2, axis=2)
             nearest = np.argmin(d2, axis=1)
-            act.set_checked(envs, envs * self.n + nearest, self.to_world(action[:, 2:]),
+            pull = action[:, 2:]
+            norm2 = pull[:, 0] * pull[:, 0] + pull[:, 1] * pull[:, 1]
+            pull = pull * (1.0 / np.sqrt(np.maximum(norm2, 1.0)))[:, None]  # (x 1.0: exact)
+            target = x[np.arange(len(envs)), nearest] + self.spring_reach * pull
+            act.set_checked(envs, envs * self.n + nearest, target,
                             d2[np.arange(len(envs)), nearest] <= self.grab_radius**2)
 
     def _grab_ready(self, act: Any, envs: np.ndarray, action: np.ndarray, x: Any) -> bool:
@@ -734,7 +771,7 @@ class ParticleTask:
         track = self._tracking() if _measure.ENABLED else None
         state = self._compiled_state()
         if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
-                or not _owned(self.hold, np.int64, (N,))):
+                or not self._rest_owned()):
             return None
         p = _measure.packed(self.system)
         if p is None or p.n != self.num_envs * self.n:
@@ -806,7 +843,8 @@ class ParticleTask:
             out = np.empty((5, N))
             success = np.empty(N, bool)
             args = (x, v, mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
-                    p.fixed, p.wall, walls, self.hold, self._mask(stepped), self._mask(blocked),
+                    p.fixed, p.wall, walls, self._rest(), self._mask(stepped),
+                    self._mask(blocked),
                     self.goal_tolerance, self.rest_speed, self.hold_steps, out, success)
             if obs is None:
                 _measure.measures(*args)
@@ -831,7 +869,8 @@ class ParticleTask:
                     wall.accumulate(s.x, s.v, s.mass, F)
                 wall_force = np.abs(F[:, 0]).reshape(N, n).sum(axis=1)
         if stepped is not None:
-            settled = (distance < self.goal_tolerance) & (speed < self.rest_speed)
+            settled = (distance < self.goal_tolerance) & (self.advance_rest(stepped)
+                                                          < self.rest_speed)
             settled &= ~(wall_force > 0)  # resting against a wall is not rest
             if blocked is not None:
                 settled &= ~blocked
@@ -840,6 +879,33 @@ class ParticleTask:
                 "kinetic_energy": 0.5 * (s.mass.reshape(N, n) * v2).sum(axis=1),
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}, wall_force
+
+    def _rest(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The rest test's state as the compiled measures take it: ``(hold, mean_v, alpha)``."""
+        return self.hold, self.mean_v, self._alpha
+
+    def _rest_owned(self) -> bool:
+        """True if the compiled measures may read and write the rest test's arrays."""
+        N = self.num_envs
+        return (_owned(self.hold, np.int64, (N,))
+                and _owned(self.mean_v, np.float64, (N * self.n, 2)))
+
+    def advance_rest(self, stepped: np.ndarray, count: int | None = None) -> np.ndarray:
+        """Move the ``stepped`` copies' moving average velocities ``1 / rest_window`` of the
+        way to the particles' velocities; returns every copy's *rest speed*, the RMS (m/s)
+        of the averages of its first ``count`` particles (default all). The rest test
+        compares it with ``rest_speed``: an average over about ``rest_window`` steps, so a
+        policy's own zero-mean action noise averages out while a drift or a swing does not.
+        (The numpy reference of the compiled measures.)"""
+        N, n = self.num_envs, self.n
+        rows = np.repeat(stepped, n)
+        mv = self.mean_v[rows]
+        mv += (self.system.v[rows] - mv) * self._alpha
+        self.mean_v[rows] = mv
+        k = n if count is None else count
+        avg = self.mean_v.reshape(N, n, 2)[:, :k]
+        return np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)
+                       * (1.0 / k))
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` as a drawable single system, its goal marker and a status line."""

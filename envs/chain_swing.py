@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -31,10 +32,12 @@ TARGETS = ("lateral", "swingup")
 def track_success(task: ParticleTask, m: dict[str, np.ndarray], stepped: np.ndarray | None
                   ) -> dict[str, np.ndarray]:
     """Advance ``task.hold`` for the ``stepped`` copies from measures ``m`` whose ``distance``
-    (m) or ``speed`` (m/s) a task redefined, and set ``m["is_success"]`` to match (the rule of
-    :meth:`ParticleTask.measure`)."""
+    (m) a task redefined, and set ``m["is_success"]`` to match (the rule of
+    :meth:`ParticleTask.measure`; the rest speed over the cloth alone for a task with
+    ``cloth_n``)."""
     if stepped is not None:
-        settled = (m["distance"] < task.goal_tolerance) & (m["speed"] < task.rest_speed)
+        rest = task.advance_rest(stepped, getattr(task, "cloth_n", None))
+        settled = (m["distance"] < task.goal_tolerance) & (rest < task.rest_speed)
         task.hold[stepped] = np.where(settled[stepped], task.hold[stepped] + 1, 0)
     m["is_success"] = task.hold >= task.hold_steps
     return m
@@ -60,7 +63,8 @@ class ChainSwing(ParticleTask):
                  goal_range: tuple[float, float] | None = None,
                  min_distance: float | None = None, start_angle: float = 0.1,
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05, hold_steps: int = 5,
-                 grab_radius: float = 0.2, mouse_ks: float = 5.0,
+                 rest_window: int = 20,
+                 grab_radius: float = math.inf, mouse_ks: float = 5.0,
                  mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
         if target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
@@ -95,10 +99,13 @@ class ChainSwing(ParticleTask):
         self.view = (-self.travel - 0.3, -reach, self.travel + 0.3, reach)
         #: The tracked coordinate is the tip's x (m).
         self.tracked_particles = np.array([self.links])
+        #: The per-step distance cost at the farthest (m): the tip is within ``length`` of the
+        #: carrier, the carrier and the target within ``travel`` of x = 0.
+        self.step_cost = 2.0 * (self.travel + self.length)
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         rest_speed=rest_speed, hold_steps=hold_steps, rest_window=rest_window,
                          residual_limit=residual_limit)
 
     def build_scene(self) -> ParticleSystem:
@@ -207,10 +214,14 @@ class ChainSwingEnv(ParticleEnv):
     ``action_mode="force"`` (default): ``Box(-1, 1, (1,), float32)``, a horizontal force of
     ``action * max_force`` newtons on the carrier.
 
-    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
-    target_y)`` in normalized scene coordinates. The particle nearest the grab point, if within
-    ``grab_radius`` metres, is pulled toward the target by a mouse spring (``mouse_ks``,
-    ``mouse_kd``) for this step; otherwise nothing is applied.
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, pull_x,
+    pull_y)``. The particle nearest the grab point (in normalized scene coordinates, see below)
+    is grabbed, whatever the distance, and pulled for this step by a damped mouse spring
+    (``mouse_ks``, ``mouse_kd``) toward a target ``spring_reach * pull`` metres from where it
+    is, ``spring_reach = max_force / mouse_ks``, with ``pull`` scaled down onto the unit disc
+    if longer than 1: a particle at rest feels at most ``max_force`` newtons, as in force mode.
+    A pull of 0 holds the particle with the spring's damping alone. A finite ``grab_radius``
+    (m) lets grabs miss: a particle farther than that from the grab point is not pulled.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -247,11 +258,18 @@ class ChainSwingEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+    1. Termination: ``d < goal_tolerance`` and ``s_avg < rest_speed`` for ``hold_steps`` consecutive
        steps (success, ``info["is_success"]``).
+       Here ``s_avg`` is the RMS (m/s) of the particles' velocities averaged over about
+       ``rest_window`` steps (a moving average taking ``1 / rest_window`` of each new
+       velocity), so a policy's own zero-mean action noise averages out, while a drift or a
+       swing does not.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty``: 200 steps of the per-step distance cost at
+       the farthest (``2 (travel + length)`` m), so diverging is never a cheaper way out
+       than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (the
     largest distance in m by which the carrier leaves its wire or a rod its length),
@@ -291,7 +309,8 @@ class ChainSwingEnv(ParticleEnv):
     | `goal_tolerance` | `0.05`               | success distance (m)                           |
     | `rest_speed`     | `0.05`               | success RMS particle speed (m/s)               |
     | `hold_steps`     | `5`                  | env steps the success test must hold           |
-    | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)    |
+    | `rest_window`    | `20`                 | rest test: averaging window (steps)            |
+    | `grab_radius`    | `inf`                | farthest grab (m); inf: never misses           |
     | `mouse_ks`       | `5.0`                | spring action stiffness (N/m) (**)             |
     | `mouse_kd`       | `1.0`                | spring action damping (N s/m)                  |
     | `residual_limit` | `0.01`               | constraint error (m) that counts as diverged    |
@@ -314,6 +333,12 @@ class ChainSwingEnv(ParticleEnv):
     ## Version History
 
     * v0: Initial version.
+      Changed before any release: the spring action grabs the nearest particle always and
+      pulls it toward a target relative to it, at most ``max_force`` on a particle at rest (it
+      was an absolute target point within a 0.2 m grab radius); the rest test averages
+      velocities over about ``rest_window`` steps (it was the instantaneous RMS speed); a
+      diverged step ends the episode as terminated with ``divergence_penalty`` (it was a
+      truncation).
     """
 
     task_class = ChainSwing

@@ -14,7 +14,8 @@ from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, sce
 from .base import OBS_LIMIT, ParticleTask
 from .chain_swing import track_success
 from .checks import check_positive, check_range
-from .cloth_slide import SUCCESS_BONUS, _hanging_equilibrium
+from .cloth_slide import _hanging_equilibrium
+from .rewards import ShapedTask
 from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
@@ -24,7 +25,7 @@ DRAW_MODES = ("draw",)
 SLOT_SIZE = 7
 
 
-class ClothPin(ParticleTask):
+class ClothPin(ShapedTask, ParticleTask):
     """The ClothPin physics and task for ``num_envs`` copies (see :class:`ClothPinEnv`).
 
     One copy's particles: the cloth (``nx * ny``, row-major from the top row on the wire), then
@@ -50,7 +51,7 @@ class ClothPin(ParticleTask):
                  goal_range: tuple[float, float] = (0.0, 0.5), min_distance: float = 0.2,
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
                  goal_tolerance: float = 0.05, rest_speed: float = 0.05,
-                 hold_steps: int = 5, residual_limit: float = 0.01) -> None:
+                 hold_steps: int = 5, rest_window: int = 10, residual_limit: float = 0.01) -> None:
         if action_mode not in DRAW_MODES:
             raise ValueError(f"action_mode must be one of {DRAW_MODES}, got {action_mode!r}")
         try:
@@ -109,7 +110,7 @@ class ClothPin(ParticleTask):
         super().__init__(num_envs, action_mode="force", dt=dt, substeps=substeps,
                          integrator=integrator, max_force=self.push, grab_radius=snap_radius,
                          mouse_ks=1.0, mouse_kd=0.0, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         rest_speed=rest_speed, hold_steps=hold_steps, rest_window=rest_window,
                          residual_limit=residual_limit)
         self.action_mode = action_mode
         N, B = self.num_envs, self.max_springs
@@ -210,16 +211,18 @@ class ClothPin(ParticleTask):
         drawing being valid; returns the mask of copies that placed one.
 
         A drawing is refused (nothing changes) when the budget is spent, an end neither snaps to
-        a particle nor lies in the anchor region, both ends are the same particle, or neither
-        end is a cloth particle. A new anchor is the copy's next parked anchor, moved to the
-        drawn point. The rest length is the distance between the two ends as placed.
+        a particle nor lies in the anchor region, or the spring would not join the cloth to an
+        anchor (both ends on the cloth, or neither): only such a spring can hold the cloth
+        against the push, so no other uses up the budget. A new anchor is the copy's next
+        parked anchor, moved to the drawn point. The rest length is the distance between the
+        two ends as placed.
         """
         N = len(envs)
         ends = np.stack([self.resolve(envs, self.to_world(action[:, 0:2])),
                          self.resolve(envs, self.to_world(action[:, 2:4]))], axis=1)
-        cloth_end = np.any((ends >= 0) & (ends < self.cloth_n), axis=1)
+        on_cloth = (ends >= 0) & (ends < self.cloth_n)
         new = ends == -2
-        ok = (np.all(ends != -1, axis=1) & (ends[:, 0] != ends[:, 1]) & cloth_end
+        ok = (np.all(ends != -1, axis=1) & (on_cloth.sum(axis=1) == 1)
               & (new.sum(axis=1) <= 1) & (self.placed[envs] < self.max_springs))
         if not ok.any():
             return ok
@@ -387,11 +390,15 @@ class ClothPin(ParticleTask):
         m["placed"] = self.placed_now.copy()
         return track_success(self, m, stepped)
 
-    def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
-        """``-distance - 0.1 speed - wall_penalty * wall_force / weight - spring_cost * placed
-        + 10 * is_success``."""
-        return (-m["distance"] - 0.1 * m["speed"] - self.wall_penalty * m["wall_force"]
-                / self.weight - self.spring_cost * m["placed"] + SUCCESS_BONUS * m["is_success"])
+    def potential(self, m: dict[str, Any]) -> Any:
+        """Cost to go ``Phi = d + s``: distance to the goal (m) plus the cloth's RMS particle
+        speed (m/s)."""
+        return m["distance"] + m["speed"]
+
+    def penalties(self, m: dict[str, Any]) -> Any:
+        """``wall_penalty F_wall / (M g) + spring_cost placed``, per copy (arrays) or for one
+        copy (numbers: see ``reward_one``)."""
+        return self.wall_penalty * m["wall_force"] / self.weight + self.spring_cost * m["placed"]
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` with only its placed springs, the anchor region, the goal and a status."""
@@ -430,9 +437,12 @@ class ClothPinEnv(ParticleEnv):
     ``action_mode="draw"``): the two ends of the spring in normalized scene coordinates (see
     below), its stiffness ``ks = ks_lo (ks_hi / ks_lo)^((stiffness + 1) / 2)`` N/m (log-uniform
     over ``ks_range``), damping ``spring_kd``, and a trigger: the spring is drawn when
-    ``draw > 0``. A drawing is refused (nothing happens, nothing is charged) when the budget is
-    spent, an end neither snaps to a particle nor lies in the anchor region, both ends are the
-    same particle, or neither end is a cloth particle. Springs cannot be removed.
+    ``draw > 0``. A drawing is refused (nothing happens, nothing is charged, the budget is
+    unchanged) when the budget is spent, an end neither snaps to a particle nor lies in the
+    anchor region, or the spring would not join the cloth to an anchor (both ends on the cloth,
+    or neither end on it): only a spring to an anchor can hold the cloth against the push, so a
+    drawing that cannot help never uses up the budget. Refusals cost nothing, so that exploring
+    drawings is never punished. Springs cannot be removed.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -458,11 +468,17 @@ class ClothPinEnv(ParticleEnv):
 
     ## Rewards
 
-    Every step: ``-d - 0.1 s - wall_penalty * F_wall / (M g) - spring_cost * placed + 10 *
-    success``, with ``d`` the distance (m) from the cloth's centre of mass to the goal, ``s`` the
-    RMS speed of the cloth particles (m/s), ``F_wall`` the wall's total contact force (N),
-    ``M g`` the cloth's weight (N), ``placed`` 1 on a step that places a spring, and ``success``
-    1 on the step that completes the success test (see Episode End).
+    Every step (see ``envs.rewards``, as ClothSlide):
+
+        r = 10 (Phi - Phi') - 0.1 - wall_penalty * F_wall / (M g) - spring_cost * placed
+            + 10 * success
+
+    with the potential ``Phi = d + s`` before the step and ``Phi'`` after it (potential-based
+    shaping: it sums over an episode to ``10 (Phi_0 - Phi_T)``), ``d`` the distance (m) from
+    the cloth's centre of mass to the goal, ``s`` the RMS speed of the cloth particles (m/s), a
+    time cost of 0.1 per step, ``F_wall`` the wall's total contact force (N), ``M g`` the
+    cloth's weight (N), ``placed`` 1 on a step that places a spring, and ``success`` 1 on the
+    step that completes the success test (see Episode End).
 
     ## Starting State
 
@@ -472,11 +488,17 @@ class ClothPinEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance`` and ``s < rest_speed`` for ``hold_steps`` consecutive
+    1. Termination: ``d < goal_tolerance`` and ``s_avg < rest_speed`` for ``hold_steps`` consecutive
        steps (success, ``info["is_success"]``).
+       Here ``s_avg`` is the RMS (m/s) of the particles' velocities averaged over about
+       ``rest_window`` steps (a moving average taking ``1 / rest_window`` of each new
+       velocity), so a policy's own zero-mean action noise averages out, while a drift or a
+       swing does not.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
     distance off the wire, m),
@@ -522,6 +544,7 @@ class ClothPinEnv(ParticleEnv):
     | `goal_tolerance` | `0.05`                      | success distance (m)                      |
     | `rest_speed`     | `0.05`                      | success RMS cloth particle speed (m/s)    |
     | `hold_steps`     | `5`                         | env steps the success test must hold      |
+    | `rest_window`    | `10`                        | rest test: averaging window (steps)       |
     | `residual_limit` | `0.01`                      | constraint error (m) counted as diverged  |
 
     (*) ``(xmin, ymin, xmax, ymax)``, ending at least ``snap_radius`` left of the cloth at its
@@ -540,6 +563,11 @@ class ClothPinEnv(ParticleEnv):
     ## Version History
 
     * v0: Initial version.
+      Changed before any release: the reward became potential-based shaping with a time cost
+      (it was ``-d - 0.1 s - penalties`` per step); a drawing that does not join the cloth to
+      an anchor is refused instead of using up the budget; the rest test averages velocities
+      over about ``rest_window`` steps (it was the instantaneous RMS speed); a diverged step
+      ends the episode as terminated with ``divergence_penalty`` (it was a truncation).
     """
 
     task_class = ClothPin

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,8 @@ class ClothSlide(ShapedTask, ParticleTask):
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
                  max_force: float = 1.0, goal_range: tuple[float, float] = (-0.6, 0.6),
                  min_distance: float = 0.3, goal_tolerance: float = 0.05,
-                 rest_speed: float = 0.05, hold_steps: int = 5, grab_radius: float = 0.2,
+                 rest_speed: float = 0.05, hold_steps: int = 5,
+                 rest_window: int = 10, grab_radius: float = math.inf,
                  mouse_ks: float = 20.0, mouse_kd: float = 0.5,
                  residual_limit: float = 0.01) -> None:
         try:
@@ -71,7 +73,7 @@ class ClothSlide(ShapedTask, ParticleTask):
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         rest_speed=rest_speed, hold_steps=hold_steps, rest_window=rest_window,
                          residual_limit=residual_limit)
         self.wall = next(f for f in self.system.forces if isinstance(f, Wall))
         #: The tracked coordinate is the cloth's centre of mass x (m), the mean x of every
@@ -185,10 +187,14 @@ class ClothSlideEnv(ParticleEnv):
     ``action_mode="force"`` (default): ``Box(-1, 1, (2,), float32)``, horizontal forces on the two
     top corners of the cloth (left, right), each ``action * max_force`` newtons.
 
-    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
-    target_y)`` in normalized scene coordinates (see below). The particle nearest the grab
-    point, if within ``grab_radius`` metres of it, is pulled toward the target
-    by a mouse spring (``mouse_ks``, ``mouse_kd``) for this step; otherwise nothing is applied.
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, pull_x,
+    pull_y)``. The particle nearest the grab point (in normalized scene coordinates, see below)
+    is grabbed, whatever the distance, and pulled for this step by a damped mouse spring
+    (``mouse_ks``, ``mouse_kd``) toward a target ``spring_reach * pull`` metres from where it
+    is, ``spring_reach = max_force / mouse_ks``, with ``pull`` scaled down onto the unit disc
+    if longer than 1: a particle at rest feels at most ``max_force`` newtons, as in force mode.
+    A pull of 0 holds the particle with the spring's damping alone. A finite ``grab_radius``
+    (m) lets grabs miss: a particle farther than that from the grab point is not pulled.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -238,12 +244,18 @@ class ClothSlideEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance``, ``s < rest_speed`` and no wall contact, for
+    1. Termination: ``d < goal_tolerance``, ``s_avg < rest_speed`` and no wall contact, for
        ``hold_steps`` consecutive steps (success, ``info["is_success"]``): resting against a
        wall is not rest.
+       Here ``s_avg`` is the RMS (m/s) of the particles' velocities averaged over about
+       ``rest_window`` steps (a moving average taking ``1 / rest_window`` of each new
+       velocity), so a policy's own zero-mean action noise averages out, while a drift or a
+       swing does not.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
     distance off the wire, m),
@@ -281,7 +293,8 @@ class ClothSlideEnv(ParticleEnv):
     | `goal_tolerance` | `0.05`               | success distance (m)                         |
     | `rest_speed`     | `0.05`               | success RMS particle speed (m/s)             |
     | `hold_steps`     | `5`                  | env steps the success test must hold         |
-    | `grab_radius`    | `0.2`                | reach of the spring action's grab point (m)  |
+    | `rest_window`    | `10`                 | rest test: averaging window (steps)          |
+    | `grab_radius`    | `inf`                | farthest grab (m); inf: never misses         |
     | `mouse_ks`       | `20.0`               | spring action stiffness (N/m)                |
     | `mouse_kd`       | `0.5`                | spring action damping (N s/m)                |
     | `residual_limit` | `0.01`               | constraint error (m) counted as diverged     |
@@ -304,6 +317,12 @@ class ClothSlideEnv(ParticleEnv):
 
     * v0: Initial version (the reward, the left wall and the wall-contact rule of the success
       test were settled before any results were published on it).
+      Changed before any release: the spring action grabs the nearest particle always and
+      pulls it toward a target relative to it, at most ``max_force`` on a particle at rest (it
+      was an absolute target point within a 0.2 m grab radius); the rest test averages
+      velocities over about ``rest_window`` steps (it was the instantaneous RMS speed); a
+      diverged step ends the episode as terminated with ``divergence_penalty`` (it was a
+      truncation).
     """
 
     task_class = ClothSlide

@@ -43,6 +43,9 @@ class ShapedTask:
 
     #: Reward per unit of potential (1/m, s/m).
     shaping_scale: float = 10.0
+    #: The cost of one step of playing on (the time cost): see
+    #: ``ParticleTask.divergence_penalty``.
+    step_cost: float = TIME_COST
     num_envs: int
     measure: Any  # ParticleTask.measure
 

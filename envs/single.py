@@ -84,10 +84,12 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         diverged = self.task.simulate()
         obs, info = self._result(diverged, ~diverged)
         reward = self.task.reward_one(self._last, self._values)
-        terminated = info["is_success"] and not info["diverged"]
+        if info["diverged"]:  # the episode ends (terminated) and pays for its remaining time
+            reward -= self.task.divergence_penalty
+        terminated = info["is_success"] or info["diverged"]
         if self.render_mode == "human":
             self.render()
-        return obs, reward, terminated, info["diverged"], info
+        return obs, reward, terminated, False, info
 
     def get_state(self) -> dict[str, Any]:
         """The full simulation state, for planning: restore it with :meth:`set_state`.

@@ -28,7 +28,8 @@ class SliderCrank(ShapedTask, ParticleTask):
                  max_force: float = 2.0, goal_range: tuple[float, float] = (0.8, 1.05),
                  min_distance: float = 0.1, max_start_speed: float = 2.0,
                  goal_tolerance: float = 0.02, rest_speed: float = 0.05,
-                 hold_steps: int = 5, grab_radius: float = 0.2, mouse_ks: float = 20.0,
+                 hold_steps: int = 5,
+                 rest_window: int = 10, grab_radius: float = math.inf, mouse_ks: float = 20.0,
                  mouse_kd: float = 1.0, residual_limit: float = 0.01) -> None:
         self.radius = check_positive("radius", radius, minimum=1e-3, maximum=1e3)
         self.rod = check_positive("rod", rod, minimum=1e-3, maximum=1e3)
@@ -62,7 +63,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
-                         rest_speed=rest_speed, hold_steps=hold_steps,
+                         rest_speed=rest_speed, hold_steps=hold_steps, rest_window=rest_window,
                          residual_limit=residual_limit)
 
     def build_scene(self) -> ParticleSystem:
@@ -189,7 +190,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         _measure.crank_measures_observe(
             r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
             v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
-            p.wall, False, self.hold, self._mask(stepped),
+            p.wall, False, self._rest(), self._mask(stepped),
             self.goal_tolerance, self.rest_speed, self.hold_steps, values[:5], flags[0],
             *self._obs_scale(), OBS_LIMIT, obs)
         return m, obs
@@ -229,7 +230,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         count = _measure.crank_finish(
             r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
             v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
-            p.wall, self.hold, self._every_copy, self.goal_tolerance, self.rest_speed,
+            p.wall, self._rest(), self._every_copy, self.goal_tolerance, self.rest_speed,
             self.hold_steps, values[:5], flags[0], *self._obs_scale(), OBS_LIMIT, obs, before,
             float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, values[7], steps,
             int(max_steps), flags[2], flags[3], flags[4])
@@ -253,7 +254,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and act.particles is self._pushed[0] and _owned(act.force, np.float64, (N, 2))
                 and _owned(steps, np.int64, (N,))
                 and _owned(self.goal, np.float64, (N,))
-                and _owned(self.hold, np.int64, (N,))
+                and self._rest_owned()
                 and _owned(self.action, np.float64, (N, 1))):
             return None
         s.check_arrays()
@@ -279,7 +280,7 @@ class SliderCrank(ShapedTask, ParticleTask):
             fused.METHOD_CODES[self.integrator], self.substeps, self.dt, x, v, mass,
             inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
             self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
-            track[0], track[1], self.hold, self._every_copy, self.goal_tolerance,
+            track[0], track[1], self._rest(), self._every_copy, self.goal_tolerance,
             self.rest_speed, self.hold_steps, out, success, *self._obs_scale(), OBS_LIMIT, obs,
             before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, reward, steps,
             int(max_steps), terminated, truncated, ended)
@@ -323,10 +324,14 @@ class SliderCrankEnv(ParticleEnv):
     max_force`` newtons on the crank along its counter-clockwise tangent (taken at the start of
     the step and held for its substeps; its component off the wire is absorbed by the wire).
 
-    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, target_x,
-    target_y)`` in normalized scene coordinates. The particle nearest the grab point, if within
-    ``grab_radius`` metres, is pulled toward the target by a mouse spring (``mouse_ks``,
-    ``mouse_kd``) for this step; otherwise nothing is applied.
+    ``action_mode="spring"``: ``Box(-1, 1, (4,), float32)`` = ``(grab_x, grab_y, pull_x,
+    pull_y)``. The particle nearest the grab point (in normalized scene coordinates, see below)
+    is grabbed, whatever the distance, and pulled for this step by a damped mouse spring
+    (``mouse_ks``, ``mouse_kd``) toward a target ``spring_reach * pull`` metres from where it
+    is, ``spring_reach = max_force / mouse_ks``, with ``pull`` scaled down onto the unit disc
+    if longer than 1: a particle at rest feels at most ``max_force`` newtons, as in force mode.
+    A pull of 0 holds the particle with the spring's damping alone. A finite ``grab_radius``
+    (m) lets grabs miss: a particle farther than that from the grab point is not pulled.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -371,15 +376,21 @@ class SliderCrankEnv(ParticleEnv):
 
     ## Episode End
 
-    1. Termination: ``d < goal_tolerance``, ``s < rest_speed`` and the crank above the wire
+    1. Termination: ``d < goal_tolerance``, ``s_avg < rest_speed`` and the crank above the wire
        (``y_crank > 0``), for ``hold_steps`` consecutive steps (success, ``info["is_success"]``).
        Every slider position has a crank angle above and one below the wire; the task asks for
        the one above. From a start below (half the starts) the crank must swing up through a
        dead centre (slider at 0.5 m or 1.1 m, where the slider's motion reverses), and holding
        it above needs a steady force ``m g cos(theta)`` against gravity.
+       Here ``s_avg`` is the RMS (m/s) of the particles' velocities averaged over about
+       ``rest_window`` steps (a moving average taking ``1 / rest_window`` of each new
+       velocity), so a policy's own zero-mean action noise averages out, while a drift or a
+       swing does not.
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
-    3. Truncation: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
-       the state before that step is returned and ``info["diverged"]`` is True.
+    3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
+       the state before that step is returned, ``info["diverged"]`` is True and the step's
+       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
+       episode), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``crank_height`` (m), ``crank_to_go`` (m),
     ``kinetic_energy`` (J), ``constraint_residual`` (the largest distance in m by
@@ -415,7 +426,8 @@ class SliderCrankEnv(ParticleEnv):
     | `goal_tolerance`  | `0.02`        | success distance (m)                             |
     | `rest_speed`      | `0.05`        | success RMS speed (m/s)                          |
     | `hold_steps`      | `5`           | env steps the success test must hold             |
-    | `grab_radius`     | `0.2`         | reach of the spring action's grab point (m)      |
+    | `rest_window`     | `10`          | rest test: averaging window (steps)              |
+    | `grab_radius`     | `inf`         | farthest grab (m); inf: never misses             |
     | `mouse_ks`        | `20.0`        | spring action stiffness (N/m)                    |
     | `mouse_kd`        | `1.0`         | spring action damping (N s/m)                    |
     | `residual_limit`  | `0.01`        | constraint error (m) counted as diverged         |
@@ -435,6 +447,12 @@ class SliderCrankEnv(ParticleEnv):
 
     * v0: Initial version (the reward and the crank-above rule of the success test were settled
       before any results were published on it).
+      Changed before any release: the spring action grabs the nearest particle always and
+      pulls it toward a target relative to it, at most ``max_force`` on a particle at rest (it
+      was an absolute target point within a 0.2 m grab radius); the rest test averages
+      velocities over about ``rest_window`` steps (it was the instantaneous RMS speed); a
+      diverged step ends the episode as terminated with ``divergence_penalty`` (it was a
+      truncation).
     """
 
     task_class = SliderCrank

@@ -211,8 +211,9 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             truncated = self.steps >= self.max_episode_steps
         else:
             self.steps[resetting] = 0
-            terminated = m["is_success"] & ~diverged & ~resetting
-            truncated = ((self.steps >= self.max_episode_steps) | diverged) & ~resetting
+            terminated = (m["is_success"] | diverged) & ~resetting
+            truncated = (self.steps >= self.max_episode_steps) & ~resetting
+            reward[diverged] -= self.task.divergence_penalty
             reward[resetting] = 0.0
         self._autoreset = terminated | truncated
         return obs, reward, terminated, truncated, info

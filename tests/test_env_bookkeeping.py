@@ -24,20 +24,23 @@ pytestmark = pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeepi
 
 CASES = [("ClothSlide-v0", "force"), ("ClothSlide-v0", "spring"),
          ("SliderCrank-v0", "force"), ("SliderCrank-v0", "spring"),
-         ("ChainSwing-v0", "force"), ("ChainSwing-v0", "spring"), ("ClothPin-v0", None)]
+         ("ChainSwing-v0", "force"), ("ChainSwing-v0", "spring"), ("ClothPin-v0", None),
+         ("ClothSlide-v0", "spring-radius")]  # a finite grab_radius, so that grabs can miss
 
 
 def both(monkeypatch: pytest.MonkeyPatch, task: ParticleTask, fn):
     """``fn()`` with the compiled path, then with the numpy reference, each from the same hold
-    counts (restored afterwards to the compiled run's)."""
-    hold = task.hold.copy()
+    counts and moving average velocities of the rest test."""
+    hold, mean_v = task.hold.copy(), task.mean_v.copy()
     fast = fn()
-    after = task.hold.copy()
-    task.hold[:] = hold
+    after, mean_after = task.hold.copy(), task.mean_v.copy()
+    task.hold[:], task.mean_v[:] = hold, mean_v
     with monkeypatch.context() as m:
         m.setattr(_measure, "ENABLED", False)
         ref = fn()
     assert np.array_equal(task.hold, after), "hold counts differ"
+    np.testing.assert_allclose(task.mean_v, mean_after, rtol=0, atol=1e-12,
+                               err_msg="moving average velocities differ")
     return fast, ref
 
 
@@ -55,8 +58,10 @@ def assert_measures_equal(fast: dict, ref: dict) -> None:
 @pytest.mark.parametrize(("env_id", "mode"), CASES, ids=[f"{e}-{m}" for e, m in CASES])
 def test_compiled_bookkeeping_equals_numpy_reference(monkeypatch, env_id, mode):
     N = 4
-    env = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
-                       **({} if mode is None else {"action_mode": mode}))
+    kwargs = {} if mode is None else {"action_mode": mode}
+    if mode == "spring-radius":
+        kwargs, mode = {"action_mode": "spring", "grab_radius": 0.2}, "spring"
+    env = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point", **kwargs)
     task = env.unwrapped.task
     env.reset(seed=3)
     # the compiled measures really run (else this would compare the reference with itself)
@@ -65,8 +70,12 @@ def test_compiled_bookkeeping_equals_numpy_reference(monkeypatch, env_id, mode):
     seen = {"wall": False, "hold": False, "missed": False, "grabbed": False}
     for t in range(150):
         a = rng.uniform(-1.3, 1.3, (N, task.action_dim)).astype(np.float32)
-        if env_id == "ClothSlide-v0" and mode == "force" and t < 60:
-            a[:2] = 1.0  # copies 0 and 1 drive into the right wall
+        if env_id == "ClothSlide-v0" and t < 60:  # copies 0 and 1 drive into the right wall
+            if mode == "force":
+                a[:2] = 1.0
+            else:  # grab the top row's middle particle and pull it right
+                a[:2, :2] = task.to_normalized(task.positions()[:2, task.nx // 2])
+                a[:2, 2:] = (1.0, 0.0)
         fast, ref = both(monkeypatch, task, lambda a=a: task.check_actions(a))
         assert fast.dtype == np.float64 and np.array_equal(fast, ref)
         stepped = rng.uniform(size=N) < 0.8
@@ -99,8 +108,8 @@ def test_compiled_bookkeeping_equals_numpy_reference(monkeypatch, env_id, mode):
         seen["hold"] |= bool(np.any(task.hold > 0))
         env.step(a)
     assert seen["wall"], "no step touched a wall: the wall force was never tested"
-    if mode == "spring":
-        assert seen["missed"] and seen["grabbed"]
+    if mode == "spring":  # the default grab_radius (inf) never misses; 0.2 m does
+        assert seen["grabbed"] and seen["missed"] == (task.grab_radius < np.inf)
 
 
 def test_hold_count_follows_the_success_rule_in_both_paths(monkeypatch):

@@ -83,7 +83,7 @@ def test_leaving_the_constraints_is_flagged_and_the_state_kept():
     env.reset(seed=3)
     before = env.unwrapped.get_state()
     obs, reward, terminated, truncated, info = env.step(np.ones(1, np.float32))
-    assert info["diverged"] and truncated and not terminated
+    assert info["diverged"] and terminated and not truncated
     after = env.unwrapped.get_state()
     assert after["x"].tobytes() == before["x"].tobytes()
     assert np.all(np.isfinite(obs)) and np.isfinite(reward)
