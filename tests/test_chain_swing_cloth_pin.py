@@ -1,21 +1,16 @@
-"""ChainSwing-v0 and ClothPin-v0: API conformance, determinism, state, batching, bad input, and
-the tasks' own rules (walls, targets, spring drawing), in the style of test_envs.py.
-
-The native vector env is compared with gymnasium's SyncVectorEnv of single envs (the independent
-reference): bit for bit for ClothPin, whose only constraint is the wire (a per-row solve), and to
-the multiplier solve's tolerance for ChainSwing, whose copies share one conjugate-gradient solve.
+"""ChainSwing-v0 and ClothPin-v0: their spaces and measures, the tasks' own rules (walls,
+targets, spring drawing), their agents, bad arguments and faults. What every env promises
+(checker, determinism, state, pickling, vector env, bad actions) is in
+tests/test_env_conformance.py.
 """
 
 from __future__ import annotations
 
 import doctest
-import pickle
-import warnings
 
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env
 
 import envs
 import envs.chain_swing
@@ -31,28 +26,9 @@ CASES = [("ChainSwing-v0", {"action_mode": "force"}),
 IDS = ["chain-force", "chain-spring", "chain-swingup", "pin-draw"]
 
 
-def rollout(env: gym.Env, actions: np.ndarray) -> list[tuple]:
-    """Step ``env`` through ``actions``; the transitions, copied."""
-    out = []
-    for a in actions:
-        obs, reward, terminated, truncated, info = env.step(a)
-        out.append((obs.copy(), reward, terminated, truncated, dict(info)))
-        if terminated or truncated:
-            break
-    return out
-
-
 def random_actions(env: gym.Env, steps: int, seed: int = 1) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return rng.uniform(-1, 1, (steps, *env.action_space.shape)).astype(np.float32)
-
-
-def assert_same(run_a: list[tuple], run_b: list[tuple]) -> None:
-    assert len(run_a) == len(run_b)
-    for (o1, r1, te1, tr1, i1), (o2, r2, te2, tr2, i2) in zip(run_a, run_b, strict=True):
-        assert o1.tobytes() == o2.tobytes()
-        assert (r1, te1, tr1) == (r2, te2, tr2)
-        assert i1 == i2
 
 
 def pin_action(task, a, b, ks=1.0, draw=True) -> np.ndarray:
@@ -64,20 +40,6 @@ def pin_action(task, a, b, ks=1.0, draw=True) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- API conformance
-def test_both_ids_are_registered_with_vector_entry_points():
-    assert {"ChainSwing-v0", "ClothPin-v0"} <= set(envs.ENV_IDS)
-    for env_id in envs.ENV_IDS:
-        spec = gym.spec(env_id)
-        assert spec.vector_entry_point is not None and spec.max_episode_steps == 200
-
-
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
-def test_check_env_passes_without_warnings(env_id, kwargs):
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        env = gym.make(env_id, **kwargs)
-        check_env(env.unwrapped)
-        env.close()
 
 
 @pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
@@ -112,21 +74,6 @@ def test_spaces_and_info_agree_with_the_state(env_id, kwargs):
     assert info["kinetic_energy"] == pytest.approx(task.system.kinetic_energy())
 
 
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
-def test_render_modes(env_id, kwargs):
-    env = gym.make(env_id, render_mode="rgb_array", **kwargs)
-    env.reset(seed=0)
-    env.step(env.action_space.sample())
-    frame = env.render()
-    assert frame.dtype == np.uint8 and frame.shape == (400, 600, 3)
-    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 5
-    human = gym.make(env_id, render_mode="human", **kwargs)  # SDL dummy driver in tests
-    human.reset(seed=0)
-    human.step(human.action_space.sample())
-    assert human.render() is None
-    human.close()
-
-
 def test_placed_spring_and_anchor_are_drawn():
     env = gym.make("ClothPin-v0", render_mode="rgb_array")
     env.reset(seed=0)
@@ -152,97 +99,26 @@ def test_placed_spring_and_anchor_are_drawn():
 
 
 # ---------------------------------------------------------------------- determinism and state
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
-def test_same_seed_same_episode_bit_for_bit(env_id, kwargs):
-    runs, firsts = [], []
-    for _ in range(2):
-        env = gym.make(env_id, **kwargs)
-        env.reset(seed=11)
-        env.reset(seed=5)  # an earlier episode must leave no trace
-        obs, _ = env.reset(seed=11)
-        firsts.append(obs)
-        runs.append(rollout(env, random_actions(env, 25)))
-    assert firsts[0].tobytes() == firsts[1].tobytes()
-    assert_same(*runs)
-    assert gym.make(env_id, **kwargs).reset(seed=12)[0].tobytes() != firsts[0].tobytes()
 
 
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
-def test_get_state_set_state_round_trip(env_id, kwargs):
-    env = gym.make(env_id, **kwargs).unwrapped
+def test_cloth_pin_refuses_bad_saved_springs_and_changes_nothing():
+    env = gym.make("ClothPin-v0").unwrapped
     agent = make_agent("scripted", env)
     obs, _ = env.reset(seed=4)
-    for _ in range(6):  # ClothPin's scripted agent places its spring on the first step
+    for _ in range(6):  # the scripted agent places its spring on the first step
         obs, *_ = env.step(agent(obs))
     state = env.get_state()
-    actions = random_actions(env, 12, seed=9)
-    ahead = rollout(env, actions)
-    after = env.get_state()
-    env.set_state(state)
-    assert_same(ahead, rollout(env, actions))
-    other = gym.make(env_id, **kwargs).unwrapped  # another instance, mid-episode elsewhere
-    other.reset(seed=99)
-    other.step(other.action_space.sample())
-    other.set_state(state)
-    assert_same(ahead, rollout(other, pickle.loads(pickle.dumps(actions))))
-    assert after["t"] > state["t"]
-    with pytest.raises(ValueError, match="x"):
-        env.set_state(dict(state, x=np.full_like(state["x"], np.nan)))
-    with pytest.raises(ValueError, match="missing"):
-        env.set_state({"x": state["x"]})
-    if env_id == "ClothPin-v0":
-        assert state["placed"] == 1 and state["spring_ks"][0] > 0
-        for bad in (dict(spring_i=np.full(4, 1e6)), dict(spring_ks=-state["spring_ks"]),
-                    dict(placed=9), dict(spring_j=state["spring_i"])):
-            before = env.get_state()
-            with pytest.raises(ValueError, match="state"):
-                env.set_state(dict(state, **bad))
-            now = env.get_state()
-            assert all(np.array_equal(now[k], before[k]) for k in ("x", "spring_i", "spring_ks"))
-
-
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:1] + CASES[3:], ids=["chain", "pin"])
-def test_pickled_env_continues_identically(env_id, kwargs):
-    env = gym.make(env_id, **kwargs)
-    env.reset(seed=2)
-    agent = make_agent("scripted", env)
-    env.step(agent(env.unwrapped.task.observe()[0]))
-    clone = pickle.loads(pickle.dumps(env))
-    actions = random_actions(env, 15, seed=4)
-    assert_same(rollout(env, actions), rollout(clone, actions))
+    assert state["placed"] == 1 and state["spring_ks"][0] > 0
+    for bad in (dict(spring_i=np.full(4, 1e6)), dict(spring_ks=-state["spring_ks"]),
+                dict(placed=9), dict(spring_j=state["spring_i"])):
+        before = env.get_state()
+        with pytest.raises(ValueError, match="state"):
+            env.set_state(dict(state, **bad))
+        now = env.get_state()
+        assert all(np.array_equal(now[k], before[k]) for k in ("x", "spring_i", "spring_ks"))
 
 
 # ---------------------------------------------------------------------- vector envs
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:1] + CASES[3:], ids=["chain", "pin"])
-def test_native_vector_env_matches_single_envs(env_id, kwargs):
-    exact = env_id == "ClothPin-v0"
-    N, limit = 4, 90 if exact else 70
-    native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
-                          max_episode_steps=limit, **kwargs)
-    sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", max_episode_steps=limit,
-                        **kwargs)
-    o1, _ = native.reset(seed=21)
-    o2, _ = sync.reset(seed=21)
-    assert o1.tobytes() == o2.tobytes()
-    agent = make_agent("scripted", native)
-    rng = np.random.default_rng(0)
-    ends = np.zeros(2, int)
-    for _ in range(2 * limit + 5):
-        a = agent(o1)
-        a[2:] = rng.uniform(-1, 1, a[2:].shape)  # copies 2, 3 act at random
-        o1, r1, te1, tr1, i1 = native.step(a)
-        o2, r2, te2, tr2, i2 = sync.step(a)
-        np.testing.assert_array_equal(te1, te2)
-        np.testing.assert_array_equal(tr1, tr2)
-        np.testing.assert_array_equal(i1["is_success"], i2["is_success"])
-        if exact:
-            assert o1.tobytes() == o2.tobytes() and r1.tobytes() == r2.tobytes()
-            np.testing.assert_array_equal(i1["springs"], i2["springs"])
-        else:
-            np.testing.assert_allclose(o1, o2, rtol=0, atol=1e-6)
-            np.testing.assert_allclose(r1, r2, rtol=0, atol=1e-6)
-        ends += [te1.sum(), tr1.sum()]
-    assert ends[0] >= 2 and ends[1] >= 2  # both kinds of episode end, then autoreset
 
 
 def test_placing_springs_keeps_the_topology():
@@ -406,22 +282,6 @@ def test_bad_kwargs_raise_at_make(env_id, kwargs, name):
         gym.make(env_id, **kwargs)
     with pytest.raises(ValueError, match=name):
         gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
-
-
-@pytest.mark.parametrize(("env_id", "kwargs"), CASES[:2] + CASES[3:], ids=IDS[:2] + IDS[3:])
-def test_nonfinite_action_raises_and_leaves_state_untouched(env_id, kwargs):
-    env = gym.make(env_id, **kwargs)
-    env.reset(seed=1)
-    env.step(env.action_space.sample())
-    before = env.unwrapped.get_state()
-    a = np.zeros(env.action_space.shape, np.float32)
-    a[-1] = np.nan
-    with pytest.raises(ValueError, match="action"):
-        env.step(a)
-    after = env.unwrapped.get_state()
-    for key in before:
-        if key != "np_random":
-            assert np.array_equal(after[key], before[key]), key
 
 
 @pytest.mark.parametrize(("env_id", "kwargs"), [
