@@ -10,10 +10,11 @@ import numpy as np
 from constrained_particles import Drag, ParticleSystem, fused, scenes
 
 from . import _measure
-from .base import MAX_PIECES, OBS_LIMIT, ParticleTask, _measured
+from .base import OBS_LIMIT, ParticleTask, _measured
 from .checks import _owned, away, check_goal_range, check_positive, scaled
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 from .single import ParticleEnv
+from .stepping import MAX_PIECES
 from .vector import ParticleVectorEnv
 
 

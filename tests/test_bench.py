@@ -83,7 +83,7 @@ def test_work_factor_counts_the_pieces_the_env_decides():
     """Under random actions some SliderCrank copies split their steps: more than one
     integrator step per physics step on average, at most MAX_PIECES; ClothSlide never
     splits (no step_travel), so exactly one."""
-    from envs.base import MAX_PIECES
+    from envs.stepping import MAX_PIECES
 
     w = B.work_factor("SliderCrank-v0", 16, steps=60)
     assert 1.0 < w <= MAX_PIECES
