@@ -30,6 +30,7 @@ from constrained_particles import (
     SimulationDiverged,
     Wall,
     fused,
+    fused_accel,
     kernels,
     scenes,
 )
@@ -257,7 +258,8 @@ def test_environment_variable_turns_the_compiled_path_off():
 def test_rattle_constants_are_the_reference_ones():
     from constrained_particles import rattle
 
-    assert (fused.RATTLE_POSITION_TOL, fused.RATTLE_STALL_TOL, fused.RATTLE_MAX_ITERATIONS) == (
+    assert (fused_accel.RATTLE_POSITION_TOL, fused_accel.RATTLE_STALL_TOL,
+            fused_accel.RATTLE_MAX_ITERATIONS) == (
         rattle.POSITION_TOL, rattle.STALL_TOL, rattle.MAX_ITERATIONS)
 
 
@@ -392,13 +394,13 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     spring of zero length): bit for bit the block kernel's plain loop, and within 1e-12 of
     the force formula written here in numpy."""
     rng = np.random.default_rng(3)
-    n, k = 300, 4 * fused.SPRING_BLOCK + 37
+    n, k = 300, 4 * fused_accel.SPRING_BLOCK + 37
     x, v = rng.uniform(-1, 1, (n, 2)), rng.normal(size=(n, 2))
     i, j = rng.integers(0, n, k), rng.integers(0, n, k)
     i[5] = j[5]  # zero length: no force
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     blocks = np.zeros((n, 2))
-    fused._springs(x, v, blocks, i, j, rest, ks, kd, fused.spring_runs(i, j))
+    fused_accel._springs(x, v, blocks, i, j, rest, ks, kd, fused.spring_runs(i, j))
     plain = np.zeros((n, 2))
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert blocks.tobytes() == plain.tobytes()
@@ -438,7 +440,7 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     got, plain = rng.normal(size=(n, 2)), np.zeros((n, 2))
     plain[:] = got  # forces add to what F holds
-    fused._springs(x, v, got, i, j, rest, ks, kd, runs)
+    fused_accel._springs(x, v, got, i, j, rest, ks, kd, runs)
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert got.tobytes() == plain.tobytes()
 
@@ -468,7 +470,7 @@ def test_tiled_cloths_are_copy_exact_with_the_spring_blocks(method):
     single = scenes.cloth(nx=5, ny=4, push=0.3)
     n = single.n
     tiled = single.tile(8)
-    assert len(fused.pack(tiled).spring[0]) > 2 * fused.SPRING_BLOCK
+    assert len(fused.pack(tiled).spring[0]) > 2 * fused_accel.SPRING_BLOCK
     rng = np.random.default_rng(1)
     alone = []
     for c in range(8):

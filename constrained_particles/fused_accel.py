@@ -1,0 +1,720 @@
+"""The compiled acceleration of a packed system, for the fused step (:mod:`.fused`): forces by
+block type (the elements of :mod:`.kernels`), the constraint rows and their per-component solve
+(dense Cholesky up to :data:`~.solver.DIRECT_MAX` rows, Jacobi-preconditioned conjugate
+gradients beyond), :func:`_accel` (both, for one state) and RATTLE's step :func:`_rattle`; with
+the flat per-particle helpers of the step loop and the check of a pack's inputs.
+
+The step loop, the tableau-driven Runge-Kutta stages and the entry point
+:func:`~.fused.fused_steps` are in :mod:`.fused`, which also packs the blocks; see its
+docstring for the design (packing, safety at the boundary, the spring loop).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from . import kernels
+from .solver import DIRECT_MAX
+
+#: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
+#: them): convergence and stall tolerances as fractions of the system's size, and iterations.
+RATTLE_POSITION_TOL, RATTLE_STALL_TOL, RATTLE_MAX_ITERATIONS = 1e-13, 1e-10, 50
+#: Springs per block of the compiled spring loop (see ``_springs``).
+SPRING_BLOCK = 128
+#: Shortest run of springs ``(a + t, b + t)`` that the spring loop takes as a run (contiguous
+#: reads and writes instead of gathers and scatters), and the run loop's block size.
+RUN_MIN, RUN_BLOCK = 32, 256
+#: Particles from which the compiled per-particle loops run over flat views (a view costs
+#: about as much as the loop saves on a few dozen particles).
+FLAT_MIN = 256
+#: Kernel status codes.
+OK, DIVERGED, FALLBACK = 0, 1, 2
+
+
+if kernels.ENABLED:
+    from numba.core import cgutils, types
+    from numba.extending import intrinsic
+    from numba.np.arrayobj import make_array
+
+    # fused_steps releases the GIL (another thread may step another system meanwhile): the
+    # arrays it reads stay alive as its arguments, and their index arrays cannot change.
+    from .jit import njit
+    from .kernels import (
+        add_spring,
+        angular_element,
+        circle_row,
+        line_row,
+        mouse_element,
+        rod_row,
+        spring_element,
+        wall_element,
+    )
+    # the per-block helpers of _accel, inlined into it: each call passed dozens of arrays
+    # (a call of _accel with nothing to do cost 1.4 us, now 0.7; a single SliderCrank env's
+    # physics step 10.7 -> 8.9 us), for some 20 s more of first-run compilation
+    njit_inline = njit(inline="always")
+
+    def _strip(context: Any, builder: Any, ty: Any, value: Any) -> Any:
+        """``value`` of type ``ty`` with every array in it (tuples recursively) carrying no
+        reference count (null meminfo and parent): see :func:`_borrowed`."""
+        if isinstance(ty, types.Array):
+            ary = make_array(ty)(context, builder, value=value)
+            ary.meminfo = cgutils.get_null_value(ary.meminfo.type)
+            ary.parent = cgutils.get_null_value(ary.parent.type)
+            return ary._getvalue()
+        if isinstance(ty, types.BaseTuple):
+            items = [_strip(context, builder, t, builder.extract_value(value, i))
+                     for i, t in enumerate(ty.types)]
+            return context.make_tuple(builder, ty, items)
+        return value
+
+    @intrinsic
+    def _borrowed(typingctx: Any, value: Any) -> Any:  # pragma: no cover - compiled
+        """``value`` (an array, a scalar, None or a nested tuple of them) with its arrays'
+        reference counts detached: the same data, shapes and strides, but passing or
+        unpacking them no longer costs an atomic increment and decrement each (about 1 us
+        per call of :func:`_accel`, whose arguments hold some 80 arrays). Only for arrays
+        that the caller keeps alive for longer than any use of the result, which must not
+        escape the call (the fused step's inputs, outputs and workspace)."""
+        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+            return _strip(context, builder, value, args[0])
+        return value(value), codegen
+
+    @njit
+    def _same_count(counts, a, b):  # pragma: no cover - compiled
+        """True if particles a[e] and b[e] take the same number of steps, for every e."""
+        for e in range(a.shape[0]):
+            if counts[a[e]] != counts[b[e]]:
+                return False
+        return True
+
+    @njit
+    def _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols,
+                      nnz, n, m, lam, counts):  # pragma: no cover - compiled
+        """False if the per-element arrays of a block disagree in length, if an active mouse
+        spring's particle is outside [0, n), or (``counts`` not empty) if two particles
+        coupled by a force element or a constraint row take different numbers of steps.
+
+        O(1) per array (and per mouse spring) on a plain call: the index, row, column and run
+        arrays were checked when the pack was built (``Packed._consistent``) and are immutable,
+        so only what an in-place edit can change is checked here, once per call, before any
+        array is read through an index. The mouse springs' ``active`` flags reach the kernel as
+        a copy made by :func:`~.fused.prepare`: another thread cannot switch one on after this
+        check."""
+        if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
+                or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
+                or drag[1].shape[0] != drag[0].shape[0]):
+            return False
+        k = spring[0].shape[0]
+        if (spring[1].shape[0] != k or spring[2].shape[0] != k or spring[3].shape[0] != k
+                or spring[4].shape[0] != k):
+            return False
+        k = ang[0].shape[0]
+        if (ang[1].shape[0] != k or ang[2].shape[0] != k or ang[3].shape[0] != k
+                or ang[4].shape[0] != k or ang[5].shape[0] != k):
+            return False
+        k = mouse[0].shape[0]
+        if (mouse[1].shape[0] != k or mouse[2].shape[0] != k or mouse[3].shape[0] != k
+                or mouse[4].shape[0] != k):
+            return False
+        if (circ[1].shape[0] != circ[0].shape[0] or circ[2].shape[0] != circ[0].shape[0]
+                or circ[3].shape[0] != circ[0].shape[0] or rod[1].shape[0] != rod[0].shape[0]
+                or rod[2].shape[0] != rod[0].shape[0] or rod[3].shape[0] != rod[0].shape[0]
+                or line[1].shape[0] != line[0].shape[0] or line[2].shape[0] != line[0].shape[0]
+                or line[3].shape[0] != line[0].shape[0]
+                or fixed[1].shape[0] != fixed[0].shape[0]
+                or fixed[2].shape[0] != fixed[0].shape[0]):
+            return False
+        if lam.shape[0] != m or cols.shape[0] != m or nnz.shape[0] != m:
+            return False
+        mi, mact = mouse[0], mouse[2]
+        for e in range(mi.shape[0]):
+            if mact[e] and (mi[e] < 0 or mi[e] >= n):
+                return False
+        if counts.shape[0] == 0:
+            return True
+        if counts.shape[0] != n:
+            return False
+        if not (_same_count(counts, spring[0], spring[1]) and _same_count(counts, ang[0], ang[1])
+                and _same_count(counts, ang[1], ang[2])):
+            return False
+        for r in range(m):
+            for k in range(1, nnz[r]):
+                if counts[cols[r, k] // 2] != counts[cols[r, 0] // 2]:
+                    return False
+        return True
+
+    @njit
+    def _springs(x, v, F, si, sj, srest, sks, skd, runs):  # pragma: no cover - compiled
+        """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
+        ``F``, in spring order: the ``runs`` (see :func:`spring_runs`, checked by
+        :func:`_check_inputs`) by :func:`_spring_run`, the springs between them by
+        :func:`_scattered_springs`. Bitwise the plain loop's result either way."""
+        k = si.shape[0]
+        if runs.shape[0] == 0:
+            _scattered_springs(x, v, F, si, sj, srest, sks, skd)
+            return
+        xf, vf, Ff = x.reshape(-1), v.reshape(-1), F.reshape(-1)
+        ws = np.empty((6, RUN_BLOCK))
+        e = 0
+        for r in range(runs.shape[0] + 1):
+            stop = runs[r, 0] if r < runs.shape[0] else k
+            if stop > e:
+                _scattered_springs(x, v, F, si[e:stop], sj[e:stop], srest[e:stop],
+                                   sks[e:stop], skd[e:stop])
+            if r == runs.shape[0]:
+                break
+            lo, hi = runs[r, 0], runs[r, 1]
+            a0, d = si[lo], sj[lo] - si[lo]
+            for c in range(lo, hi, RUN_BLOCK):
+                m = min(RUN_BLOCK, hi - c)
+                _spring_run(xf, vf, Ff, a0 + (c - lo), d, srest[c:c + m], sks[c:c + m],
+                            skd[c:c + m], ws)
+            e = hi
+
+    @njit
+    def _spring_run(xf, vf, Ff, a, d, rest, ks, kd, ws):  # pragma: no cover - compiled
+        """The springs ``(a + t, a + d + t)``, t < m = len(rest) (d != 0, all in range), on
+        flat views of x, v and F: the ends' differences are read from contiguous slices, the
+        :func:`spring_element` loop runs over the block, and each particle's sums are written
+        in one pass in the plain loop's order (a particle that ends two springs of the run
+        takes the earlier spring's force first), so the result is bitwise the plain loop's."""
+        m = rest.shape[0]
+        b = a + d
+        lx, ly, ux, uy, fx, fy = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5]
+        xa, xb = xf[2 * a:2 * (a + m)], xf[2 * b:2 * (b + m)]
+        va, vb = vf[2 * a:2 * (a + m)], vf[2 * b:2 * (b + m)]
+        for t in range(m):
+            lx[t] = xa[2 * t] - xb[2 * t]
+            ly[t] = xa[2 * t + 1] - xb[2 * t + 1]
+            ux[t] = va[2 * t] - vb[2 * t]
+            uy[t] = va[2 * t + 1] - vb[2 * t + 1]
+        for t in range(m):
+            fx[t], fy[t] = spring_element(lx[t], ly[t], ux[t], uy[t], ks[t], kd[t], rest[t])
+        if d >= m or -d >= m:  # the two ends' ranges are disjoint
+            Fa = Ff[2 * a:2 * (a + m)]
+            for t in range(m):
+                Fa[2 * t] += fx[t]
+                Fa[2 * t + 1] += fy[t]
+            Fb = Ff[2 * b:2 * (b + m)]
+            for t in range(m):
+                Fb[2 * t] -= fx[t]
+                Fb[2 * t + 1] -= fy[t]
+        elif d > 0:  # [a, b): end i only; [b, a + m): j of spring t, then i of t + d; then j
+            Fa = Ff[2 * a:2 * b]
+            for t in range(d):
+                Fa[2 * t] += fx[t]
+                Fa[2 * t + 1] += fy[t]
+            Fm = Ff[2 * b:2 * (a + m)]
+            for t in range(m - d):
+                Fm[2 * t] = (Fm[2 * t] - fx[t]) + fx[t + d]
+                Fm[2 * t + 1] = (Fm[2 * t + 1] - fy[t]) + fy[t + d]
+            Fb = Ff[2 * (a + m):2 * (b + m)]
+            for t in range(d):
+                Fb[2 * t] -= fx[m - d + t]
+                Fb[2 * t + 1] -= fy[m - d + t]
+        else:  # [b, a): end j only; [a, b + m): i of spring t, then j of t - d; then i
+            g = -d
+            Fb = Ff[2 * b:2 * a]
+            for t in range(g):
+                Fb[2 * t] -= fx[t]
+                Fb[2 * t + 1] -= fy[t]
+            Fm = Ff[2 * a:2 * (b + m)]
+            for t in range(m - g):
+                Fm[2 * t] = (Fm[2 * t] + fx[t]) - fx[t + g]
+                Fm[2 * t + 1] = (Fm[2 * t + 1] + fy[t]) - fy[t + g]
+            Fa = Ff[2 * (b + m):2 * (a + m)]
+            for t in range(g):
+                Fa[2 * t] += fx[m - g + t]
+                Fa[2 * t + 1] += fy[m - g + t]
+
+    @njit
+    def _scattered_springs(x, v, F, si, sj, srest, sks, skd):  # pragma: no cover - compiled
+        """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
+        ``F``. Indices were checked by :func:`_check_inputs`; read as unsigned, they are used
+        without the negative-index wraparound.
+
+        Many springs go ``SPRING_BLOCK`` at a time: the ends' differences are gathered into a
+        scratch array made here (so the compiler knows it aliases nothing else),
+        :func:`spring_element` runs over the block without indirect access (so its square root
+        and division are vectorized), and the forces are added to ``F`` in spring order. Each
+        spring's arithmetic and the order of the sums into ``F`` are those of the plain loop,
+        so both ways give bitwise the same result."""
+        k = si.shape[0]
+        if k < 2 * SPRING_BLOCK:  # few springs: the plain loop (no allocation)
+            for e in range(k):
+                add_spring(x, v, F, np.uint64(si[e]), np.uint64(sj[e]), sks[e], skd[e],
+                           srest[e])
+            return
+        ws = np.empty((6, SPRING_BLOCK))
+        lx, ly, ux, uy, fx, fy = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5]
+        for lo in range(0, k, SPRING_BLOCK):
+            m = min(SPRING_BLOCK, k - lo)
+            ii, jj = si[lo:lo + m], sj[lo:lo + m]
+            for t in range(m):
+                a, b = np.uint64(ii[t]), np.uint64(jj[t])
+                lx[t] = x[a, 0] - x[b, 0]
+                ly[t] = x[a, 1] - x[b, 1]
+                ux[t] = v[a, 0] - v[b, 0]
+                uy[t] = v[a, 1] - v[b, 1]
+            rest, ks, kd = srest[lo:lo + m], sks[lo:lo + m], skd[lo:lo + m]
+            for t in range(m):
+                fx[t], fy[t] = spring_element(lx[t], ly[t], ux[t], uy[t], ks[t], kd[t], rest[t])
+            for t in range(m):
+                a, b = np.uint64(ii[t]), np.uint64(jj[t])
+                fa, fb = fx[t], fy[t]
+                F[a, 0] += fa
+                F[a, 1] += fb
+                F[b, 0] -= fa
+                F[b, 1] -= fb
+
+    # Loops over every particle as flat views, which the compiler vectorizes (each view costs
+    # about what the vectorized loop saves on a few dozen particles: see FLAT_MIN). Kept out of
+    # the step kernel, whose small-system speed suffers from their presence.
+    @njit
+    def _scale_flat(out, inv_mass):  # pragma: no cover - compiled
+        """``out[q] *= inv_mass[q]`` for every particle q."""
+        flat = out.reshape(-1)
+        for q in range(inv_mass.shape[0]):
+            w = inv_mass[q]
+            flat[2 * q] *= w
+            flat[2 * q + 1] *= w
+
+    @njit
+    def _euler_flat(explicit, h, x, v, a, xs, vs):  # pragma: no cover - compiled
+        """One Euler step of ``h`` seconds from ``(x, v)`` with accelerations ``a`` into
+        ``(xs, vs)``: explicit (positions with the old velocities) or symplectic (with the
+        new ones)."""
+        xf, vf, af, xsf, vsf = x.reshape(-1), v.reshape(-1), a.reshape(-1), xs.reshape(-1), \
+            vs.reshape(-1)
+        if explicit:
+            for c in range(xf.shape[0]):
+                xsf[c] = xf[c] + h * vf[c]
+                vsf[c] = vf[c] + h * af[c]
+        else:
+            for c in range(xf.shape[0]):
+                vnew = vf[c] + h * af[c]
+                vsf[c] = vnew
+                xsf[c] = xf[c] + h * vnew
+
+    @njit
+    def _copy_flat(a, out):  # pragma: no cover - compiled
+        """``out[...] = a`` for two C-ordered arrays of one shape, as one flat loop."""
+        af, of = a.reshape(-1), out.reshape(-1)
+        for c in range(af.shape[0]):
+            of[c] = af[c]
+
+    @njit
+    def _beyond_flat(xs, vs, limit):  # pragma: no cover - compiled
+        """True if any coordinate of ``xs`` or ``vs`` is not below ``limit`` in magnitude
+        (NaN included); counted without an early exit, so the loop vectorizes."""
+        xsf, vsf = xs.reshape(-1), vs.reshape(-1)
+        bad = 0
+        for c in range(xsf.shape[0]):
+            bad += not (abs(xsf[c]) < limit and abs(vsf[c]) < limit)
+        return bad > 0
+
+    @njit_inline
+    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
+        # pragma: no cover - compiled
+        """Applied forces Q (N) into F (overwritten), summed by block type (indices were
+        checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
+        all live), elements on particles that are not live are skipped, and so are those
+        particles' rows of F (nothing reads them)."""
+        if live is None:
+            F[:, :] = 0.0
+        else:
+            for i in range(live[4][0]):
+                q = live[1][i]
+                F[q, 0] = 0.0
+                F[q, 1] = 0.0
+        gi, gblock, gg = grav
+        for ee in range(gi.shape[0] if live is None else live[4][3]):
+            e = ee if live is None else live[5][0][ee]
+            q, k = np.uint64(gi[e]), np.uint64(gblock[e])  # (checked: no wraparound needed)
+            F[q, 0] += mass[q] * gg[k, 0]
+            F[q, 1] += mass[q] * gg[k, 1]
+        ci, cf = const
+        for ee in range(ci.shape[0] if live is None else live[4][4]):
+            e = ee if live is None else live[5][1][ee]
+            q = ci[e]
+            F[q, 0] += cf[e, 0]
+            F[q, 1] += cf[e, 1]
+        si, sj, srest, sks, skd, sruns = spring
+        if live is None:
+            _springs(x, v, F, si, sj, srest, sks, skd, sruns)
+        else:
+            for ee in range(live[4][5]):
+                e = live[5][2][ee]
+                # (checked indices read as unsigned: no wraparound needed)
+                add_spring(x, v, F, np.uint64(si[e]), np.uint64(sj[e]), sks[e], skd[e],
+                           srest[e])
+        aa, ab, ac, arest, ak, akd = ang
+        for ee in range(aa.shape[0] if live is None else live[4][6]):
+            e = ee if live is None else live[5][3][ee]
+            a, b, c = aa[e], ab[e], ac[e]
+            fax, fay, fbx, fby, fcx, fcy = angular_element(
+                x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
+                v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
+            F[a, 0] += fax
+            F[a, 1] += fay
+            F[b, 0] += fbx
+            F[b, 1] += fby
+            F[c, 0] += fcx
+            F[c, 1] += fcy
+        di, dkd = drag
+        for ee in range(di.shape[0] if live is None else live[4][7]):
+            e = ee if live is None else live[5][4][ee]
+            q = di[e]
+            F[q, 0] -= dkd[e] * v[q, 0]
+            F[q, 1] -= dkd[e] * v[q, 1]
+        wi, wblock, wn, wpar = wall
+        for ee in range(wi.shape[0] if live is None else live[4][8]):
+            e = ee if live is None else live[5][5][ee]
+            q, k = wi[e], wblock[e]
+            fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
+                                  wpar[k, 0], wpar[k, 1], wpar[k, 2])
+            F[q, 0] += fx
+            F[q, 1] += fy
+        mi, manchor, mact, mks, mkd = mouse
+        for ee in range(mi.shape[0] if live is None else live[4][9]):
+            e = ee if live is None else live[5][6][ee]
+            if mact[e]:
+                q = mi[e]
+                fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
+                                       manchor[e, 1], mks[e], mkd[e])
+                F[q, 0] += fx
+                F[q, 1] += fy
+
+    @njit_inline
+    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live):
+        # pragma: no cover - compiled
+        """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
+        that are not ``live`` are skipped; None: all live)."""
+        cp, cc, cr, crow = circ
+        for ee in range(cp.shape[0] if live is None else live[4][10]):
+            e = ee if live is None else live[5][7][ee]
+            q, r = cp[e], crow[e]
+            dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
+            C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
+            Jv[r, 0], Jv[r, 1] = dx, dy
+            Jdv[r, 0], Jdv[r, 1] = v[q, 0], v[q, 1]
+        ra, rb, rl, rrow = rod
+        for ee in range(ra.shape[0] if live is None else live[4][11]):
+            e = ee if live is None else live[5][8][ee]
+            a, b, r = ra[e], rb[e], rrow[e]
+            dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
+            dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
+            C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
+            Jv[r, 0], Jv[r, 1], Jv[r, 2], Jv[r, 3] = dx, dy, -dx, -dy
+            Jdv[r, 0], Jdv[r, 1], Jdv[r, 2], Jdv[r, 3] = dvx, dvy, -dvx, -dvy
+        lp, ln, lpt, lrow = line
+        for ee in range(lp.shape[0] if live is None else live[4][12]):
+            e = ee if live is None else live[5][9][ee]
+            q, r = lp[e], lrow[e]
+            C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
+                                     lpt[e, 0], lpt[e, 1])
+            Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
+            Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
+        fp, fpt, frow = fixed
+        for ee in range(fp.shape[0] if live is None else live[4][13]):
+            e = ee if live is None else live[5][10][ee]
+            q, r = fp[e], frow[e]
+            for axis in range(2):
+                C[r + axis] = x[q, axis] - fpt[e, axis]
+                Cdot[r + axis] = v[q, axis]
+                Jv[r + axis, 0] = 1.0
+                Jdv[r + axis, 0] = 0.0
+
+    @njit
+    def _distance_error(x, circ, rod, line, fixed, live):  # pragma: no cover - compiled
+        """Largest geometric constraint residual (m): how far any particle is off its wire,
+        any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
+        worst = 0.0
+        cp, cc, cr, _ = circ
+        for ee in range(cp.shape[0] if live is None else live[4][10]):
+            e = ee if live is None else live[5][7][ee]
+            q = cp[e]
+            d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
+            if not d <= worst:
+                worst = d
+        ra, rb, rl, _ = rod
+        for ee in range(ra.shape[0] if live is None else live[4][11]):
+            e = ee if live is None else live[5][8][ee]
+            a, b = ra[e], rb[e]
+            d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
+            if not d <= worst:
+                worst = d
+        lp, ln, lpt, _ = line
+        for ee in range(lp.shape[0] if live is None else live[4][12]):
+            e = ee if live is None else live[5][9][ee]
+            q = lp[e]
+            d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
+            if not d <= worst:
+                worst = d
+        fp, fpt, _ = fixed
+        for ee in range(fp.shape[0] if live is None else live[4][13]):
+            e = ee if live is None else live[5][10][ee]
+            q = fp[e]
+            for axis in range(2):
+                d = abs(x[q, axis] - fpt[e, axis])
+                if not d <= worst:
+                    worst = d
+        return worst
+
+    @njit_inline
+    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
+                          live):  # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` component by component (with ``live``, only those of
+        live particles: see :func:`_gate`); False if any solve is singular, ill-posed or does
+        not converge (the caller then uses the reference solver)."""
+        ncomp = comp_ptr.shape[0] - 1
+        for kk in range(ncomp if live is None else live[4][2]):
+            k = kk if live is None else live[3][kk]
+            start, stop = comp_ptr[k], comp_ptr[k + 1]
+            s = stop - start
+            if s <= DIRECT_MAX:
+                # dense J W J^T of this component
+                for i in range(s):
+                    ri = comp_rows[start + i]
+                    for j in range(i + 1):
+                        rj = comp_rows[start + j]
+                        acc = 0.0
+                        for ki in range(nnz[ri]):
+                            ci = cols[ri, ki]
+                            for kj in range(nnz[rj]):
+                                if cols[rj, kj] == ci:
+                                    acc += Jv[ri, ki] * w2[ci] * Jv[rj, kj]
+                        A[i, j] = acc
+                # Cholesky in place (lower triangle)
+                for j in range(s):
+                    d = A[j, j]
+                    for q in range(j):
+                        d -= A[j, q] * A[j, q]
+                    if not d > 1e-12 * A[j, j] or not d > 0.0:
+                        return False
+                    d = math.sqrt(d)
+                    A[j, j] = d
+                    for i in range(j + 1, s):
+                        acc = A[i, j]
+                        for q in range(j):
+                            acc -= A[i, q] * A[j, q]
+                        A[i, j] = acc / d
+                for i in range(s):  # forward: L y = b
+                    acc = b[comp_rows[start + i]]
+                    for q in range(i):
+                        acc -= A[i, q] * work[q]
+                    work[i] = acc / A[i, i]
+                for i in range(s - 1, -1, -1):  # back: L^T lam = y
+                    acc = work[i]
+                    for q in range(i + 1, s):
+                        acc -= A[q, i] * work[q]
+                    work[i] = acc / A[i, i]
+                for i in range(s):
+                    lam[comp_rows[start + i]] = work[i]
+            else:
+                if not _cg_component(cols, nnz, comp_rows[start:stop], w2, Jv, b, lam, tol,
+                                     tmp):
+                    return False
+        return True
+
+    @njit
+    def _matvec(cols, nnz, rows, w2, Jv, p, out, tmp):  # pragma: no cover - compiled
+        """out = J W J^T p on the rows of one component (tmp is a zeroed (2n,) buffer)."""
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            for k in range(nnz[r]):
+                tmp[cols[r, k]] += Jv[r, k] * p[i]
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            acc = 0.0
+            for k in range(nnz[r]):
+                acc += Jv[r, k] * w2[cols[r, k]] * tmp[cols[r, k]]
+            out[i] = acc
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            for k in range(nnz[r]):
+                tmp[cols[r, k]] = 0.0
+
+    @njit
+    def _cg_component(cols, nnz, rows, w2, Jv, b, lam, tol, tmp):  # pragma: no cover
+        """Jacobi-preconditioned CG on one component, warm-started from ``lam``."""
+        s = rows.shape[0]
+        d = np.empty(s)
+        y = np.empty(s)
+        rhs = np.empty(s)
+        for i in range(s):
+            r = rows[i]
+            acc = 0.0
+            for k in range(nnz[r]):
+                acc += Jv[r, k] * Jv[r, k] * w2[cols[r, k]]
+            if not acc > 0.0:
+                return False
+            d[i] = acc
+            y[i] = lam[r]
+            rhs[i] = b[r]
+        bnorm = math.sqrt(np.sum(rhs * rhs))
+        Ap = np.empty(s)
+        _matvec(cols, nnz, rows, w2, Jv, y, Ap, tmp)
+        res = rhs - Ap
+        if bnorm == 0.0:
+            for i in range(s):
+                lam[rows[i]] = 0.0
+            return True
+        z = res / d
+        p = z.copy()
+        rz = np.sum(res * z)
+        for _ in range(10 * s + 10):
+            if math.sqrt(np.sum(res * res)) <= tol * bnorm:
+                for i in range(s):
+                    lam[rows[i]] = y[i]
+                return True
+            _matvec(cols, nnz, rows, w2, Jv, p, Ap, tmp)
+            pAp = np.sum(p * Ap)
+            if not pAp > 0.0:
+                return False
+            alpha = rz / pAp
+            y += alpha * p
+            res -= alpha * Ap
+            z = res / d
+            rz_new = np.sum(res * z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        if math.sqrt(np.sum(res * res)) <= tol * bnorm:
+            for i in range(s):
+                lam[rows[i]] = y[i]
+            return True
+        return False
+
+    @njit
+    def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
+               rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
+               C, Cdot, Jv, Jdv, b, work, A, tmp, live):  # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``live``, of the live
+        particles only: see :func:`_gate`); False if the solve failed."""
+        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live)
+        m = C.shape[0]
+        if m:
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live)
+            for rr in range(m if live is None else live[4][1]):  # b = -Jdot qdot - J W Q
+                r = rr if live is None else live[2][rr]             # - ks C - kd Cdot
+                acc = 0.0
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    q, axis = c // 2, c % 2
+                    acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
+                b[r] = -acc - ks * C[r] - kd * Cdot[r]
+            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
+                                     A, tmp, live):
+                return False
+            for rr in range(m if live is None else live[4][1]):  # Q += J^T lam
+                r = rr if live is None else live[2][rr]
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    out[c // 2, c % 2] += Jv[r, k] * lam[r]
+        if live is None and x.shape[0] >= FLAT_MIN:
+            _scale_flat(out, inv_mass)
+            return True
+        for i in range(x.shape[0] if live is None else live[4][0]):
+            q = i if live is None else live[1][i]
+            out[q, 0] *= inv_mass[q]
+            out[q, 1] *= inv_mass[q]
+        return True
+
+    @njit
+    def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
+                wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
+                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
+        """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
+        rattle` does it; False where the reference must take over (it raises the errors)."""
+        n = x.shape[0]
+        m = C.shape[0]
+        half = 0.5 * h
+        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
+                xs[q, d] = x[q, d] + h * vs[q, d]
+        if m:
+            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, None)
+            # Newton on C(x1) = 0, convergence decided per component (as the reference does)
+            ncomp = comp_ptr.shape[0] - 1
+            done = np.zeros(ncomp, np.bool_)
+            previous = np.full(ncomp, math.inf)
+            for iteration in range(RATTLE_MAX_ITERATIONS + 1):
+                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, None)
+                remaining = 0
+                for k in range(ncomp):
+                    worst = 0.0
+                    size = 0.0
+                    for i in range(comp_ptr[k], comp_ptr[k + 1]):
+                        r = comp_rows[i]
+                        g = 0.0
+                        for kk in range(nnz[r]):
+                            c = cols[r, kk]
+                            g += Jv[r, kk] * Jv[r, kk]
+                            a = abs(xs[c // 2, c % 2])
+                            if not a <= size:
+                                size = a
+                        dist = abs(C[r]) / math.sqrt(g)
+                        if not dist <= worst:
+                            worst = dist
+                    if not (worst < math.inf and size < math.inf):
+                        return False  # non-finite or a vanishing gradient: the reference says
+                    if worst <= RATTLE_POSITION_TOL * size or (
+                            worst > 0.5 * previous[k] and worst <= RATTLE_STALL_TOL * size):
+                        done[k] = True
+                    if not done[k]:
+                        remaining += 1
+                    previous[k] = worst
+                if remaining == 0:
+                    break
+                if iteration == RATTLE_MAX_ITERATIONS:
+                    return False
+                for k in range(ncomp):
+                    for i in range(comp_ptr[k], comp_ptr[k + 1]):
+                        r = comp_rows[i]
+                        b[r] = 0.0 if done[k] else C[r]
+                        dl[r] = 0.0
+                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
+                                         work, A, tmp, None):
+                    return False
+                for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
+                    for k in range(nnz[r]):
+                        tmp[cols[r, k]] += J0[r, k] * dl[r]
+                for q in range(n):
+                    for d in range(2):
+                        dq = w2[2 * q + d] * tmp[2 * q + d]
+                        tmp[2 * q + d] = 0.0
+                        xs[q, d] -= dq
+                        vs[q, d] -= dq / h
+        # velocity-dependent forces see the predicted v1 = 2 v_half - v0
+        for q in range(n):
+            for d in range(2):
+                f1[q, d] = 2.0 * vs[q, d] - v[q, d]
+        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
+        for q in range(n):
+            for d in range(2):
+                vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
+        if m:  # J(x1) is current; mu such that J(x1) v1 = 0
+            for r in range(m):
+                acc = 0.0
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    acc += Jv[r, k] * vs[c // 2, c % 2]
+                b[r] = acc
+                dl[r] = 0.0
+            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
+                                     A, tmp, None):
+                return False
+            for r in range(m):
+                for k in range(nnz[r]):
+                    tmp[cols[r, k]] += Jv[r, k] * dl[r]
+            for q in range(n):
+                for d in range(2):
+                    vs[q, d] = vs[q, d] - w2[2 * q + d] * tmp[2 * q + d]
+                    tmp[2 * q + d] = 0.0
+        return True
