@@ -23,7 +23,7 @@ import envs.cloth_slide
 import envs.slider_crank
 from envs.agents import make_agent
 from envs.base import ACTION_MODES
-from envs.rewards import TIME_COST
+from envs.rewards import SUCCESS_BONUS, TIME_COST
 
 #: The tasks with a goal along x and force or spring actions (the others:
 #: test_chain_swing_cloth_pin.py)
@@ -483,3 +483,80 @@ def test_a_step_in_which_every_copy_starts_anew_skips_the_physics_alone(env_id):
         assert lean.unwrapped.task.system.t == full_task.system.t
         assert lean.unwrapped.task.system.x.tobytes() == full_task.system.x.tobytes()
     assert len(calls) >= 2  # truncations at steps 4 and 8: reset steps 5 and 10
+
+
+# ---------------------------------------------------------------------- rewards and walls
+@pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0"])
+def test_shaped_return_telescopes(env_id):
+    """The episode return is k (Phi_0 - Phi_T) - TIME_COST T - penalties + bonus, whatever the
+    actions: the shaping term cannot be farmed."""
+    env = gym.make(env_id, max_episode_steps=60)
+    task = env.unwrapped.task
+    rng = np.random.default_rng(3)
+    for seed in range(3):
+        env.reset(seed=seed)
+        phi0 = float(task.potential(task.measure())[0])
+        total, penalties, steps, success = 0.0, 0.0, 0, False
+        done = False
+        while not done:
+            _, r, term, trunc, info = env.step(rng.uniform(-1, 1, env.action_space.shape))
+            penalties += float(task.penalties(task.measure())[0])
+            total += r
+            steps += 1
+            success |= info["is_success"]
+            done = term or trunc
+        phiT = float(task.potential(task.measure())[0])
+        expected = (task.shaping_scale * (phi0 - phiT) - TIME_COST * steps - penalties
+                    + SUCCESS_BONUS * success)
+        assert total == pytest.approx(expected, abs=1e-9)
+
+
+def test_cloth_squeeze_is_penalised_and_reported():
+    """Pushing the corners together (net force 0) costs reward and shows in info["squeeze"]."""
+    rewards = {}
+    for name, action in (("idle", [0.0, 0.0]), ("squeeze", [1.0, -1.0])):
+        env = gym.make("ClothSlide-v0")
+        env.reset(seed=0)
+        _, r, _, _, info = env.step(np.array(action, np.float32))
+        rewards[name] = r
+        assert info["squeeze"] == pytest.approx(0.5 * (action[0] - action[1]))
+    assert rewards["squeeze"] < rewards["idle"] - 0.15
+
+
+def test_cloth_cannot_leave_to_the_left():
+    """The wire has a left end: pushing left at full force for 10 s keeps the cloth in view."""
+    env = gym.make("ClothSlide-v0")
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    for _ in range(200):
+        _, _, _, _, info = env.step(np.array([-1.0, -1.0], np.float32))
+    assert task.positions()[0, :, 0].min() > task.left_wall_x - 0.1
+    assert info["wall_force"] > 0
+
+
+def test_slider_crank_success_needs_the_crank_above():
+    """A linkage held at rest at the goal with the crank below the wire never succeeds; the
+    mirror image above does."""
+    outcomes = {}
+    for side in (-1.0, 1.0):
+        env = gym.make("SliderCrank-v0", drag=0.0)
+        env.reset(seed=0)
+        task = env.unwrapped.task
+        # crank angle whose slider position is 0.9 m, on the chosen side, at rest
+        g, r, L = 0.9, task.radius, task.rod
+        angle = side * np.arccos((g**2 + r**2 - L**2) / (2 * g * r))
+        x, v = task.linkage(angle, 0.0)
+        state = env.unwrapped.get_state()
+        # held there at rest: the rest test's averaged velocities are zero too
+        state.update(x=x, v=v, goal=g, mean_v=np.zeros_like(state["mean_v"]))
+        env.unwrapped.set_state(state)
+        hold = task.particle_mass * 9.81 * np.cos(angle) / task.max_force  # cancels gravity
+        success = False
+        for _ in range(10):
+            _, _, term, _, info = env.step(np.array([hold], np.float32))
+            success |= term
+        outcomes[side] = success
+    assert outcomes == {-1.0: False, 1.0: True}
+
+
+# ----------------------------------------------------------------------------- train/evaluate
