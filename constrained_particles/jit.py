@@ -12,7 +12,12 @@ fail on a read-only install. Functions decorated with :func:`njit` cache instead
    ``~/Library/Caches`` on macOS, ``%LOCALAPPDATA%`` on Windows, in the sub-folder
    ``constrained-particles/numba-<numba version>-<python tag>``.
 
-Inside it, each source folder gets its own sub-folder, named as Numba names them. When the chosen
+Inside it, each source folder gets its own sub-folder, named as Numba names them. A cached kernel
+is used only while the sources it was compiled from are unchanged: Numba checks the function's
+own file, but a kernel here also compiles in functions of other modules (the fused step calls
+the elements of ``kernels.py`` and ``fused_accel.py``; the envs' kernels call the fused step), so
+the stamp is the content of every module in the function's folder and in this package
+(:func:`source_stamp`). When the chosen
 directory cannot be created or written (a read-only home, say), the kernels compile in memory
 instead: everything works, each new process compiles again, and one line on stderr says so.
 A shared temporary directory is never used: the cache files are pickles, which anyone who can
@@ -29,6 +34,7 @@ the tests) stays silent, as the command line's progress bars do.
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import sys
 import tempfile
@@ -40,7 +46,7 @@ import numba
 from numba.core import caching, event
 from numba.core.dispatcher import Dispatcher
 
-__all__ = ["cache_dir", "default_cache_dir", "njit"]
+__all__ = ["cache_dir", "default_cache_dir", "njit", "source_stamp"]
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
 #: A tag in the name of each cache folder, changed when the options given to :func:`njit` change
@@ -95,9 +101,27 @@ def cache_dir() -> Path | None:
     return None
 
 
+@functools.cache
+def _folder_digest(folder: str) -> str:
+    """SHA-256 of the names and contents of the ``*.py`` files in ``folder`` (once per process)."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(folder).glob("*.py")):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def source_stamp(py_file: str) -> tuple[str, str]:
+    """The source stamp of the cached kernels defined in ``py_file``: digests of the modules in
+    its folder and in this package. A cached kernel compiled from other sources (an edited
+    module whose functions it calls, in a checkout) is compiled again instead of loaded."""
+    return (_folder_digest(str(Path(py_file).resolve().parent)),
+            _folder_digest(str(Path(__file__).resolve().parent)))
+
+
 class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
     """Numba's cache locator pointing into :func:`cache_dir`, with Numba's own naming of the
-    sub-folder for a source folder and its source stamp (content or time of the file)."""
+    sub-folder for a source folder, and :func:`source_stamp` as the source stamp."""
 
     def __init__(self, py_func: Callable[..., Any], py_file: str) -> None:
         self._py_file = py_file
@@ -109,6 +133,9 @@ class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
 
     def get_cache_path(self) -> str:
         return self._cache_path
+
+    def get_source_stamp(self) -> tuple[str, str]:
+        return source_stamp(self._py_file)
 
 
 class _Impl(caching.CompileResultCacheImpl):

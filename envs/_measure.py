@@ -337,9 +337,8 @@ if ENABLED:
             count += ended[i]
         return count
 
-    # (numba's on-disk cache keys these kernels on this file alone: after editing fused.py or
-    # kernels.py in a checkout, delete envs/__pycache__/_measure*.nbi and *.nbc, or the
-    # cached kernels here keep the old code compiled in)
+    # (their cached machine code holds fused_steps compiled in: the cache's source stamp covers
+    # constrained_particles' modules too, see constrained_particles.jit.source_stamp)
     from constrained_particles.fused import OK as _OK
     from constrained_particles.fused import fused_steps
     from constrained_particles.kernels import group_pieces as _group_pieces

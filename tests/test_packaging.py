@@ -216,6 +216,32 @@ def test_numba_cache_defaults_to_the_user_cache_directory(tmp_path):
     assert cached_files(tmp_path / "src") == [] and out.stderr == ""
 
 
+def test_a_cached_kernel_compiles_again_when_a_module_beside_it_changes(tmp_path):
+    """A kernel's machine code can hold functions of other modules compiled in (the fused step
+    calls the elements of kernels.py and fused_accel.py): after an edit to a module in its
+    folder, the old machine code is not loaded."""
+    folder = {"NUMBA_CACHE_DIR": str(tmp_path / "numba"), "XDG_CACHE_HOME": None}
+    counts = [probe(tmp_path, **folder).stdout.splitlines()[2] for _ in range(2)]
+    assert counts == ["3.0 1 0", "3.0 0 1"]  # compiled, then loaded
+    (tmp_path / "src" / "helper.py").write_text("SCALE = 2.0\n")
+    counts = [probe(tmp_path, **folder).stdout.splitlines()[2] for _ in range(2)]
+    assert counts == ["3.0 1 0", "3.0 0 1"]  # compiled again, then loaded
+
+
+def test_source_stamp_covers_the_folder_and_the_package(tmp_path):
+    from constrained_particles import jit
+
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "b.py").write_text("y = 1\n")
+    before = jit.source_stamp(str(tmp_path / "a.py"))
+    assert before == jit.source_stamp(str(tmp_path / "b.py"))  # one stamp for the folder
+    assert before[1] == jit.source_stamp(jit.__file__)[1]  # and the package's modules
+    (tmp_path / "b.py").write_text("y = 2\n")
+    jit._folder_digest.cache_clear()  # (read once per process)
+    after = jit.source_stamp(str(tmp_path / "a.py"))
+    assert after[0] != before[0] and after[1] == before[1]
+
+
 @pytest.mark.parametrize("variable", ["NUMBA_CACHE_DIR", "XDG_CACHE_HOME"])
 def test_unusable_cache_directory_compiles_in_memory_with_one_line(tmp_path, variable):
     blocker = tmp_path / "a-file"
