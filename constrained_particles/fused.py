@@ -77,6 +77,20 @@ RK4_A = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.
                   [0.0, 0.0, 1.0, 0.0]])
 RK4_W, RK4_D = np.array([1.0, 2.0, 2.0, 1.0]), 6.0
 
+#: The tableau argument of the fused step for each Runge-Kutta method (see :func:`integrator_args`).
+_TABLEAUS = {1: (MIDPOINT_A, MIDPOINT_W, MIDPOINT_D), 2: (RK4_A, RK4_W, RK4_D)}
+
+
+def integrator_args(method: str) -> tuple[int, tuple | None, bool | None]:
+    """The arguments ``(method, tableau, rattle)`` by which the fused step is told the
+    integrator ``method`` (a name in :data:`METHOD_CODES`): its code; the Butcher tableau
+    ``(A, W, D)`` of a Runge-Kutta method, else None; True for RATTLE, else None. The kernel is
+    compiled once per pattern of None, each version holding only its integrator family's
+    code, so that a run compiles only the families it steps with."""
+    code = METHOD_CODES[method]
+    return code, _TABLEAUS.get(code), (True if code == METHOD_CODES["rattle"] else None)
+
+
 #: The order of block types in the fused kernel's per-type element lists.
 _ELEMENT_TYPES = ("gravity", "constant", "spring", "angular", "drag", "wall", "mouse", "circle",
                   "rod", "line", "fixed")
@@ -90,6 +104,9 @@ def _ro(a: np.ndarray) -> np.ndarray:
 
 
 _I0 = _ro(np.zeros(0, np.int64))
+#: No step counts (every particle takes every step): writable, as the counts of a call with
+#: pieces are, so that the kernel compiles for one type of ``counts`` only.
+_NO_COUNTS = np.zeros(0, np.int64)
 _F0 = np.zeros(0)
 _F02 = np.zeros((0, 2))
 _B0 = np.zeros(0, bool)
@@ -501,17 +518,18 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if ready is None:
         return FALLBACK, None, None, 0
     p, (x, v, mass, inv_mass), common = ready
-    code, h = METHOD_CODES[method], float(dt)
+    code, tableau, rattle = integrator_args(method)
+    h = float(dt)
     x_out = np.empty_like(x)
     v_out = np.empty_like(v)
     if pieces is None:
-        status, failed = fused_steps(code, int(steps), h, _F0, _I0, x, v, mass, inv_mass, lam,
-                                      x_out, v_out, *common, None)
+        status, failed = fused_steps(code, tableau, rattle, int(steps), h, _F0, _NO_COUNTS, x,
+                                     v, mass, inv_mass, lam, x_out, v_out, *common, None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
-    status, failed = fused_steps(code, 0, h, h / pieces, pieces * int(steps), x, v, mass,
-                                  inv_mass, lam, x_out, v_out, *common, p.ws_live)
+    status, failed = fused_steps(code, tableau, rattle, 0, h, h / pieces, pieces * int(steps), x,
+                                 v, mass, inv_mass, lam, x_out, v_out, *common, p.ws_live)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -607,12 +625,9 @@ if kernels.ENABLED:
                 j += 1
         sizes[1] = j
         live_n = sizes[0]
-        sizes[3] = _live_elements(0, firsts[0], mask, plist, live_n, ptr, ranged, elements[0])
-        sizes[4] = _live_elements(1, firsts[1], mask, plist, live_n, ptr, ranged, elements[1])
-        sizes[5] = _live_elements(2, firsts[2], mask, plist, live_n, ptr, ranged, elements[2])
-        sizes[6] = _live_elements(3, firsts[3], mask, plist, live_n, ptr, ranged, elements[3])
-        sizes[7] = _live_elements(4, firsts[4], mask, plist, live_n, ptr, ranged, elements[4])
-        sizes[8] = _live_elements(5, firsts[5], mask, plist, live_n, ptr, ranged, elements[5])
+        for t in range(6):  # (a loop, not six calls with constants: one compiled version)
+            sizes[3 + t] = _live_elements(t, firsts[t], mask, plist, live_n, ptr, ranged,
+                                          elements[t])
         k = 0  # mouse springs: only active ones have a particle to ask about (a grab replaces
         mi = firsts[6]  # the particle array, so they are always scanned)
         for e in range(mi.shape[0]):
@@ -620,11 +635,9 @@ if kernels.ENABLED:
                 elements[6][k] = e
                 k += 1
         sizes[9] = k
-        sizes[10] = _live_elements(7, firsts[7], mask, plist, live_n, ptr, ranged, elements[7])
-        sizes[11] = _live_elements(8, firsts[8], mask, plist, live_n, ptr, ranged, elements[8])
-        sizes[12] = _live_elements(9, firsts[9], mask, plist, live_n, ptr, ranged, elements[9])
-        sizes[13] = _live_elements(10, firsts[10], mask, plist, live_n, ptr, ranged,
-                                   elements[10])
+        for t in range(7, 11):
+            sizes[3 + t] = _live_elements(t, firsts[t], mask, plist, live_n, ptr, ranged,
+                                          elements[t])
 
     @njit
     def _live_elements(t, idx, mask, plist, live_n, ptr, ranged, out):
@@ -646,14 +659,19 @@ if kernels.ENABLED:
         return k
 
     @njit
-    def _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks, kd,
-               tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse, circ, rod,
-               line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A,
-               live):  # pragma: no cover - compiled
+    def _steps(method, tableau, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass, lam,
+               x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
+               wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J,
+               ws_r, ws_q, ws_A, live):  # pragma: no cover - compiled
         """The step loop of :func:`fused_steps` (inputs checked, ``ws_q`` prepared by it):
         ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
         not empty; with ``live`` (the workspace of :func:`_gate`), particle q takes only
-        ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only."""
+        ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only.
+
+        The integrator is RATTLE if ``rattle`` is not None, else the Runge-Kutta method of
+        ``tableau`` ``(A, W, D)`` if that is not None, else ``method`` (0 euler, 3
+        symplectic_euler). Numba compiles a version per pattern of None and drops the other
+        branches from it, so a run compiles only the integrator families it steps with."""
         n = x0.shape[0]
         m = lam.shape[0]
         per_particle = hp.shape[0] > 0
@@ -684,13 +702,13 @@ if kernels.ENABLED:
                 _gate(step, counts, cols, comp_rows, comp_ptr,
                       (grav[0], const[0], spring[0], ang[0], drag[0], wall[0], mouse[0], circ[0],
                        rod[0], line[0], fixed[0]), mouse[2], live)
-            if method == 4:
+            if rattle is not None:
                 if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
                                ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
                                comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
                                tmp):
                     return FALLBACK, step
-            elif method == 0 or method == 3:  # euler / symplectic_euler
+            elif tableau is None:  # euler / symplectic_euler
                 if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
                               mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
                               kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
@@ -709,10 +727,7 @@ if kernels.ENABLED:
                             vs[q, d] = v[q, d] + hq * a1[q, d]
                             xs[q, d] = x[q, d] + hq * vs[q, d]
             else:  # explicit Runge-Kutta (midpoint, rk4): one stage loop over the tableau
-                if method == 1:
-                    tab_a, tab_w, tab_d = MIDPOINT_A, MIDPOINT_W, MIDPOINT_D
-                else:
-                    tab_a, tab_w, tab_d = RK4_A, RK4_W, RK4_D
+                tab_a, tab_w, tab_d = tableau
                 stages = tab_w.shape[0]
                 kv = (vs2, vs3, vs)  # the velocities of stages 1, 2, 3 (stage 0's is v)
                 ka = (a1, a2, a3, a4)  # the accelerations of stages 0, 1, 2, 3
@@ -775,29 +790,31 @@ if kernels.ENABLED:
             else:
                 x, xs = xs, x
                 v, vs = vs, v
-        if steps == 0:
-            x_out[:, :] = x0
-            v_out[:, :] = v0
+        if steps == 0:  # (copied in loops: a slice assignment compiles Numba's error messages)
+            _copy_flat(x0, x_out)
+            _copy_flat(v0, v_out)
         return OK, steps
 
 
     @njit(nogil=True)
-    def fused_steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ks,
-                     kd, tol, limit, residual_limit, grav, const, spring, ang, drag, wall, mouse,
-                     circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r,
-                     ws_q, ws_A, live):  # pragma: no cover - compiled
+    def fused_steps(method, tableau, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass, lam,
+                    x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang,
+                    drag, wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n,
+                    ws_J, ws_r, ws_q, ws_A, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
-        not empty. With ``live`` (the workspace of :func:`_gate`; None: every particle takes
-        every step), particle q takes ``counts[q]`` steps instead (``steps`` is ignored): first
-        the steps only some particles take (a particle with fewer waits, and the elements,
-        constraint rows and components of waiting particles are skipped), then the steps every
-        particle takes, without the mask. Each particle takes its own steps in its own order,
-        so each independent group of particles is stepped exactly as it would be alone.
+        not empty, with the integrator that ``method, tableau, rattle`` give as
+        :func:`integrator_args` makes them. With ``live`` (the workspace of :func:`_gate`;
+        None: every particle takes every step), particle q takes ``counts[q]`` steps instead
+        (``steps`` is ignored): first the steps only some particles take (a particle with fewer
+        waits, and the elements, constraint rows and components of waiting particles are
+        skipped), then the steps every particle takes, without the mask. Each particle takes
+        its own steps in its own order, so each independent group of particles is stepped
+        exactly as it would be alone.
         Returns ``(status, steps done)``."""
         n = x0.shape[0]
         m = lam.shape[0]
         per_particle = hp.shape[0] > 0
-        if per_particle and (method == 4 or hp.shape[0] != n):
+        if per_particle and (rattle is not None or hp.shape[0] != n):
             return FALLBACK, 0
         if live is not None and (not per_particle or counts.shape[0] != n
                                  or live[0].shape[0] != n or live[1].shape[0] != n
@@ -827,26 +844,30 @@ if kernels.ENABLED:
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
         # every array below lives in the caller for the whole call: no reference counting
-        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, live = _borrowed(
+        # (``live`` itself is never reassigned: Numba then drops the branch that a None
+        # ``live`` rules out, so a run without pieces compiles no masked step)
+        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, mask = _borrowed(
             (hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, live))
         args = _borrowed((ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
                           wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr,
                           ws_n, ws_J, ws_r, ws_q, ws_A))
-        if live is None or n == 0:
-            return _steps(method, steps, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
-                          v_out, *args, None)
+        if live is None:
+            return _steps(method, tableau, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass,
+                          lam, x_out, v_out, *args, None)
+        if n == 0:
+            return OK, 0
         first, total = counts.min(), counts.max()
         if first == total:  # every particle takes every step
-            return _steps(method, total, h, hp, counts, x0, v0, mass, inv_mass, lam, x_out,
-                          v_out, *args, None)
+            return _steps(method, tableau, rattle, total, h, hp, counts, x0, v0, mass, inv_mass,
+                          lam, x_out, v_out, *args, None)
         # the steps only some particles take come first, while their data are likely still in
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
         x_mid, v_mid = ws_n[10], ws_n[11]
-        status, done = _steps(method, total - first, h, hp, counts - first, x0, v0, mass,
-                              inv_mass, lam, x_mid, v_mid, *args, live)
+        status, done = _steps(method, tableau, rattle, total - first, h, hp, counts - first, x0,
+                              v0, mass, inv_mass, lam, x_mid, v_mid, *args, mask)
         if status != OK:
             return status, done
-        status, more = _steps(method, first, h, hp, counts, x_mid, v_mid, mass, inv_mass, lam,
-                              x_out, v_out, *args, None)
+        status, more = _steps(method, tableau, rattle, first, h, hp, counts, x_mid, v_mid, mass,
+                              inv_mass, lam, x_out, v_out, *args, None)
         return status, done + more

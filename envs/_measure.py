@@ -322,8 +322,10 @@ if ENABLED:
         (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the episode counters:
         ``steps`` advance, ``terminated = success``, ``truncated = steps >= max_steps``,
         ``ended`` either. Returns how many copies ended."""
+        no_walls = ended.shape[0] < 0  # (False as a run-time bool: a constant False would
+        # compile the measures once more, for its own literal type)
         _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
-                                goal, track, track_scale, circ, rod, line, fixed, wall, False,
+                                goal, track, track_scale, circ, rod, line, fixed, wall, no_walls,
                                 rest, every, tolerance, rest_speed, hold_steps, out, success,
                                 cx, cy, ix, iy, limit, obs)
         phi = to_go + out[1]  # SliderCrank.potential
@@ -345,13 +347,14 @@ if ENABLED:
 
     @njit(nogil=True)
     def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
-                    hp, counts, code, substeps, dt, x, v, mass, inv_mass, lam, lam_saved, x_out,
-                    v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
-                    wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n,
-                    ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go, below, seen,
-                    target, n, goal, track, track_scale, rest, every, tolerance, rest_speed,
-                    hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs, before, scale,
-                    time_cost, bonus, reward, steps, max_steps, terminated, truncated, ended):
+                    hp, counts, code, tableau, rattle, substeps, dt, x, v, mass, inv_mass, lam,
+                    lam_saved, x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const,
+                    spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
+                    comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go,
+                    below, seen, target, n, goal, track, track_scale, rest, every, tolerance,
+                    rest_speed, hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs, before,
+                    scale, time_cost, bonus, reward, steps, max_steps, terminated, truncated,
+                    ended):
         # pragma: no cover - compiled
         """A SliderCrank env step with force actions in which every copy steps, as the
         general path takes it, in one call: the ``raw`` actions checked (status
@@ -375,8 +378,8 @@ if ENABLED:
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
         if largest == 1:
-            status, _ = fused_steps(code, substeps, dt, hp[:0], counts[:0], x, v, mass,
-                                     inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
+            status, _ = fused_steps(code, tableau, rattle, substeps, dt, hp[:0], counts[:0], x,
+                                     v, mass, inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
                                      residual_limit, grav, const, spring, ang, drag, wall,
                                      mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
                                      comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, None)
@@ -384,11 +387,11 @@ if ENABLED:
             for q in range(rows.shape[0]):
                 hp[q] = dt / rows[q]
                 counts[q] = rows[q] * substeps
-            status, _ = fused_steps(code, 0, dt, hp, counts, x, v, mass, inv_mass, lam, x_out,
-                                     v_out, ks, kd, tol, limit, residual_limit, grav, const,
-                                     spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                                     cols, nnz, comp_rows, comp_ptr, ws_n, ws_J, ws_r, ws_q,
-                                     ws_A, live)
+            status, _ = fused_steps(code, tableau, rattle, substeps * 0, dt, hp, counts, x, v, mass,
+                                     inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
+                                     residual_limit, grav, const, spring, ang, drag, wall,
+                                     mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
+                                     comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live)
         if status != _OK:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]

@@ -278,7 +278,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         status, count = _measure.crank_step(
             actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
             self.step_travel, MAX_PIECES, need, rows, *self._scratch[:2],
-            fused.METHOD_CODES[self.integrator], self.substeps, self.dt, x, v, mass,
+            *fused.integrator_args(self.integrator), self.substeps, self.dt, x, v, mass,
             inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
             self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
             track[0], track[1], self._rest(), self._every_copy, self.goal_tolerance,
