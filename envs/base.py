@@ -51,7 +51,8 @@ FRAME_SIZE = (600, 400)
 #: Shortest physics step (s) an env accepts.
 MIN_DT = 1e-6
 #: The registered episode length (env steps): a diverged step's penalty covers the cost of
-#: playing on for this many steps (see :attr:`ParticleTask.divergence_penalty`).
+#: playing on for this many steps unless the env has another time limit (see
+#: :attr:`ParticleTask.divergence_penalty`).
 EPISODE_STEPS = 200
 
 
@@ -98,13 +99,25 @@ class ParticleTask(SteppedCopies):
     #: The most reward one step of playing on can cost before success (a task's time cost, or its
     #: per-step distance cost at the farthest): see :attr:`divergence_penalty`.
     step_cost: float = 0.0
+    @property
+    def episode_steps(self) -> int:
+        """The episode length (env steps) that :attr:`divergence_penalty` covers: a native
+        vector env sets its ``max_episode_steps`` here; otherwise :data:`EPISODE_STEPS` (a
+        single env cannot see the time limit ``gym.make`` wraps around it: set this to match
+        another one). A positive integer (ValueError naming it otherwise)."""
+        return self.__dict__.get("_episode_steps", EPISODE_STEPS)
+
+    @episode_steps.setter
+    def episode_steps(self, value: int) -> None:
+        self.__dict__["_episode_steps"] = int(check_positive("episode_steps", value,
+                                                             integer=True))
 
     @property
     def divergence_penalty(self) -> float:
         """Reward subtracted on a diverged step, which ends the episode as terminated: the cost
-        of playing on for a whole episode (``EPISODE_STEPS * step_cost``), so that diverging is
-        never a cheaper way out than playing on."""
-        return EPISODE_STEPS * self.step_cost
+        of playing on for a whole episode (``episode_steps * step_cost``), so that diverging is
+        never a cheaper way out than playing on, whatever the time limit."""
+        return self.episode_steps * self.step_cost
 
     #: Farthest distance (m) a particle may travel in one integrator step before the physics step
     #: is split into pieces (subclasses set it from the scene's smallest length).

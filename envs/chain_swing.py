@@ -267,9 +267,9 @@ class ChainSwingEnv(ParticleEnv):
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned, ``info["diverged"]`` is True and the step's
-       reward loses ``task.divergence_penalty``: 200 steps of the per-step distance cost at
-       the farthest (``2 (travel + length)`` m), so diverging is never a cheaper way out
-       than playing on.
+       reward loses ``task.divergence_penalty``: a whole episode (200 steps, or
+       ``task.episode_steps``) of the per-step distance cost at the farthest (``2
+       (travel + length)`` m), so diverging is never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (the
     largest distance in m by which the carrier leaves its wire or a rod its length),

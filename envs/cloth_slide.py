@@ -254,8 +254,9 @@ class ClothSlideEnv(ParticleEnv):
     2. Truncation: 200 steps (10 s) with the registered ``max_episode_steps``.
     3. Termination: the simulation diverged (only with unstable ``dt``/``integrator`` choices);
        the state before that step is returned, ``info["diverged"]`` is True and the step's
-       reward loses ``task.divergence_penalty`` (20: the time cost of a whole 200-step
-       episode), so diverging is never a cheaper way out than playing on.
+       reward loses ``task.divergence_penalty`` (the time cost of a whole episode: 20 for
+       the registered 200 steps; ``task.episode_steps`` sets another length), so diverging is
+       never a cheaper way out than playing on.
 
     ``info`` holds ``distance`` (m), ``kinetic_energy`` (J), ``constraint_residual`` (largest
     distance off the wire, m),

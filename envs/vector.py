@@ -87,6 +87,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                                                                       strict=False)]
         else:
             self.task = self.task_class(num_envs, **kwargs)
+            self.task.episode_steps = self.max_episode_steps  # (what divergence pays for)
             self.num_envs = self.task.num_envs
             self.steps = np.zeros(self.num_envs, dtype=np.int64)
             self._autoreset = np.zeros(self.num_envs, dtype=bool)

@@ -560,3 +560,37 @@ def test_slider_crank_success_needs_the_crank_above():
 
 
 # ----------------------------------------------------------------------------- train/evaluate
+
+
+def test_the_divergence_penalty_covers_a_longer_time_limit():
+    """A vector env with max_episode_steps=500 pays for 500 steps on a diverged step, not the
+    registered 200; a single env (whose time limit is gym.make's wrapper, out of its sight)
+    does when told through ``task.episode_steps``."""
+    kw = dict(dt=0.05, substeps=1, integrator="euler")
+    env = gym.make("ClothSlide-v0", max_episode_steps=500, **kw)
+    assert env.unwrapped.task.divergence_penalty == pytest.approx(TIME_COST * 200)
+    for bad in (0, 2.5, "500"):
+        with pytest.raises(ValueError, match="episode_steps"):
+            env.unwrapped.task.episode_steps = bad
+    env.unwrapped.task.episode_steps = 500
+    env.reset(seed=0)
+    assert env.unwrapped.task.divergence_penalty >= TIME_COST * 500
+    for _ in range(100):
+        _, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        if terminated or truncated:
+            break
+    assert info["diverged"] and reward <= -TIME_COST * 500
+    vec = gym.make_vec("ClothSlide-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                       max_episode_steps=500, **kw)
+    assert vec.unwrapped.task.divergence_penalty >= TIME_COST * 500
+    threaded = gym.make_vec("ClothSlide-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                            max_episode_steps=500, num_threads=2, **kw)
+    assert all(shard.task.divergence_penalty >= TIME_COST * 500
+               for shard in threaded.unwrapped.shards)
+    vec.reset(seed=0)
+    for _ in range(100):
+        _, reward, _, _, info = vec.step(vec.action_space.sample())
+        if info["diverged"].any():
+            break
+    assert info["diverged"].any()
+    assert np.all(reward[info["diverged"]] <= -TIME_COST * 500)
