@@ -8,6 +8,11 @@ Python between kernel calls (a few per step). A copy's arithmetic does not depen
 copies share its system (copy ``i`` of a vector env already reproduces a single env seeded
 ``seed + i``), so the results are bit for bit the same for every ``num_threads``.
 
+The calling thread steps the first shard and one thread per other shard, started with the
+env, steps each of the others; between steps those threads poll for the next one for
+:data:`POLL_SECONDS`, then sleep on an event (waking one costs more than a short step's
+hand-off can afford).
+
 Threads, not processes: the shards share the caller's memory (no pickling, observations are
 written where the agent reads them), and a step is one synchronisation, not two messages.
 Numba's own threading layer (``prange``, ``NUMBA_NUM_THREADS``) is not used: the kernels step
@@ -17,8 +22,9 @@ effect on it.
 
 from __future__ import annotations
 
-import concurrent.futures
+import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -34,6 +40,78 @@ from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
 DEFAULT_THREADS = 1
+#: Seconds a shard's thread keeps polling for the next step before it sleeps on an event: a
+#: wake-up from the event costs this VM about 150 us per step, polling a few; a busy training
+#: loop steps again well within it, an idle env costs no CPU after it.
+POLL_SECONDS = 0.002
+
+
+class _Crew:
+    """``k`` daemon threads that each run one call per :meth:`run`, the calling thread running
+    another; between runs a thread polls for its next call for :data:`POLL_SECONDS`, then waits
+    on an event."""
+
+    _STOP = object()
+
+    def __init__(self, k: int, name: str) -> None:
+        self._calls: list[Any] = [None] * k
+        self._results: list[tuple[bool, Any] | None] = [None] * k
+        self._wake = [threading.Event() for _ in range(k)]
+        self._threads = [threading.Thread(target=self._serve, args=(i,), daemon=True,
+                                          name=f"{name}-{i + 1}") for i in range(k)]
+        for t in self._threads:
+            t.start()
+
+    def _serve(self, i: int) -> None:
+        while True:
+            start = time.perf_counter()
+            while self._calls[i] is None:
+                if time.perf_counter() - start < POLL_SECONDS:
+                    time.sleep(0)  # (yields the GIL and the core)
+                else:
+                    self._wake[i].wait()
+                    self._wake[i].clear()
+            call = self._calls[i]
+            if call is self._STOP:
+                return
+            self._calls[i] = None  # taken (before the result is out: run() may then call again)
+            try:
+                result = (True, call())
+            except BaseException as exc:  # handed to the caller of run()
+                result = (False, exc)
+            self._results[i] = result
+
+    def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
+        """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
+        have returned, raising the first error (this thread's first)."""
+        for i, call in enumerate(others):
+            self._results[i] = None
+            self._calls[i] = call
+            self._wake[i].set()
+        try:
+            mine = first()
+        finally:
+            for i in range(len(others)):  # no call is still running when this returns
+                while self._results[i] is None:
+                    time.sleep(0)
+        out = [mine]
+        for i in range(len(others)):
+            ok, value = self._results[i]  # type: ignore[misc]
+            self._results[i] = None
+            if not ok:
+                raise value
+            out.append(value)
+        return out
+
+    def close(self) -> None:
+        """Stop the threads (safe to call twice)."""
+        for i, t in enumerate(self._threads):
+            if t.is_alive():
+                self._calls[i] = self._STOP
+                self._wake[i].set()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join()
 
 
 class ParticleVectorEnv(_Rendering, VectorEnv):
@@ -102,7 +180,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self._renderer = None
         self._rngs: list[np.random.Generator] | None = None
         self._info_keys: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
-        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self._crew: _Crew | None = None
 
     # ------------------------------------------------------------------ seeding and reset
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
@@ -239,19 +317,14 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
     def _map(self, call: Callable[[ParticleVectorEnv, Any], Any], parts: list[Any]
              ) -> list[Any]:
         """``call(shard, part)`` for every shard and its part, the first on this thread and the
-        others on the pool's; returns once every call has returned, raising the first error."""
-        if self._pool is None:
-            self._pool = concurrent.futures.ThreadPoolExecutor(
-                len(self.shards) - 1, thread_name_prefix=f"{type(self).__name__}-shard")
-        futures = [self._pool.submit(call, env, part)
-                   for env, part in zip(self.shards[1:], parts[1:], strict=True)]
-        try:
-            first = call(self.shards[0], parts[0])
-        finally:
-            for f in futures:  # no shard is still running when this returns
-                while not f.done():
-                    time.sleep(0)  # (yields the GIL and the core: no wake-up latency)
-        return [first, *(f.result() for f in futures)]
+        others on the crew's; returns once every call has returned, raising the first error."""
+        if self._crew is None:
+            self._crew = _Crew(len(self.shards) - 1, f"{type(self).__name__}-shard")
+            weakref.finalize(self, self._crew.close)  # (an env never closed frees its threads)
+        return self._crew.run(
+            lambda: call(self.shards[0], parts[0]),
+            [lambda env=env, part=part: call(env, part)
+             for env, part in zip(self.shards[1:], parts[1:], strict=True)])
 
     @staticmethod
     def _joined(results: list[tuple]) -> Any:
@@ -285,14 +358,14 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def close(self, **kwargs: Any) -> None:
         """Stop the shards' threads (safe to call twice)."""
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        if self._crew is not None:
+            self._crew.close()
+            self._crew = None
         super().close(**kwargs)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        state.update(_renderer=None, _pool=None)
+        state.update(_renderer=None, _crew=None)
         return state
 
     def __repr__(self) -> str:

@@ -8,6 +8,7 @@ How much faster threads are is a speed figure: ``cparticles bench`` measures it 
 from __future__ import annotations
 
 import copy
+import gc
 import pickle
 
 import gymnasium as gym
@@ -125,3 +126,36 @@ def test_render_every_copy_of_a_threaded_env() -> None:
     # shards of 2 and 1 copies: copy 2 is the second shard's only copy, drawn as it draws it
     np.testing.assert_array_equal(frames[2], vec.unwrapped.shards[1]._frame(0))
     assert not np.array_equal(frames[1], frames[2])  # (another copy, another start)
+
+
+def test_an_error_on_a_shard_thread_reaches_the_caller() -> None:
+    vec = _vec("ClothSlide-v0", 2, num_envs=4)
+    vec.reset(seed=1)
+    u = vec.unwrapped
+    a = np.full((4, 2), 0.5, np.float32)
+    vec.step(a)
+
+    def failing(env: object, part: np.ndarray) -> object:
+        if env is u.shards[1]:  # (the shard stepped on the other thread)
+            raise RuntimeError("shard 1 failed")
+        return env._step_copies(part)
+
+    with pytest.raises(RuntimeError, match="shard 1 failed"):
+        u._map(failing, [a[sl] for sl in u._slices])
+    assert np.all(np.isfinite(vec.step(a)[0]))  # the threads still serve
+    threads = list(u._crew._threads)
+    vec.close()
+    assert threads and not any(t.is_alive() for t in threads)
+
+
+def test_the_threads_of_an_env_never_closed_end_with_it() -> None:
+    vec = _vec("ClothSlide-v0", 2, num_envs=4)
+    vec.reset(seed=1)
+    vec.step(np.zeros((4, 2), np.float32))
+    threads = list(vec.unwrapped._crew._threads)
+    assert threads and all(t.is_alive() for t in threads)
+    del vec
+    gc.collect()
+    for t in threads:
+        t.join(timeout=10)
+    assert not any(t.is_alive() for t in threads)
