@@ -48,6 +48,8 @@ def packed(system: Any) -> Any:
 
 
 measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is False)
+#: the compiled rest test and hold count (None when ``ENABLED`` is False)
+advance_hold: Any = None
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
 grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is False)
 clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
@@ -151,8 +153,21 @@ if ENABLED:
                     for k in range(i * n, (i + 1) * n):
                         f += abs(fx[k])
                     wall_force[i] = f
+        _advance_hold(v, n, n, distance, blocked, wall_force, rest, stepped, tolerance,
+                      rest_speed, hold_steps, success)
+
+    @njit
+    def _advance_hold(v, n, count, distance, blocked, wall_force, rest, stepped, tolerance,
+                      rest_speed, hold_steps, success):  # pragma: no cover - compiled
+        """The rest test (``ParticleTask.advance_rest`` and the hold count): each ``stepped``
+        copy's moving average velocities move ``alpha`` of the way to ``v`` (``rest = (hold,
+        mean_v, alpha)``); the copy is settled, and its count advances (else restarts at 0),
+        if ``distance`` (m) is below ``tolerance``, the RMS of the averages of its first
+        ``count`` particles below ``rest_speed`` (m/s), it is not ``blocked`` and its
+        ``wall_force`` (N) is not positive. Writes ``success = hold >= hold_steps`` for every
+        copy."""
         hold, mean_v, alpha = rest
-        for i in range(N):
+        for i in range(distance.shape[0]):
             if stepped[i]:
                 d2 = 0.0
                 for k in range(i * n, (i + 1) * n):
@@ -160,8 +175,9 @@ if ENABLED:
                     my = mean_v[k, 1] + (v[k, 1] - mean_v[k, 1]) * alpha
                     mean_v[k, 0] = mx
                     mean_v[k, 1] = my
-                    d2 += mx * mx + my * my
-                if (distance[i] < tolerance and math.sqrt(d2 * (1.0 / n)) < rest_speed
+                    if k - i * n < count:
+                        d2 += mx * mx + my * my
+                if (distance[i] < tolerance and math.sqrt(d2 * (1.0 / count)) < rest_speed
                         and not blocked[i] and not wall_force[i] > 0.0):
                     hold[i] += 1
                 else:
@@ -347,7 +363,7 @@ if ENABLED:
 
     @njit(nogil=True)
     def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
-                    hp, counts, code, tableau, rattle, substeps, dt, x, v, mass, inv_mass, lam,
+                    hp, counts, code, runge_kutta, rattle, substeps, dt, x, v, mass, inv_mass, lam,
                     lam_saved, x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const,
                     spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
                     comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go,
@@ -378,7 +394,7 @@ if ENABLED:
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
         if largest == 1:
-            status, _ = fused_steps(code, tableau, rattle, substeps, dt, hp[:0], counts[:0], x,
+            status, _ = fused_steps(code, runge_kutta, rattle, substeps, dt, hp[:0], counts[:0], x,
                                      v, mass, inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
                                      residual_limit, grav, const, spring, ang, drag, wall,
                                      mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
@@ -387,8 +403,8 @@ if ENABLED:
             for q in range(rows.shape[0]):
                 hp[q] = dt / rows[q]
                 counts[q] = rows[q] * substeps
-            status, _ = fused_steps(code, tableau, rattle, substeps * 0, dt, hp, counts, x, v, mass,
-                                     inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
+            status, _ = fused_steps(code, runge_kutta, rattle, substeps * 0, dt, hp, counts, x,
+                                     v, mass, inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
                                      residual_limit, grav, const, spring, ang, drag, wall,
                                      mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
                                      comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live)
@@ -404,6 +420,7 @@ if ENABLED:
                                      terminated, truncated, ended)
 
     measures = _measures
+    advance_hold = _advance_hold
     observe = _observe
     crank_step = _crank_step
     crank_finish = _crank_finish

@@ -705,10 +705,14 @@ class ParticleTask(SteppedCopies):
         policy's own zero-mean action noise averages out while a drift or a swing does not.
         (The numpy reference of the compiled measures.)"""
         N, n = self.num_envs, self.n
-        rows = np.repeat(stepped, n)
-        mv = self.mean_v[rows]
-        mv += (self.system.v[rows] - mv) * self._alpha
-        self.mean_v[rows] = mv
+        if np.count_nonzero(stepped) == N:  # every copy: in place, no gathering (same bits)
+            mv = self.mean_v
+            mv += (self.system.v - mv) * self._alpha
+        else:
+            rows = np.repeat(stepped, n)
+            mv = self.mean_v[rows]
+            mv += (self.system.v[rows] - mv) * self._alpha
+            self.mean_v[rows] = mv
         k = n if count is None else count
         avg = self.mean_v.reshape(N, n, 2)[:, :k]
         return np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)

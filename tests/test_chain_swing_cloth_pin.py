@@ -337,3 +337,35 @@ def test_scripted_swingup_balances_the_chain_upside_down():
 def test_docstring_examples(module):
     result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.failed == 0 and result.attempted > 0
+
+
+@pytest.mark.parametrize("env_id", ["ChainSwing-v0", "ClothPin-v0"])
+def test_the_compiled_rest_test_matches_its_numpy_reference(env_id):
+    """``track_success`` in one compiled pass (envs._measure.advance_hold) against the numpy
+    reference (``advance_rest`` and the hold rule), from the same state, over partial and full
+    masks of stepped copies, with copies near and far from the goal, moving and nearly still."""
+    from envs import _measure
+    from envs.chain_swing import track_success
+
+    if not _measure.ENABLED:
+        pytest.skip("the compiled bookkeeping is off (CPARTICLES_NUMBA=0): no pass to compare")
+    vec = gym.make_vec(env_id, num_envs=6, vectorization_mode="vector_entry_point")
+    vec.reset(seed=4)
+    task = vec.unwrapped.task
+    rng = np.random.default_rng(0)
+    scale = np.repeat([1e-4, 1e-3, 0.2, 1e-4, 0.05, 1e-5], task.n)[:, None]
+    for step in range(40):
+        task.system.v[:] = rng.normal(size=task.system.v.shape) * scale
+        distance = np.array([0.0, 0.01, 0.0, 5.0, 0.0, 0.0])
+        stepped = rng.random(6) < 0.7 if step % 3 else np.ones(6, bool)
+        hold, mean_v = task.hold.copy(), task.mean_v.copy()
+        compiled = track_success(task, {"distance": distance.copy()}, stepped)
+        got = task.hold.copy(), task.mean_v.copy()
+        task.hold[:], task.mean_v[:] = hold, mean_v
+        task._compiled_state = lambda: None  # (the instance's: the reference path)
+        reference = track_success(task, {"distance": distance.copy()}, stepped)
+        del task._compiled_state
+        np.testing.assert_array_equal(got[0], task.hold)
+        np.testing.assert_allclose(got[1], task.mean_v, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(compiled["is_success"], reference["is_success"])
+    assert task.hold.max() > 0 and task.hold.min() == 0  # both outcomes were exercised
