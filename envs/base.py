@@ -534,7 +534,10 @@ class ParticleTask(SteppedCopies):
         """A per-copy mask as the compiled bookkeeping reads it (None: no copy); ValueError
         for anything but a bool array of shape (num_envs,)."""
         if mask is None:
-            return self._no_copies
+            none = self._no_copies
+            if not _owned(none, np.bool_, (self.num_envs,)) or none.any():  # (replaced or
+                none = self._no_copies = np.zeros(self.num_envs, bool)  # edited: made anew)
+            return none
         if not _owned(mask, np.bool_, (self.num_envs,)):
             raise ValueError(f"a copy mask must be a bool array of shape ({self.num_envs},), "
                              f"got {mask!r}")
