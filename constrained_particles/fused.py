@@ -82,8 +82,9 @@ def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
     integrator ``method`` (a name in :data:`METHOD_CODES`): its code; True for a Runge-Kutta
     method (``midpoint``, ``rk4``), else None; True for RATTLE, else None. The kernel is
     compiled once per pattern of None, each version holding only its integrator family's
-    code, so that a run compiles only the families it steps with (the tableaus stay
-    compile-time constants: passed as arrays, they cost rk4 13% and midpoint 26%)."""
+    code, so that a run compiles only the families it steps with. (The tableaus stay
+    compile-time constants: passed as arrays instead, rk4 and midpoint measured slower in one
+    run, though a repeat was within this machine's noise.)"""
     code = METHOD_CODES[method]
     return (code, True if code in (METHOD_CODES["midpoint"], METHOD_CODES["rk4"]) else None,
             True if code == METHOD_CODES["rattle"] else None)

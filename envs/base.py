@@ -535,8 +535,8 @@ class ParticleTask(SteppedCopies):
         for anything but a bool array of shape (num_envs,)."""
         if mask is None:
             none = self._no_copies
-            if not _owned(none, np.bool_, (self.num_envs,)) or none.any():  # (replaced or
-                none = self._no_copies = np.zeros(self.num_envs, bool)  # edited: made anew)
+            if not _owned(none, np.bool_, (self.num_envs,)):  # (replaced: made anew)
+                none = self._no_copies = np.zeros(self.num_envs, bool)
             return none
         if not _owned(mask, np.bool_, (self.num_envs,)):
             raise ValueError(f"a copy mask must be a bool array of shape ({self.num_envs},), "
@@ -708,14 +708,10 @@ class ParticleTask(SteppedCopies):
         policy's own zero-mean action noise averages out while a drift or a swing does not.
         (The numpy reference of the compiled measures.)"""
         N, n = self.num_envs, self.n
-        if np.count_nonzero(stepped) == N:  # every copy: in place, no gathering (same bits)
-            mv = self.mean_v
-            mv += (self.system.v - mv) * self._alpha
-        else:
-            rows = np.repeat(stepped, n)
-            mv = self.mean_v[rows]
-            mv += (self.system.v[rows] - mv) * self._alpha
-            self.mean_v[rows] = mv
+        rows = np.repeat(stepped, n)
+        mv = self.mean_v[rows]
+        mv += (self.system.v[rows] - mv) * self._alpha
+        self.mean_v[rows] = mv
         k = n if count is None else count
         avg = self.mean_v.reshape(N, n, 2)[:, :k]
         return np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)

@@ -51,10 +51,7 @@ def track_success(task: ParticleTask, m: dict[str, np.ndarray], stepped: np.ndar
             return m
         rest = task.advance_rest(stepped, count)
         settled = (distance < task.goal_tolerance) & (rest < task.rest_speed)
-        if np.count_nonzero(stepped) == N:  # every copy (no gathering)
-            task.hold[:] = np.where(settled, task.hold + 1, 0)
-        else:
-            task.hold[stepped] = np.where(settled[stepped], task.hold[stepped] + 1, 0)
+        task.hold[stepped] = np.where(settled[stepped], task.hold[stepped] + 1, 0)
     m["is_success"] = task.hold >= task.hold_steps
     return m
 
