@@ -242,19 +242,29 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         # every action is checked before any shard steps: a bad one changes nothing
         a = checked_actions(actions, self.num_envs, self.task.action_dim)
         parts = [a[sl] for sl in self._slices]
-        return self._joined(self._map(lambda env, part: env._step_copies(part), parts))
+        # the shards return their measures; the info dict is made once, from the joined ones
+        obs, reward, terminated, truncated, m, diverged = self._joined(
+            self._map(lambda env, part: env._step_measured(part), parts))
+        return obs, reward, terminated, truncated, self._info(m, diverged)
 
     def _step_copies(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                   np.ndarray, dict[str, Any]]:
         """:meth:`step` of the copies this env steps itself (all, or a shard's)."""
+        obs, reward, terminated, truncated, m, diverged = self._step_measured(actions)
+        return obs, reward, terminated, truncated, self._info(m, diverged)
+
+    def _step_measured(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                    np.ndarray, dict[str, np.ndarray],
+                                                    np.ndarray]:
+        """:meth:`_step_copies` with the step's measures and divergence mask in place of the
+        info dict made of them."""
         # (count_nonzero: any() in a fraction of the time)
         calm_start = not np.count_nonzero(self._autoreset)  # the usual step: no copy resets
         if calm_start:  # the task's compiled whole step, where it has one (the same values)
             done = self.task._step_all(actions, self.steps, self.max_episode_steps)
             if done is not None:
                 obs, m, reward, terminated, truncated, self._autoreset, _ = done
-                return obs, reward, terminated, truncated, self._info(
-                    m, np.zeros(self.num_envs, bool))
+                return obs, reward, terminated, truncated, m, np.zeros(self.num_envs, bool)
         a = self.task.check_actions(actions)
         if calm_start:
             self.task.apply(a)
@@ -263,7 +273,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             done = self.task._finish_step(self.steps, self.max_episode_steps) if calm else None
             if done is not None:  # the task's compiled end of the step (the same values)
                 obs, m, reward, terminated, truncated, self._autoreset, _ = done
-                return obs, reward, terminated, truncated, self._info(m, diverged)
+                return obs, reward, terminated, truncated, m, diverged
             resetting = self._autoreset  # (all False; not written below)
         else:
             calm = False
@@ -281,8 +291,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 # the resetting copies were stepped along (no actuation); put their start back
                 self.task.write_starts(envs, *starts)
                 diverged[resetting] = False
-        obs, info, m = self._result(diverged,
-                                    self.task._every_copy if calm else ~resetting & ~diverged)
+        m, obs = self.task.measure_observe(self.task._every_copy if calm
+                                           else ~resetting & ~diverged)
         reward = self.task.reward(m)
         self.steps += 1
         if calm:
@@ -295,7 +305,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             reward[diverged] -= self.task.divergence_penalty
             reward[resetting] = 0.0
         self._autoreset = terminated | truncated
-        return obs, reward, terminated, truncated, info
+        return obs, reward, terminated, truncated, m, diverged
 
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
