@@ -190,40 +190,42 @@ class ClothPin(ShapedTask, ParticleTask):
 
     def resolve(self, envs: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Particle (index within a copy) that each drawn end ``points`` (len(envs), 2) m of
-        copies ``envs`` snaps to: the nearest cloth particle or placed anchor within
-        ``snap_radius``; ``-2`` for a new anchor (no particle near, the point in the anchor
-        region); ``-1`` when neither (the drawing is refused)."""
+        copies ``envs`` takes: the nearest cloth particle or placed anchor within
+        ``snap_radius``; else ``-2`` for a new anchor when the point lies in the anchor region;
+        else the nearest cloth particle, however far (the cloth end of a drawing takes the
+        cloth reliably, wherever the cloth has moved: no chasing it within ``snap_radius``)."""
         x = self.positions()[envs]
         d2 = np.sum((x - points[:, None, :]) ** 2, axis=2)
         local = np.arange(self.n)
         anchor_rank = local - self.cloth_n
         usable = (local < self.cloth_n) | (anchor_rank < self.anchors_used[envs, None])
         d2 = np.where(usable, d2, np.inf)
+        rows = np.arange(len(envs))
         nearest = np.argmin(d2, axis=1)
-        near = d2[np.arange(len(envs)), nearest] <= self.snap_radius**2
+        near = d2[rows, nearest] <= self.snap_radius**2
+        cloth = np.argmin(d2[:, :self.cloth_n], axis=1)
         xmin, ymin, xmax, ymax = self.anchor_region
         region = ((points[:, 0] >= xmin) & (points[:, 0] <= xmax)
                   & (points[:, 1] >= ymin) & (points[:, 1] <= ymax))
-        return np.where(near, nearest, np.where(region, -2, -1))
+        return np.where(near, nearest, np.where(region, -2, cloth))
 
     def place(self, envs: np.ndarray, action: np.ndarray) -> np.ndarray:
         """Draw one spring per copy in ``envs`` from clipped actions (len(envs), 6), the
         drawing being valid; returns the mask of copies that placed one.
 
-        A drawing is refused (nothing changes) when the budget is spent, an end neither snaps to
-        a particle nor lies in the anchor region, or the spring would not join the cloth to an
-        anchor (both ends on the cloth, or neither): only such a spring can hold the cloth
-        against the push, so no other uses up the budget. A new anchor is the copy's next
-        parked anchor, moved to the drawn point. The rest length is the distance between the
-        two ends as placed.
+        A drawing is refused (nothing changes) when the budget is spent or the spring would not
+        join the cloth to an anchor (both ends on the cloth, or neither): only such a spring can
+        hold the cloth against the push, so no other uses up the budget. A new anchor is the
+        copy's next parked anchor, moved to the drawn point. The rest length is the distance
+        between the two ends as placed.
         """
         N = len(envs)
         ends = np.stack([self.resolve(envs, self.to_world(action[:, 0:2])),
                          self.resolve(envs, self.to_world(action[:, 2:4]))], axis=1)
         on_cloth = (ends >= 0) & (ends < self.cloth_n)
         new = ends == -2
-        ok = (np.all(ends != -1, axis=1) & (on_cloth.sum(axis=1) == 1)
-              & (new.sum(axis=1) <= 1) & (self.placed[envs] < self.max_springs))
+        ok = ((on_cloth.sum(axis=1) == 1) & (new.sum(axis=1) <= 1)
+              & (self.placed[envs] < self.max_springs))
         if not ok.any():
             return ok
         envs, ends, new, action = envs[ok], ends[ok], new[ok], action[ok]
@@ -424,9 +426,11 @@ class ClothPinEnv(ParticleEnv):
     from a horizontal wire (its top row slides on it, a Lagrange-multiplier constraint) and the
     report's horizontal force pushes every top-row particle toward a wall on the right. Each
     step the agent may draw one persistent damped spring, as in the viewer: each end snaps to
-    the nearest particle within ``snap_radius``, otherwise it becomes a new fixed anchor, which
-    is allowed only in the marked ``anchor_region`` (shaded, left of the cloth at the wire's
-    height); the rest length is the drawn length. Stop the cloth with its centre of mass at rest
+    the nearest particle within ``snap_radius``; otherwise an end in the marked
+    ``anchor_region`` (shaded, left of the cloth at the wire's height) becomes a new fixed
+    anchor there, and any other end takes the cloth particle nearest to it, however far, so
+    the agent never has to chase the moving cloth with a point; the rest length is the
+    distance between the two ends as placed. Stop the cloth with its centre of mass at rest
     at a goal short of the wall, with at most ``max_springs`` springs, each costing a little.
     A spring drawn at rest length holds the cloth where its tension balances the push, so its
     stiffness and the moment it is drawn set where the cloth stops.
@@ -438,11 +442,10 @@ class ClothPinEnv(ParticleEnv):
     below), its stiffness ``ks = ks_lo (ks_hi / ks_lo)^((stiffness + 1) / 2)`` N/m (log-uniform
     over ``ks_range``), damping ``spring_kd``, and a trigger: the spring is drawn when
     ``draw > 0``. A drawing is refused (nothing happens, nothing is charged, the budget is
-    unchanged) when the budget is spent, an end neither snaps to a particle nor lies in the
-    anchor region, or the spring would not join the cloth to an anchor (both ends on the cloth,
-    or neither end on it): only a spring to an anchor can hold the cloth against the push, so a
-    drawing that cannot help never uses up the budget. Refusals cost nothing, so that exploring
-    drawings is never punished. Springs cannot be removed.
+    unchanged) when the budget is spent or the spring would not join the cloth to an anchor
+    (both ends on the cloth, or neither end on it): only a spring to an anchor can hold the
+    cloth against the push, so a drawing that cannot help never uses up the budget. Refusals
+    cost nothing, so that exploring drawings is never punished. Springs cannot be removed.
 
     Actions outside the Box are clipped; a NaN or inf action raises ValueError and changes nothing.
 
@@ -568,7 +571,9 @@ class ClothPinEnv(ParticleEnv):
       (it was ``-d - 0.1 s - penalties`` per step); a drawing that does not join the cloth to
       an anchor is refused instead of using up the budget; the rest test averages velocities
       over about ``rest_window`` steps (it was the instantaneous RMS speed); a diverged step
-      ends the episode as terminated with ``divergence_penalty`` (it was a truncation).
+      ends the episode as terminated with ``divergence_penalty`` (it was a truncation); an
+      end outside ``snap_radius`` of every particle and outside the anchor region takes the
+      nearest cloth particle (it refused the drawing).
     """
 
     task_class = ClothPin

@@ -145,7 +145,7 @@ def test_drawn_spring_snaps_sets_rest_length_and_refuses_bad_drawings():
     x = task.positions()[0].copy()
     lo, hi = task.ks_range
     outside = np.array([0.5, -0.9])  # no particle near, not in the anchor region
-    refused = [pin_action(task, x[3], outside),                  # an end nowhere
+    refused = [pin_action(task, x[3], outside),                  # both ends take the cloth
                pin_action(task, x[3], x[3] + [0.01, 0.0]),       # both ends the same particle
                pin_action(task, [-1.2, 0.0], [-1.0, 0.1]),       # two anchors, no cloth
                pin_action(task, x[3], [-1.1, 0.0], draw=False)]  # no trigger
@@ -170,9 +170,12 @@ def test_drawn_spring_snaps_sets_rest_length_and_refuses_bad_drawings():
     np.testing.assert_allclose(slot[5:], [np.log(2.0 / lo) / np.log(hi / lo) * 2 - 1,
                                           sp.rest[0] / task.half[0]], atol=1e-5)
     assert not obs[4 * nc + 8:].any()
-    # an end near the placed anchor snaps to it instead of making a new one
-    env.step(pin_action(task, task.positions()[0, 5], anchor + [0.02, 0.0]))
-    assert (sp.j[1], task.anchors_used[0]) == (task.cloth_n, 1)
+    # an end near the placed anchor snaps to it instead of making a new one; an end far from
+    # everything, outside the anchor region, takes the nearest cloth particle
+    far = task.positions()[0, 5] + [0.6, 0.1]
+    assert np.argmin(np.sum((task.positions()[0, :task.cloth_n] - far) ** 2, axis=1)) == 5
+    env.step(pin_action(task, far, anchor + [0.02, 0.0]))
+    assert (sp.i[1], sp.j[1], task.anchors_used[0]) == (5, task.cloth_n, 1)
     for _ in range(3):  # the budget of 4 runs out
         env.step(pin_action(task, task.positions()[0, 0], [-1.2, -0.2]))
     assert task.placed[0] == 4 and not env.step(pin_action(task, task.positions()[0, 0],
@@ -189,7 +192,7 @@ def test_spring_cost_is_charged_once_per_placed_spring():
         env.reset(seed=2)
         task = env.task
         acts = [pin_action(task, task.positions()[0, 2], [-1.1, 0.0]),
-                np.zeros(6, np.float32), pin_action(task, [0.9, -0.9], [-1.1, 0.0])]
+                np.zeros(6, np.float32), pin_action(task, [0.9, -0.9], [0.5, -0.9])]
         rewards.append([env.step(a)[1] for a in acts])
     np.testing.assert_allclose(np.subtract(*rewards), [5.0, 0.0, 0.0], atol=1e-9)
 
