@@ -46,6 +46,8 @@ if kernels.ENABLED:
         add_spring,
         angular_element,
         circle_row,
+        length_error,
+        line_error,
         line_row,
         mouse_element,
         rod_row,
@@ -438,21 +440,21 @@ if kernels.ENABLED:
         for ee in range(cp.shape[0] if live is None else live[4][10]):
             e = ee if live is None else live[5][7][ee]
             q = cp[e]
-            d = abs(math.hypot(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]) - cr[e])
+            d = length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], cr[e])
             if not d <= worst:
                 worst = d
         ra, rb, rl, _ = rod
         for ee in range(ra.shape[0] if live is None else live[4][11]):
             e = ee if live is None else live[5][8][ee]
             a, b = ra[e], rb[e]
-            d = abs(math.hypot(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]) - rl[e])
+            d = length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rl[e])
             if not d <= worst:
                 worst = d
         lp, ln, lpt, _ = line
         for ee in range(lp.shape[0] if live is None else live[4][12]):
             e = ee if live is None else live[5][9][ee]
             q = lp[e]
-            d = abs(ln[e, 0] * (x[q, 0] - lpt[e, 0]) + ln[e, 1] * (x[q, 1] - lpt[e, 1]))
+            d = line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1], lpt[e, 0], lpt[e, 1])
             if not d <= worst:
                 worst = d
         fp, fpt, _ = fixed

@@ -111,6 +111,20 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
             return nx * (px - ox) + ny * (py - oy), nx * vx + ny * vy
 
         @njit
+        def length_error(dx: float, dy: float, length: float) -> float:  # pragma: no cover
+            """Distance error (m) of a length constraint with ``d`` (m) the vector it constrains
+            (``x - center`` of a circular wire of radius ``length``, ``x_a - x_b`` of a rod):
+            ``| |d| - length |``, the geometric residual of ``circle_row`` and ``rod_row``."""
+            return abs(math.hypot(dx, dy) - length)
+
+        @njit
+        def line_error(px: float, py: float, nx: float, ny: float, ox: float, oy: float
+                       ) -> float:  # pragma: no cover - compiled
+            """Distance error (m) off a line wire through ``o`` with unit normal ``n``:
+            ``|n . (x - o)|`` (``|C|`` of ``line_row``)."""
+            return abs(nx * (px - ox) + ny * (py - oy))
+
+        @njit
         def add_spring(x: np.ndarray, v: np.ndarray, F: np.ndarray, a: int, b: int, ks: float,
                        kd: float, rest: float) -> None:  # pragma: no cover - compiled
             """Add one damped spring's force (N) between particles ``a`` and ``b`` (indices

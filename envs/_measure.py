@@ -72,7 +72,7 @@ NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 
 if ENABLED:
     from constrained_particles.jit import njit
-    from constrained_particles.kernels import wall_element
+    from constrained_particles.kernels import length_error, line_error, wall_element
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -119,18 +119,16 @@ if ENABLED:
         cp, cc, cr, _ = circ
         for e in range(cp.shape[0]):
             q = cp[e]
-            dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
-            _worse(residual, q // n, abs(math.sqrt(dx * dx + dy * dy) - cr[e]))
+            _worse(residual, q // n, length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], cr[e]))
         ra, rb, rl, _ = rod
         for e in range(ra.shape[0]):
             a, b = ra[e], rb[e]
-            dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
-            _worse(residual, a // n, abs(math.sqrt(dx * dx + dy * dy) - rl[e]))
+            _worse(residual, a // n, length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rl[e]))
         lp, ln, lpt, _ = line
         for e in range(lp.shape[0]):
             q = lp[e]
-            _worse(residual, q // n, abs((x[q, 0] - lpt[e, 0]) * ln[e, 0]
-                                         + (x[q, 1] - lpt[e, 1]) * ln[e, 1]))
+            _worse(residual, q // n, line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1],
+                                                lpt[e, 0], lpt[e, 1]))
         fp, fpt, _ = fixed
         for e in range(fp.shape[0]):
             q = fp[e]

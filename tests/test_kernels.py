@@ -126,3 +126,27 @@ def test_group_pieces_reads_a_force_block_through_its_row_map():
                           cap, want, np.zeros(0, np.int64))
     assert np.array_equal(got, want) and 1 < len(np.unique(want))
     assert np.array_equal(got_rows, np.repeat(want, size)) and largest == want.max()
+
+
+@pytest.mark.skipif(not kernels.ENABLED,
+                    reason="compiled kernels off (CPARTICLES_NUMBA=0): nothing to compare")
+@pytest.mark.parametrize("seed", range(3))
+def test_distance_error_elements_match_the_constraint_blocks(seed):
+    """The compiled distance-error elements (the fused step's divergence test and the envs'
+    residual measure both call them) against the blocks' numpy ``distance_error``."""
+    from constrained_particles import CircularWire, LineWire, Rod
+
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-2, 2, (12, 2))
+    wire = CircularWire(np.arange(4), center=rng.uniform(-1, 1, 2), radius=0.7)
+    rod = Rod(np.arange(4, 8), np.arange(8, 12), length=rng.uniform(0.1, 1, 4))
+    line = LineWire(np.arange(4), direction=rng.normal(size=2), point=rng.uniform(-1, 1, 2))
+    circle = [kernels.length_error(*(x[q] - wire.center[k]), wire.radius[k])
+              for k, q in enumerate(wire.particles)]
+    rods = [kernels.length_error(*(x[a] - x[b]), rod.length[k])
+            for k, (a, b) in enumerate(zip(rod.a, rod.b, strict=True))]
+    lines = [kernels.line_error(*x[q], *line.normal[k], *line.point[k])
+             for k, q in enumerate(line.particles)]
+    np.testing.assert_allclose(circle, wire.distance_error(x), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(rods, rod.distance_error(x), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(lines, line.distance_error(x), rtol=1e-13, atol=1e-15)
