@@ -164,13 +164,17 @@ class Packed:
     Built by :func:`pack`; :meth:`current` tells whether it still describes the system.
     """
 
-    def __init__(self, system: ParticleSystem) -> None:
+    def __init__(self, system: ParticleSystem, previous: Packed | None = None) -> None:
+        """``previous``: the system's last pack, whose constraint rows and components are
+        taken over when the constraint blocks are the same and unchanged (a force block's
+        new index arrays, such as a drawn spring's, then cost no new row graph)."""
         n = system.n
         self.n = n
         self.forces = list(system.forces)
         self.constraints = list(system.constraints)
         self.zero_copy = True
         self.versions = [b.version for b in (*self.forces, *self.constraints)]
+        self.constraint_versions = [c.version for c in self.constraints]
         self.valid = self.supported = supported(system)
         self._mouse_blocks: list[MouseSpring] = []
         self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
@@ -287,8 +291,19 @@ class Packed:
         self.rod = join(rod, (_I0, _I0, _F0, _I0))
         self.line = join(line, (_I0, _F02, _F02, _I0))
         self.fixed = join(fixed, (_I0, _F02, _I0))
-        self._build_rows(system)
-        self.valid = self.valid and self._consistent()
+        if (previous is not None and previous.supported and previous.n == n
+                and previous.zero_copy and self.zero_copy
+                and len(previous.constraints) == len(self.constraints)
+                and all(a is b for a, b in zip(previous.constraints, self.constraints,
+                                               strict=True))
+                and previous.constraint_versions == self.constraint_versions):
+            # the same constraint blocks, unchanged: the same (immutable) rows and components
+            self.cols, self.nnz = previous.cols, previous.nnz
+            self.comp_rows, self.comp_ptr = previous.comp_rows, previous.comp_ptr
+            self.max_component, self.rows_valid = previous.max_component, previous.rows_valid
+        else:
+            self._build_rows(system)
+        self.valid = self.rows_valid and self._consistent()
         m = self.m
         # scratch space reused by every call: state-sized stage arrays, per-row values,
         # per-coordinate buffers, one dense component block
@@ -314,11 +329,11 @@ class Packed:
             2 * b + 1
         p, _, rows = self.fixed
         cols[rows, 0], cols[rows + 1, 0] = 2 * p, 2 * p + 1
-        if m and (cols.max() >= 2 * self.n):
-            self.valid = False  # an index out of range: the reference path reports it
+        #: False if a constraint's particle index is out of range (the reference path then
+        #: reports it)
+        self.rows_valid = not (m and cols.max() >= 2 * self.n)
+        if not self.rows_valid:
             cols = np.minimum(cols, 2 * self.n - 1)
-        else:
-            self.valid = True
         self.cols = _ro(cols)
         self.nnz = _ro((cols >= 0).sum(axis=1).astype(np.int64))
         r, k = np.nonzero(cols >= 0)
@@ -449,7 +464,7 @@ def pack(system: ParticleSystem) -> Packed:
     cached = getattr(system, "_packed", None)
     if cached is not None and cached.current(system):
         return cached
-    packed = Packed(system)
+    packed = Packed(system, cached)
     system._packed = packed
     return packed
 

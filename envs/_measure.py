@@ -51,6 +51,8 @@ measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is F
 #: the compiled rest test and hold count (None when ``ENABLED`` is False)
 advance_hold: Any = None
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
+#: ClothPin's compiled observation (None when ``ENABLED`` is False)
+pin_observe: Any = None
 grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is False)
 clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
 crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
@@ -198,6 +200,58 @@ if ENABLED:
                 obs[i, 2 * n + 2 * k] = min(max(np.float32(v[p, 0] * ix), lo), hi)
                 obs[i, 2 * n + 2 * k + 1] = min(max(np.float32(v[p, 1] * iy), lo), hi)
             obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
+
+    @njit
+    def _unit(value, lo, hi):  # pragma: no cover - compiled
+        """``value`` rounded to float32 and clipped to ``[lo, hi]`` (float32 bounds)."""
+        return min(max(np.float32(value), lo), hi)
+
+    @njit(nogil=True)
+    def _pin_observe(x, v, n, count, goal, cx, cy, ix, iy, limit, slots, placed, si, sj, ks,
+                     rest, ks_lo, ks_hi, obs):  # pragma: no cover - compiled
+        """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
+        slots) float32: the first ``count`` particles' ``(x - c) / h`` and ``v / h`` of each
+        copy of ``n``, the goal's ``(goal - c_x) / h_x``, then per spring slot of the copy
+        (element ``i * slots + s`` of the spring arrays) ``(1, ends (x - c) / h, stiffness
+        action, rest / h_x)`` if ``s < placed[i]``, else zeros; each value computed in float64
+        (``ix, iy`` = 1 / h), rounded to float32 and clipped to ``[-limit, limit]``. The
+        stiffness action is ``2 log(ks / ks_lo) / log(ks_hi / ks_lo) - 1`` of ``ks`` clipped
+        to ``[ks_lo, ks_hi]`` (N/m). Returns False, writing nothing, if a spring end is not a
+        particle index."""
+        total = x.shape[0]
+        for e in range(si.shape[0]):
+            if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
+                return False
+        N = goal.shape[0]
+        hi = np.float32(limit)
+        lo = np.float32(-limit)
+        span = math.log(ks_hi / ks_lo)
+        base = 4 * count + 1
+        for i in range(N):
+            for k in range(count):
+                p = i * n + k
+                obs[i, 2 * k] = _unit((x[p, 0] - cx) * ix, lo, hi)
+                obs[i, 2 * k + 1] = _unit((x[p, 1] - cy) * iy, lo, hi)
+                obs[i, 2 * count + 2 * k] = _unit(v[p, 0] * ix, lo, hi)
+                obs[i, 2 * count + 2 * k + 1] = _unit(v[p, 1] * iy, lo, hi)
+            obs[i, 4 * count] = _unit((goal[i] - cx) * ix, lo, hi)
+            for s in range(slots):
+                o = base + 7 * s
+                if s < placed[i]:
+                    e = i * slots + s
+                    a, b = si[e], sj[e]
+                    stiff = 2.0 * math.log(min(max(ks[e], ks_lo), ks_hi) / ks_lo) / span - 1.0
+                    obs[i, o] = 1.0
+                    obs[i, o + 1] = _unit((x[a, 0] - cx) * ix, lo, hi)
+                    obs[i, o + 2] = _unit((x[a, 1] - cy) * iy, lo, hi)
+                    obs[i, o + 3] = _unit((x[b, 0] - cx) * ix, lo, hi)
+                    obs[i, o + 4] = _unit((x[b, 1] - cy) * iy, lo, hi)
+                    obs[i, o + 5] = _unit(min(max(stiff, -1.0), 1.0), lo, hi)
+                    obs[i, o + 6] = _unit(rest[e] * ix, lo, hi)
+                else:
+                    for q in range(7):
+                        obs[i, o + q] = 0.0
+        return True
 
     @njit
     def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
@@ -420,6 +474,7 @@ if ENABLED:
     measures = _measures
     advance_hold = _advance_hold
     observe = _observe
+    pin_observe = _pin_observe
     crank_step = _crank_step
     crank_finish = _crank_finish
     measures_observe = _measures_observe

@@ -11,9 +11,10 @@ from gymnasium import spaces
 
 from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
 
+from . import _measure
 from .base import OBS_LIMIT, ParticleTask
 from .chain_swing import track_success
-from .checks import check_positive, check_range
+from .checks import _owned, check_positive, check_range
 from .cloth_slide import _hanging_equilibrium
 from .rewards import ShapedTask
 from .single import ParticleEnv
@@ -219,15 +220,19 @@ class ClothPin(ShapedTask, ParticleTask):
         copy's next parked anchor, moved to the drawn point. The rest length is the distance
         between the two ends as placed.
         """
-        N = len(envs)
+        out = np.zeros(len(envs), bool)
+        room = np.flatnonzero(self.placed[envs] < self.max_springs)  # (a spent budget refuses)
+        if not len(room):
+            return out
+        envs, action = envs[room], action[room]
         ends = np.stack([self.resolve(envs, self.to_world(action[:, 0:2])),
                          self.resolve(envs, self.to_world(action[:, 2:4]))], axis=1)
         on_cloth = (ends >= 0) & (ends < self.cloth_n)
         new = ends == -2
-        ok = ((on_cloth.sum(axis=1) == 1) & (new.sum(axis=1) <= 1)
-              & (self.placed[envs] < self.max_springs))
+        ok = (on_cloth.sum(axis=1) == 1) & (new.sum(axis=1) <= 1)
         if not ok.any():
-            return ok
+            return out
+        out[room[ok]] = True
         envs, ends, new, action = envs[ok], ends[ok], new[ok], action[ok]
         # a new anchor becomes the copy's next unused anchor particle, at the drawn point
         anchor = self.cloth_n + self.anchors_used[envs]
@@ -245,8 +250,6 @@ class ClothPin(ShapedTask, ParticleTask):
         sp.ks[k] = self.stiffness(action[:, 4])
         sp.kd[k] = self.spring_kd
         self.placed[envs] += 1
-        out = np.zeros(N, bool)
-        out[np.flatnonzero(ok)] = True
         return out
 
     def _rewire(self, slots: np.ndarray, i: np.ndarray, j: np.ndarray) -> None:
@@ -262,8 +265,10 @@ class ClothPin(ShapedTask, ParticleTask):
         k = self._slots(envs)
         base = envs[:, None] * self.n
         sp = self.springs
-        self._rewire(k.ravel(), np.broadcast_to(base + self.anchors[None, :], k.shape).ravel(),
-                     np.broadcast_to(base, k.shape).ravel())
+        i = np.broadcast_to(base + self.anchors[None, :], k.shape).ravel()
+        j = np.broadcast_to(base, k.shape).ravel()
+        if not (np.array_equal(sp.i[k.ravel()], i) and np.array_equal(sp.j[k.ravel()], j)):
+            self._rewire(k.ravel(), i, j)  # (else already unplaced: no new arrays, no repack)
         sp.rest[k] = sp.ks[k] = sp.kd[k] = 0.0
         self.placed[envs] = 0
         self.anchors_used[envs] = 0
@@ -361,7 +366,28 @@ class ClothPin(ShapedTask, ParticleTask):
     # ------------------------------------------------------------------ measures
     def observe(self) -> np.ndarray:
         """Observations (num_envs, 4 nc + 1 + 7 max_springs) float32: the cloth's normalized
-        positions and velocities, the goal, and one row per spring slot (see the env docs)."""
+        positions and velocities, the goal, and one row per spring slot (see the env docs).
+        In one compiled pass (:func:`envs._measure.pin_observe`) where the arrays allow it,
+        else by the numpy reference :meth:`observe_reference`."""
+        N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs  # (read once)
+        state = self._compiled_state()
+        sp = self.springs
+        si, sj, ks, rest, goal, placed = sp.i, sp.j, sp.ks, sp.rest, self.goal, self.placed
+        if (state is not None and type(n) is int and type(nc) is int and type(B) is int
+                and 0 < nc <= n and len(state[0]) == N * n and _owned(goal, np.float64, (N,))
+                and _owned(placed, np.int64, (N,)) and _owned(si, np.int64, (N * B,))
+                and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
+                and _owned(rest, np.float64, (N * B,))):
+            obs = np.empty((N, 4 * nc + 1 + SLOT_SIZE * B), np.float32)
+            lo, hi = self.ks_range
+            if _measure.pin_observe(state[0], state[1], n, nc, goal, *self._obs_scale(),
+                                    OBS_LIMIT, B, placed, si, sj, ks, rest, float(lo),
+                                    float(hi), obs):
+                return obs
+        return self.observe_reference()
+
+    def observe_reference(self) -> np.ndarray:
+        """:meth:`observe` in numpy (the reference of the compiled pass)."""
         N, nc, B = self.num_envs, self.cloth_n, self.max_springs
         x = self.positions()
         pos = self.to_normalized(x[:, :nc]).reshape(N, -1)
@@ -382,12 +408,9 @@ class ClothPin(ShapedTask, ParticleTask):
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
-        m = super().measure(None)
+        m, m["wall_force"] = self._measures(None, walls=True)
         v = self.velocities()[:, :self.cloth_n]
-        m["speed"] = np.sqrt(np.mean(np.sum(v * v, axis=2), axis=1))
-        F = np.zeros_like(self.system.x)
-        self.wall.accumulate(self.system.x, self.system.v, self.system.mass, F)
-        m["wall_force"] = np.sum(np.abs(F[:, 0]).reshape(self.num_envs, self.n), axis=1)
+        m["speed"] = np.sqrt(np.einsum("ikd,ikd->i", v, v) * (1.0 / self.cloth_n))
         m["springs"] = self.placed.copy()
         m["placed"] = self.placed_now.copy()
         return track_success(self, m, stepped)

@@ -170,6 +170,28 @@ def test_in_place_edits_are_seen_and_replaced_arrays_repacked():
     close(s.x, x)
 
 
+def test_a_rewired_force_block_keeps_the_constraint_rows_and_steps_as_a_fresh_pack():
+    """A force block's new index arrays rebuild the pack but not its constraint row graph
+    (taken over while the constraint blocks are the same and unchanged); the step is bit for
+    bit that of a system packed from scratch. A changed constraint block builds new rows."""
+    s = every_block(2)
+    s.step(1e-3, "rk4")
+    old = fused.pack(s)
+    spring = s.forces[2]
+    spring.j = np.array([1, 5, 6, 8, 4])  # one spring rewired (a new, validated array)
+    fresh = s.copy()
+    fresh._packed = None
+    new = fused.pack(s)
+    assert new is not old and new.comp_rows is old.comp_rows and new.cols is old.cols
+    s.step(1e-3, "rk4")
+    fresh.step(1e-3, "rk4")
+    assert fused.pack(fresh).comp_rows is not old.comp_rows
+    np.testing.assert_array_equal(s.x, fresh.x)
+    np.testing.assert_array_equal(s.v, fresh.v)
+    s.constraints[0].radius = s.constraints[0].radius * 1.0  # a new array: new rows
+    assert fused.pack(s).comp_rows is not new.comp_rows
+
+
 def test_out_of_range_index_never_reaches_compiled_code():
     """Bad indices are refused at the door, block arrays cannot be edited behind the system's
     back, and a pack checks every index once, when it is built, before any call reads

@@ -84,3 +84,43 @@ def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
     assert task.placed[0] == 0 and np.all(task.springs.ks == 0)
     _, _, _, _, info = env.step(pin_action(task, x[3], [-1.1, 0.0]))  # cloth to anchor
     assert info["placed"] and info["springs"] == 1
+
+
+def _pin_args(task):
+    sp, (lo, hi) = task.springs, task.ks_range
+    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, *task._obs_scale(),
+            10.0, task.max_springs, task.placed, sp.i, sp.j, sp.ks, sp.rest, lo, hi)
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
+def test_cloth_pin_compiled_observation_matches_the_numpy_reference():
+    env = gym.make_vec("ClothPin-v0", num_envs=6, vectorization_mode="vector_entry_point")
+    env.reset(seed=3)
+    task = env.unwrapped.task
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        a = rng.uniform(-1, 1, (6, 6)).astype(np.float32)
+        a[:, 5] = np.where(rng.random(6) < 0.3, 1.0, -1.0)  # some drawings, most refused
+        env.step(a)
+        compiled, reference = task.observe(), task.observe_reference()
+        assert compiled.dtype == reference.dtype == np.float32
+        # x (1/h) against x / h: at most one float32 rounding step apart
+        np.testing.assert_allclose(compiled, reference, rtol=3e-7, atol=1e-7)
+    assert task.placed.max() >= 2  # filled spring slots were compared too
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
+def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
+    env = gym.make_vec("ClothPin-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    args = list(_pin_args(task))
+    obs = np.full((2, task.single_observation_space.shape[0]), 7.0, np.float32)
+    for k, bad in ((12, -1), (13, len(task.system.x))):  # spring_i, spring_j
+        broken = list(args)
+        broken[k] = args[k].copy()
+        broken[k][-1] = bad
+        assert not _measure.pin_observe(*broken, obs)
+        assert np.all(obs == 7.0)  # nothing written
+    assert _measure.pin_observe(*args, obs)
+    np.testing.assert_allclose(obs, task.observe_reference(), rtol=3e-7, atol=1e-7)
