@@ -105,10 +105,81 @@ def test_leaving_the_constraints_is_flagged_and_the_state_kept():
     ("ClothSlide-v0", {"spacing": 1e300}, "spacing"),
     ("ClothSlide-v0", {"mouse_ks": float("nan")}, "mouse_ks"),
     ("ClothSlide-v0", {"integrator": ["rk4"]}, "integrator"),
+    ("ClothSlide-v0", {"cloth_size": (1, 5)}, "cloth_size"),
+    ("ClothSlide-v0", {"cloth_size": (4,)}, "cloth_size"),
+    ("ClothSlide-v0", {"cloth_size": (2.5, 3)}, "cloth_size"),
+    ("ClothSlide-v0", {"dt": 0.0}, "dt"),
+    ("ClothSlide-v0", {"dt": -0.01}, "dt"),
+    ("SliderCrank-v0", {"dt": float("nan")}, "dt"),
+    ("ClothSlide-v0", {"integrator": "leapfrog"}, "integrator"),
+    ("SliderCrank-v0", {"integrator": "RK4"}, "integrator"),
+    ("ClothSlide-v0", {"action_mode": "torque"}, "action_mode"),
+    ("SliderCrank-v0", {"action_mode": None}, "action_mode"),
+    ("ClothSlide-v0", {"substeps": 0}, "substeps"),
+    ("ClothSlide-v0", {"substeps": 2.0}, "substeps"),
+    ("ClothSlide-v0", {"goal_range": (-0.6, 0.9), "wall_x": 1.0}, "goal_range"),
+    ("ClothSlide-v0", {"wall_x": float("inf")}, "wall_x"),
+    ("ClothSlide-v0", {"goal_range": (0.3, -0.3)}, "goal_range"),
+    ("ClothSlide-v0", {"cloth_ks": -1.0}, "cloth_ks"),
+    ("SliderCrank-v0", {"rod": 0.2}, "rod"),
+    ("SliderCrank-v0", {"goal_range": (0.3, 1.0)}, "goal_range"),
+    ("SliderCrank-v0", {"max_force": 0}, "max_force"),
+    ("SliderCrank-v0", {"grab_radius": -1}, "grab_radius"),
+    ("ChainSwing-v0", {"target": "up"}, "target"),
+    ("ChainSwing-v0", {"links": 1}, "links"),
+    ("ChainSwing-v0", {"links": 3.5}, "links"),
+    ("ChainSwing-v0", {"stiffness": -1.0}, "stiffness"),
+    ("ChainSwing-v0", {"goal_range": (-1.2, 0.5)}, "goal_range"),
+    ("ChainSwing-v0", {"start_angle": 2.0}, "start_angle"),
+    ("ChainSwing-v0", {"action_mode": "draw"}, "action_mode"),
+    ("ChainSwing-v0", {"dt": float("nan")}, "dt"),
+    ("ClothPin-v0", {"action_mode": "force"}, "action_mode"),
+    ("ClothPin-v0", {"max_springs": 0}, "max_springs"),
+    ("ClothPin-v0", {"ks_range": (0.0, 5.0)}, "ks_range"),
+    ("ClothPin-v0", {"anchor_region": (-1.3, 0.0, -1.4, 0.1)}, "anchor_region"),
+    ("ClothPin-v0", {"anchor_region": (-1.3, -0.2, -0.6, 0.2)}, "anchor_region"),
+    ("ClothPin-v0", {"start_range": (-0.5, 0.1)}, "start_range"),
+    ("ClothPin-v0", {"goal_range": (0.0, 0.9)}, "goal_range"),
+    ("ClothPin-v0", {"push": 0.0}, "push"),
+    ("ClothPin-v0", {"cloth_size": (1, 5)}, "cloth_size"),
 ])
-def test_extreme_make_arguments_get_a_value_error(env_id, kwargs, name):
+def test_bad_make_arguments_get_a_value_error_naming_them(env_id, kwargs, name):
     with pytest.raises(ValueError, match=name):
         gym.make(env_id, **kwargs)
+    with pytest.raises(ValueError, match=name):
+        gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+
+@pytest.mark.parametrize(("env_id", "kwargs"), [
+    ("ClothSlide-v0", dict(dt=0.05, substeps=1, integrator="euler")),
+    ("SliderCrank-v0", dict(dt=0.2, substeps=1, integrator="euler")),
+    ("ChainSwing-v0", dict(dt=0.05, substeps=1, integrator="euler")),
+    ("ClothPin-v0", dict(dt=0.05, substeps=1, integrator="euler")),
+])
+def test_diverging_simulation_terminates_with_a_penalty_without_nan(env_id, kwargs):
+    env = gym.make(env_id, **kwargs)
+    env.reset(seed=0)
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert np.all(np.isfinite(obs)) and np.isfinite(reward) and obs in env.observation_space
+        if terminated or truncated:
+            break
+    assert terminated and info["diverged"] and not truncated and not info["is_success"]
+    assert all(np.all(np.isfinite(v)) for v in info.values())
+    # at least the cost of playing on for a whole episode at the task's largest per-step cost
+    assert reward <= -200 * env.unwrapped.task.step_cost < 0
+    vec = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point", **kwargs)
+    vec.reset(seed=0)
+    seen = np.zeros(3, bool)
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = vec.step(vec.action_space.sample())
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        np.testing.assert_array_equal(terminated & info["diverged"], info["diverged"])
+        assert np.all(reward[info["diverged"]] <= -200 * vec.unwrapped.task.step_cost)
+        seen |= info["diverged"]
+        if seen.all():
+            break
+    assert seen.any()
 
 
 @pytest.mark.parametrize("shape", [(2, 4), (8,), (1, 8), (4, 4, 1), (4,)])
