@@ -177,7 +177,7 @@ class Packed:
         self.constraint_versions = [c.version for c in self.constraints]
         self.valid = self.supported = supported(system)
         self._mouse_blocks: list[MouseSpring] = []
-        self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...], bool]] = []
         #: the parameter arrays held zero copy, with the shapes they had (checked every call:
         #: an in-place ``arr.shape = ...`` must not send the kernel past their ends)
         self.params: list[tuple[np.ndarray, tuple[int, ...]]] = []
@@ -212,7 +212,7 @@ class Packed:
             fresh.append(a)
             return a
 
-        def join(parts: list[tuple], empty: tuple) -> tuple:
+        def join(parts: list[tuple], empty: tuple, measured: bool = False) -> tuple:
             """One block's arrays as they are; several blocks' concatenated. Index arrays are
             read-only, so their concatenation stays right; parameter arrays are concatenated
             again before every call (:meth:`refresh`), so in-place edits are seen."""
@@ -226,7 +226,8 @@ class Packed:
                 if joined.dtype == np.int64:
                     joined = _ro(joined)
                 elif not all(any(a is f for f in fresh) for a in col):
-                    self._refresh.append((joined, col))  # (arrays made here never change)
+                    # (arrays made here never change)
+                    self._refresh.append((joined, col, measured))
                 out.append(joined)
             return tuple(out)
 
@@ -257,7 +258,7 @@ class Packed:
                          f64(w, "normal", 1).reshape(1, 2),
                          made(np.array([[scalar(w, "offset"), scalar(w, "kw"),
                                          scalar(w, "cw")]]))))
-        self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))))
+        self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))), measured=True)
         mouse = []
         self._mouse_blocks = by_type.get(MouseSpring, [])
         for m in by_type.get(MouseSpring, []):
@@ -287,10 +288,10 @@ class Packed:
                 fixed.append((idx_of(c, "particles"), f64(c, "point", 2), rows))
             offset += c.n_rows
         self.m = offset
-        self.circ = join(circ, (_I0, _F02, _F0, _I0))
-        self.rod = join(rod, (_I0, _I0, _F0, _I0))
-        self.line = join(line, (_I0, _F02, _F02, _I0))
-        self.fixed = join(fixed, (_I0, _F02, _I0))
+        self.circ = join(circ, (_I0, _F02, _F0, _I0), measured=True)
+        self.rod = join(rod, (_I0, _I0, _F0, _I0), measured=True)
+        self.line = join(line, (_I0, _F02, _F02, _I0), measured=True)
+        self.fixed = join(fixed, (_I0, _F02, _I0), measured=True)
         if (previous is not None and previous.supported and previous.n == n
                 and previous.zero_copy and self.zero_copy
                 and len(previous.constraints) == len(self.constraints)
@@ -410,10 +411,12 @@ class Packed:
         comp_of[self.cols[used]] = np.broadcast_to(row_comp[:, None], self.cols.shape)[used]
         return (_ro(ptr), _ro(ranged), _ro(comp_of), np.zeros(len(self.comp_ptr) - 1, bool))
 
-    def refresh(self) -> None:
-        """Copy the parameter arrays of types with several blocks into their joined arrays."""
-        for joined, parts in self._refresh:
-            np.concatenate(parts, out=joined)
+    def refresh(self, measured_only: bool = False) -> None:
+        """Copy the parameter arrays of types with several blocks into their joined arrays
+        (``measured_only``: only those the env measures read, walls' and constraints')."""
+        for joined, parts, measured in self._refresh:
+            if measured or not measured_only:
+                np.concatenate(parts, out=joined)
 
     def current(self, system: ParticleSystem) -> bool:
         """True if this pack still describes ``system``: the same blocks, none of them with an

@@ -43,7 +43,8 @@ def packed(system: Any) -> Any:
     p = fused.pack(system)
     if not p.valid:
         return None
-    p.refresh()  # several blocks of one type: bring their joined parameters up to date
+    # several blocks of one type: bring the joined parameters the measures read up to date
+    p.refresh(measured_only=True)
     return p
 
 
@@ -207,17 +208,16 @@ if ENABLED:
         return min(max(np.float32(value), lo), hi)
 
     @njit(nogil=True)
-    def _pin_observe(x, v, n, count, goal, cx, cy, ix, iy, limit, slots, placed, si, sj, ks,
-                     rest, ks_lo, ks_hi, obs):  # pragma: no cover - compiled
+    def _pin_observe(x, v, n, count, goal, cx, cy, ix, iy, limit, slots, placed, si, sj,
+                     stiffness, rest, obs):  # pragma: no cover - compiled
         """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
         slots) float32: the first ``count`` particles' ``(x - c) / h`` and ``v / h`` of each
         copy of ``n``, the goal's ``(goal - c_x) / h_x``, then per spring slot of the copy
-        (element ``i * slots + s`` of the spring arrays) ``(1, ends (x - c) / h, stiffness
-        action, rest / h_x)`` if ``s < placed[i]``, else zeros; each value computed in float64
-        (``ix, iy`` = 1 / h), rounded to float32 and clipped to ``[-limit, limit]``. The
-        stiffness action is ``2 log(ks / ks_lo) / log(ks_hi / ks_lo) - 1`` of ``ks`` clipped
-        to ``[ks_lo, ks_hi]`` (N/m). Returns False, writing nothing, if a spring end is not a
-        particle index."""
+        (element ``i * slots + s`` of the spring arrays) ``(1, ends (x - c) / h, stiffness,
+        rest / h_x)`` if ``s < placed[i]``, else zeros; each value computed in float64 (``ix,
+        iy`` = 1 / h), rounded to float32 and clipped to ``[-limit, limit]``. ``stiffness``
+        holds each spring's observed stiffness (``ClothPin._stiffness_seen``). Returns False,
+        writing nothing, if a spring end is not a particle index."""
         total = x.shape[0]
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
@@ -225,7 +225,6 @@ if ENABLED:
         N = goal.shape[0]
         hi = np.float32(limit)
         lo = np.float32(-limit)
-        span = math.log(ks_hi / ks_lo)
         base = 4 * count + 1
         for i in range(N):
             for k in range(count):
@@ -240,13 +239,12 @@ if ENABLED:
                 if s < placed[i]:
                     e = i * slots + s
                     a, b = si[e], sj[e]
-                    stiff = 2.0 * math.log(min(max(ks[e], ks_lo), ks_hi) / ks_lo) / span - 1.0
                     obs[i, o] = 1.0
                     obs[i, o + 1] = _unit((x[a, 0] - cx) * ix, lo, hi)
                     obs[i, o + 2] = _unit((x[a, 1] - cy) * iy, lo, hi)
                     obs[i, o + 3] = _unit((x[b, 0] - cx) * ix, lo, hi)
                     obs[i, o + 4] = _unit((x[b, 1] - cy) * iy, lo, hi)
-                    obs[i, o + 5] = _unit(min(max(stiff, -1.0), 1.0), lo, hi)
+                    obs[i, o + 5] = _unit(stiffness[e], lo, hi)
                     obs[i, o + 6] = _unit(rest[e] * ix, lo, hi)
                 else:
                     for q in range(7):

@@ -379,31 +379,38 @@ class ClothPin(ShapedTask, ParticleTask):
                 and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
                 and _owned(rest, np.float64, (N * B,))):
             obs = np.empty((N, 4 * nc + 1 + SLOT_SIZE * B), np.float32)
-            lo, hi = self.ks_range
             if _measure.pin_observe(state[0], state[1], n, nc, goal, *self._obs_scale(),
-                                    OBS_LIMIT, B, placed, si, sj, ks, rest, float(lo),
-                                    float(hi), obs):
+                                    OBS_LIMIT, B, placed, si, sj, self._stiffness_seen(ks),
+                                    rest, obs):
                 return obs
         return self.observe_reference()
 
     def observe_reference(self) -> np.ndarray:
-        """:meth:`observe` in numpy (the reference of the compiled pass)."""
+        """:meth:`observe` in numpy (the reference of the compiled pass): each entry computed
+        in float64 (``(x - c) / h`` as ``(x - c) * (1 / h)``), rounded to float32 and clipped
+        to [-OBS_LIMIT, OBS_LIMIT]."""
         N, nc, B = self.num_envs, self.cloth_n, self.max_springs
+        inv_half = 1.0 / self.half
         x = self.positions()
-        pos = self.to_normalized(x[:, :nc]).reshape(N, -1)
-        vel = (self.velocities()[:, :nc] / self.half).reshape(N, -1)
-        goal = (self.goal[:, None] - self.center[0]) / self.half[0]
+        pos = ((x[:, :nc] - self.center) * inv_half).reshape(N, -1)
+        vel = (self.velocities()[:, :nc] * inv_half).reshape(N, -1)
+        goal = (self.goal[:, None] - self.center[0]) * inv_half[0]
         sp = self.springs
         on = (np.arange(B)[None, :] < self.placed[:, None]).reshape(-1)
         flat = self.system.x
-        lo, hi = self.ks_range
-        rows = np.concatenate([on[:, None], self.to_normalized(flat[sp.i]),
-                               self.to_normalized(flat[sp.j]),
-                               self.stiffness_action(np.clip(sp.ks, lo, hi))[:, None],
-                               (sp.rest / self.half[0])[:, None]], axis=1)
-        rows *= on[:, None]
+        rows = np.concatenate([np.ones((len(on), 1)), (flat[sp.i] - self.center) * inv_half,
+                               (flat[sp.j] - self.center) * inv_half,
+                               self._stiffness_seen(sp.ks)[:, None],
+                               (sp.rest * inv_half[0])[:, None]], axis=1)
+        rows = np.where(on[:, None], rows, 0.0)
         obs = np.concatenate([pos, vel, goal, rows.reshape(N, -1)], axis=1)
         return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
+
+    def _stiffness_seen(self, ks: np.ndarray) -> np.ndarray:
+        """The observed stiffness of springs ``ks`` (N/m): :meth:`stiffness_action` of ``ks``
+        clipped into ``ks_range``."""
+        lo, hi = self.ks_range
+        return self.stiffness_action(np.clip(ks, lo, hi))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
