@@ -410,7 +410,8 @@ class ClothPin(ShapedTask, ParticleTask):
         """The observed stiffness of springs ``ks`` (N/m): :meth:`stiffness_action` of ``ks``
         clipped into ``ks_range``."""
         lo, hi = self.ks_range
-        return self.stiffness_action(np.clip(ks, lo, hi))
+        seen = 2.0 * np.log(np.minimum(np.maximum(ks, lo), hi) / lo) / math.log(hi / lo) - 1.0
+        return np.minimum(np.maximum(seen, -1.0), 1.0)  # (np.clip's overhead, without it)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
