@@ -195,6 +195,11 @@ class ChainSwing(ParticleTask):
         """``-distance - 0.1 speed + 10 * is_success``."""
         return -m["distance"] - 0.1 * m["speed"] + SUCCESS_BONUS * m["is_success"]
 
+    def reward_one(self, m: dict[str, np.ndarray], values: dict[str, Any]) -> float:
+        """:meth:`reward` of one copy from its measures as Python numbers (the same bits)."""
+        return (-values["distance"] - 0.1 * values["speed"]
+                + SUCCESS_BONUS * float(values["is_success"]))
+
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """The copy, its target point and a status line with the tip's distance."""
         one, extra, _ = super().drawing(i)
