@@ -32,6 +32,7 @@ from constrained_particles import (
     fused,
     fused_accel,
     kernels,
+    packing,
     scenes,
 )
 from constrained_particles.integrators import METHODS
@@ -450,7 +451,7 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
              (np.arange(10, 10 + 40), 1000),      # disjoint ends
              (rng.integers(0, n, 5), None),
              (np.arange(1500, 1500 + 257), -1),
-             (np.arange(1300, 1300 + fused.RUN_MIN - 1), 2),   # one short of a run
+             (np.arange(1300, 1300 + fused_accel.RUN_MIN - 1), 2),   # one short of a run
              (np.arange(40, 40 + 600), 64)]
     i = np.concatenate([a for a, _ in parts])
     j = np.concatenate([a + d if d is not None else rng.integers(0, n, len(a)) for a, d in parts])
@@ -480,7 +481,7 @@ def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
     bad = np.array(runs)
     bad[0, 1] += 1  # one spring too many
     for wrong in (bad, np.ascontiguousarray(runs[:, :1])):  # (the second: no ends column)
-        p.spring = (si, sj, *rest, fused._ro(wrong))
+        p.spring = (si, sj, *rest, packing._ro(wrong))
         assert not p._consistent()
 
 

@@ -1,0 +1,420 @@
+"""Packing a system for the fused compiled step: its blocks as flat per-type arrays.
+
+:func:`pack` turns a system built only from the standard blocks into a :class:`Packed` form,
+cached on the system while it is current, which :mod:`.fused` hands to its kernels and the envs'
+compiled measures read.
+
+**Safety at the boundary.** Packed arrays are the blocks' own arrays where possible (zero copy,
+so in-place edits such as an environment writing its actions into ``ConstantForce.force`` are
+seen); where several blocks of one type are joined, their parameter arrays are copied into the
+joined ones before every call. Every array the kernel indexes *with* (particle indices, rows,
+columns, components, spring runs) is immutable (:func:`~.terms.frozen`: read-only memory that
+no ``flags.writeable = True`` can reopen) and is checked once, when the pack is built. The
+pack is rebuilt when a block's attribute is reassigned (each block's own ``version``), found
+without scanning any array. A call checks only what an in-place edit can change in O(1) per
+array: the shapes of the parameter arrays, and a mouse spring's ``active`` flags (the only
+index an in-place edit can switch on).
+
+**Rebuilds.** A pack is rebuilt when a block is added or removed or an attribute of one is
+reassigned. The constraint rows and their connected components depend only on the constraint
+blocks: a new pack takes them over from the previous one while those blocks are the same and
+unchanged, so a force block given new index arrays (a drawn spring) costs no new row graph.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import kernels
+from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
+from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
+from .fused_accel import RUN_MIN
+from .solver import DIRECT_MAX, row_components
+from .terms import frozen, is_frozen
+
+if TYPE_CHECKING:
+    from .system import ParticleSystem
+
+
+#: The order of block types in the fused kernel's per-type element lists.
+_ELEMENT_TYPES = ("gravity", "constant", "spring", "angular", "drag", "wall", "mouse", "circle",
+                  "rod", "line", "fixed")
+_FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring)
+_CONSTRAINT_TYPES = (CircularWire, Rod, LineWire, HorizontalWire, FixedPoint)
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    """``a`` as an immutable array (:func:`~.terms.frozen`, no copy if it is one already): the
+    pack's index arrays reach the kernel as one Numba type, and stay as they were checked."""
+    return a if is_frozen(a) else frozen(a)
+
+
+_I0 = _ro(np.zeros(0, np.int64))
+#: No step counts (every particle takes every step): writable, as the counts of a call with
+#: pieces are, so that the kernel compiles for one type of ``counts`` only.
+_NO_COUNTS = np.zeros(0, np.int64)
+_F0 = np.zeros(0)
+_F02 = np.zeros((0, 2))
+_B0 = np.zeros(0, bool)
+
+
+def supported(system: ParticleSystem) -> bool:
+    """True when every block of ``system`` is a standard type the fused kernel implements
+    (exact types: a subclass may override the formulas, so it takes the reference path)."""
+    return (kernels.ENABLED
+            and all(type(f) in _FORCE_TYPES for f in system.forces)
+            and all(type(c) in _CONSTRAINT_TYPES for c in system.constraints))
+
+
+def _f64(a: Any, ndim: int) -> tuple[np.ndarray, bool]:
+    """``a`` as a C-contiguous float64 array of ``ndim`` dimensions; True if no copy was made."""
+    if (type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == ndim
+            and a.flags.c_contiguous and a.flags.writeable):
+        return a, True
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape((-1, 2)[-ndim:])), False
+
+
+def _i64(a: Any) -> tuple[np.ndarray, bool]:
+    """``a`` as an immutable 1-D int64 array; True if it is the block's own (no copy made)."""
+    if (type(a) is np.ndarray and a.dtype == np.int64 and a.ndim == 1 and a.flags.c_contiguous
+            and is_frozen(a)):
+        return a, True
+    return frozen(np.asarray(a).ravel().astype(np.int64)), False
+
+
+def _bool(a: Any) -> tuple[np.ndarray, bool]:
+    if (type(a) is np.ndarray and a.dtype == np.bool_ and a.ndim == 1 and a.flags.c_contiguous
+            and a.flags.writeable):
+        return a, True
+    return np.ascontiguousarray(np.asarray(a, dtype=bool).ravel()), False
+
+
+def spring_runs(i: np.ndarray, j: np.ndarray, minimum: int = RUN_MIN) -> np.ndarray:
+    """The runs in a spring list ``(i, j)``: spans ``[lo, hi)`` of at least ``minimum`` springs
+    whose ends both step by one (``i[e] = i[lo] + e - lo``, ``j[e] = j[lo] + e - lo``) and
+    differ (``i != j``), as a read-only (runs, 2) int64 array. A cloth's rows, columns and
+    diagonals are such runs; the compiled spring loop reads and writes them contiguously."""
+    k = len(i)
+    if k < minimum:
+        return _ro(np.zeros((0, 2), np.int64))
+    step = (np.diff(i) != 1) | (np.diff(j) != 1)
+    starts = np.flatnonzero(np.r_[True, step])
+    ends = np.r_[starts[1:], k]
+    keep = (ends - starts >= minimum) & (i[starts] != j[starts])
+    return _ro(np.ascontiguousarray(np.stack([starts[keep], ends[keep]], axis=1),
+                                    dtype=np.int64))
+
+
+class Packed:
+    """A system's blocks as the fused kernel's flat per-type arrays (see the module docstring).
+
+    Built by :func:`pack`; :meth:`current` tells whether it still describes the system.
+    """
+
+    def __init__(self, system: ParticleSystem, previous: Packed | None = None) -> None:
+        """``previous``: the system's last pack, whose constraint rows and components are
+        taken over when the constraint blocks are the same and unchanged (a force block's
+        new index arrays, such as a drawn spring's, then cost no new row graph)."""
+        n = system.n
+        self.n = n
+        self.forces = list(system.forces)
+        self.constraints = list(system.constraints)
+        self.zero_copy = True
+        self.versions = [b.version for b in (*self.forces, *self.constraints)]
+        self.constraint_versions = [c.version for c in self.constraints]
+        self.valid = self.supported = supported(system)
+        self._mouse_blocks: list[MouseSpring] = []
+        self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...], bool]] = []
+        #: the parameter arrays held zero copy, with the shapes they had (checked every call:
+        #: an in-place ``arr.shape = ...`` must not send the kernel past their ends)
+        self.params: list[tuple[np.ndarray, tuple[int, ...]]] = []
+        if not self.supported:
+            return
+        by_type: dict[type, list] = {}
+        for f in self.forces:
+            by_type.setdefault(type(f), []).append(f)
+        every = _ro(np.arange(n, dtype=np.int64))
+
+        def idx_of(block: Any, name: str) -> np.ndarray:
+            raw = getattr(block, name)
+            if raw is None:
+                return every
+            arr, same = _i64(raw)
+            self.zero_copy &= same
+            return arr
+
+        def f64(block: Any, name: str, ndim: int) -> np.ndarray:
+            arr, same = _f64(getattr(block, name), ndim)
+            self.zero_copy &= same
+            if same:
+                self.params.append((arr, arr.shape))
+            return arr
+
+        def scalar(block: Any, name: str) -> float:
+            return float(getattr(block, name))
+
+        fresh: list[np.ndarray] = []  # parameter arrays made here from scalars
+
+        def made(a: np.ndarray) -> np.ndarray:
+            fresh.append(a)
+            return a
+
+        def join(parts: list[tuple], empty: tuple, measured: bool = False) -> tuple:
+            """One block's arrays as they are; several blocks' concatenated. Index arrays are
+            read-only, so their concatenation stays right; parameter arrays are concatenated
+            again before every call (:meth:`refresh`), so in-place edits are seen."""
+            if not parts:
+                return empty
+            if len(parts) == 1:
+                return parts[0]
+            out = []
+            for col in zip(*parts, strict=True):
+                joined = np.ascontiguousarray(np.concatenate(col))
+                if joined.dtype == np.int64:
+                    joined = _ro(joined)
+                elif not all(any(a is f for f in fresh) for a in col):
+                    # (arrays made here never change)
+                    self._refresh.append((joined, col, measured))
+                out.append(joined)
+            return tuple(out)
+
+        grav = []
+        for k, g in enumerate(by_type.get(Gravity, [])):
+            idx = idx_of(g, "particles")
+            grav.append((idx, _ro(np.full(len(idx), k, np.int64)), f64(g, "g", 1).reshape(1, 2)))
+        self.grav = join(grav, (_I0, _I0, _F02))
+        self.const = join([(idx_of(c, "particles"), f64(c, "force", 2))
+                           for c in by_type.get(ConstantForce, [])], (_I0, _F02))
+        spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
+                        f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
+                      (_I0, _I0, _F0, _F0, _F0))
+        self.spring = (*spring, spring_runs(spring[0], spring[1]))
+        self.ang = join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"), f64(a, "rest", 1),
+                          f64(a, "k", 1), f64(a, "kd", 1))
+                         for a in by_type.get(AngularSpring, [])],
+                        (_I0, _I0, _I0, _F0, _F0, _F0))
+        drag = []
+        for d in by_type.get(Drag, []):
+            idx = idx_of(d, "particles")
+            drag.append((idx, made(np.full(len(idx), scalar(d, "kd")))))
+        self.drag = join(drag, (_I0, _F0))
+        wall = []
+        for k, w in enumerate(by_type.get(Wall, [])):
+            idx = idx_of(w, "particles")
+            wall.append((idx, _ro(np.full(len(idx), k, np.int64)),
+                         f64(w, "normal", 1).reshape(1, 2),
+                         made(np.array([[scalar(w, "offset"), scalar(w, "kw"),
+                                         scalar(w, "cw")]]))))
+        self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))), measured=True)
+        mouse = []
+        self._mouse_blocks = by_type.get(MouseSpring, [])
+        for m in by_type.get(MouseSpring, []):
+            active, same = _bool(m.active)
+            self.zero_copy &= same
+            if same:
+                self.params.append((active, active.shape))
+            mouse.append((idx_of(m, "particle"), f64(m, "anchor", 2), active, f64(m, "ks", 1),
+                          f64(m, "kd", 1)))
+        self.mouse = join(mouse, (_I0, _F02, _B0, _F0, _F0))
+
+        # constraints: per type, with the global row of each element (system block order)
+        circ, rod, line, fixed = [], [], [], []
+        offset = 0
+        for c in self.constraints:
+            k = len(c)
+            rows = _ro(offset + np.arange(k, dtype=np.int64) * c.rows_per_element)
+            if type(c) is CircularWire:
+                circ.append((idx_of(c, "particles"), f64(c, "center", 2), f64(c, "radius", 1),
+                             rows))
+            elif type(c) is Rod:
+                rod.append((idx_of(c, "a"), idx_of(c, "b"), f64(c, "length", 1), rows))
+            elif type(c) in (LineWire, HorizontalWire):
+                line.append((idx_of(c, "particles"), f64(c, "normal", 2), f64(c, "point", 2),
+                             rows))
+            else:
+                fixed.append((idx_of(c, "particles"), f64(c, "point", 2), rows))
+            offset += c.n_rows
+        self.m = offset
+        self.circ = join(circ, (_I0, _F02, _F0, _I0), measured=True)
+        self.rod = join(rod, (_I0, _I0, _F0, _I0), measured=True)
+        self.line = join(line, (_I0, _F02, _F02, _I0), measured=True)
+        self.fixed = join(fixed, (_I0, _F02, _I0), measured=True)
+        if (previous is not None and previous.supported and previous.n == n
+                and previous.zero_copy and self.zero_copy
+                and len(previous.constraints) == len(self.constraints)
+                and all(a is b for a, b in zip(previous.constraints, self.constraints,
+                                               strict=True))
+                and previous.constraint_versions == self.constraint_versions):
+            # the same constraint blocks, unchanged: the same (immutable) rows and components
+            self.cols, self.nnz = previous.cols, previous.nnz
+            self.comp_rows, self.comp_ptr = previous.comp_rows, previous.comp_ptr
+            self.max_component, self.rows_valid = previous.max_component, previous.rows_valid
+        else:
+            self._build_rows(system)
+        self.valid = self.rows_valid and self._consistent()
+        m = self.m
+        # scratch space reused by every call: state-sized stage arrays, per-row values,
+        # per-coordinate buffers, one dense component block
+        self.ws_n = np.zeros((12, n, 2))
+        self.ws_J = np.zeros((3, m, 4))
+        self.ws_r = np.zeros((5, m))
+        self.ws_q = np.zeros((2, 2 * n))
+        self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
+        self._ws_live: tuple | None = None  # (made on first use: see ws_live)
+        self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
+                     self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
+                     self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
+                     self.ws_A)
+
+    def _build_rows(self, system: ParticleSystem) -> None:
+        """Per-row particle columns and the connected components of the row graph."""
+        m = self.m
+        cols = np.full((m, 4), -1, np.int64)
+        for p, _, _, rows in [self.circ, self.line]:
+            cols[rows, 0], cols[rows, 1] = 2 * p, 2 * p + 1
+        a, b, _, rows = self.rod
+        cols[rows, 0], cols[rows, 1], cols[rows, 2], cols[rows, 3] = 2 * a, 2 * a + 1, 2 * b, \
+            2 * b + 1
+        p, _, rows = self.fixed
+        cols[rows, 0], cols[rows + 1, 0] = 2 * p, 2 * p + 1
+        #: False if a constraint's particle index is out of range (the reference path then
+        #: reports it)
+        self.rows_valid = not (m and cols.max() >= 2 * self.n)
+        if not self.rows_valid:
+            cols = np.minimum(cols, 2 * self.n - 1)
+        self.cols = _ro(cols)
+        self.nnz = _ro((cols >= 0).sum(axis=1).astype(np.int64))
+        r, k = np.nonzero(cols >= 0)
+        comp_rows, comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
+        self.comp_rows, self.comp_ptr = _ro(comp_rows), _ro(comp_ptr)
+        sizes = np.diff(self.comp_ptr)
+        self.max_component = int(sizes.max()) if len(sizes) else 0
+
+    def _consistent(self) -> bool:
+        """True if every array the kernel indexes with holds what it must (checked here once:
+        they are immutable): particle indices in [0, n), per-element arrays of one length,
+        block numbers within their blocks, rows within [0, m), every row with 1 to 4 columns.
+        (A mouse spring's particle is checked at every call, against its ``active`` flag.)"""
+        n, m = self.n, self.m
+
+        def inside(a: np.ndarray, top: int) -> bool:
+            return len(a) == 0 or bool(a.min() >= 0 and a.max() < top)
+
+        def aligned(arrays: tuple) -> bool:
+            return all(len(a) == len(arrays[0]) for a in arrays)
+
+        gi, gblock, gg = self.grav
+        wi, wblock, wn, wpar = self.wall
+        si, sj, *_, runs = self.spring
+        return (aligned((gi, gblock)) and inside(gblock, len(gg)) and aligned((wi, wblock))
+                and aligned((wn, wpar)) and inside(wblock, len(wn)) and aligned(self.const)
+                and aligned(self.spring[:5]) and aligned(self.ang) and aligned(self.drag)
+                and aligned(self.mouse) and aligned(self.circ) and aligned(self.rod)
+                and aligned(self.line) and aligned(self.fixed)
+                and all(inside(idx, n) for idx in (
+                    gi, self.const[0], si, sj, *self.ang[:3], self.drag[0], wi, self.circ[0],
+                    *self.rod[:2], self.line[0], self.fixed[0]))
+                and all(inside(rows, m) for rows in (self.circ[3], self.rod[3], self.line[3]))
+                and inside(self.fixed[2], m - 1)
+                and bool(np.all((self.nnz >= 1) & (self.nnz <= 4)))
+                and np.array_equal(runs, spring_runs(si, sj)))
+
+    @property
+    def ws_live(self) -> tuple:
+        """The workspace of per-particle step counts (made on first use, as only split steps
+        need it): the live mask, the live particle, row and component lists, their lengths,
+        the live element list of each block type and :meth:`_live_index`."""
+        if self._ws_live is None:
+            n, m = self.n, self.m
+            blocks = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
+                      self.mouse, self.circ, self.rod, self.line, self.fixed)
+            self._ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
+                             np.zeros(len(self.comp_ptr) - 1, np.int64),
+                             np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
+                             tuple(np.zeros(len(b[0]), np.int64) for b in blocks),
+                             self._live_index(blocks))
+        return self._ws_live
+
+    def _live_index(self, blocks: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                  np.ndarray]:
+        """What ``_gate`` needs to list the live rows, components and elements from the live
+        particles alone, instead of scanning every row and element: ``(ptr, ranged, comp_of,
+        seen)``. For a block type whose elements are ordered by their first particle
+        (``ranged[t]``), the elements of particle q are ``ptr[t, q]:ptr[t, q + 1]`` (so a list
+        made particle by particle keeps the elements' order); other types are scanned.
+        ``comp_of[c]`` is the component of coordinate c (-1: none), ``seen`` a zeroed mark
+        per component."""
+        n = self.n
+        ranged = np.array([len(b[0]) == 0 or bool(np.all(np.diff(b[0]) >= 0)) for b in blocks])
+        ptr = np.zeros((len(blocks), n + 1), np.int64)
+        for t, b in enumerate(blocks):
+            if ranged[t]:
+                ptr[t] = np.searchsorted(b[0], np.arange(n + 1))
+        ncomp = len(self.comp_ptr) - 1
+        row_comp = np.empty(self.m, np.int64)
+        row_comp[self.comp_rows] = np.repeat(np.arange(ncomp), np.diff(self.comp_ptr))
+        comp_of = np.full(2 * n, -1, np.int64)
+        used = self.cols >= 0
+        comp_of[self.cols[used]] = np.broadcast_to(row_comp[:, None], self.cols.shape)[used]
+        return (_ro(ptr), _ro(ranged), _ro(comp_of), np.zeros(len(self.comp_ptr) - 1, bool))
+
+    def refresh(self, measured_only: bool = False) -> None:
+        """Copy the parameter arrays of types with several blocks into their joined arrays
+        (``measured_only``: only those the env measures read, walls' and constraints')."""
+        for joined, parts, measured in self._refresh:
+            if measured or not measured_only:
+                np.concatenate(parts, out=joined)
+
+    def current(self, system: ParticleSystem) -> bool:
+        """True if this pack still describes ``system``: the same blocks, none of them with an
+        attribute reassigned since it was built (each block's ``version``; in-place edits are
+        seen through the arrays), and the parameter arrays of the shapes they had.
+
+        A mouse spring's particle array is replaced (not edited) by ``MouseSpring.set`` at
+        every grab; a lone mouse block's new array is taken over here without a rebuild when
+        nothing else of the block changed."""
+        if not (self.zero_copy and system.n == self.n and system.forces == self.forces
+                and system.constraints == self.constraints):
+            return False
+        versions = self.versions
+        for k, block in enumerate((*self.forces, *self.constraints)):
+            if block.version != versions[k]:
+                if not self._take_mouse(block):
+                    return False
+                versions[k] = block.version
+        return True
+
+    def _take_mouse(self, block: Any) -> bool:
+        """Take over the new particle array of the lone mouse block ``block`` (True), if that
+        is all that changed in it; False if the pack must be rebuilt."""
+        if len(self._mouse_blocks) != 1 or block is not self._mouse_blocks[0]:
+            return False
+        particle, anchor, active, ks, kd = self.mouse
+        if not (block.anchor is anchor and block.active is active and block.ks is ks
+                and block.kd is kd):
+            return False
+        new, same = _i64(block.particle)
+        if not (same and new.shape == particle.shape):
+            return False
+        self.mouse = (new, anchor, active, ks, kd)
+        self.args = (*self.args[:6], self.mouse, *self.args[7:])
+        return True
+
+    def shapes_hold(self) -> bool:
+        """True if every parameter array held zero copy still has the shape it had when the
+        pack was built (an in-place ``arr.shape = ...`` or ``resize`` changes it)."""
+        for arr, shape in self.params:
+            if arr.shape != shape:
+                return False
+        return True
+
+
+def pack(system: ParticleSystem) -> Packed:
+    """The system's current :class:`Packed` form (cached on the system while it is current)."""
+    cached = getattr(system, "_packed", None)
+    if cached is not None and cached.current(system):
+        return cached
+    packed = Packed(system, cached)
+    system._packed = packed
+    return packed
