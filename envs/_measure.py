@@ -185,27 +185,34 @@ if ENABLED:
                     hold[i] = 0
             success[i] = hold[i] >= hold_steps
 
+    @njit
+    def _unit(value, lo, hi):  # pragma: no cover - compiled
+        """``value`` rounded to float32 and clipped to ``[lo, hi]`` (float32 bounds)."""
+        return min(max(np.float32(value), lo), hi)
+
+    @njit
+    def _observe_particles(x, v, n, count, goal, cx, cy, ix, iy, lo, hi, obs):
+        # pragma: no cover - compiled
+        """Write the first ``4 count + 1`` columns of ``obs`` (N rows) float32: the first
+        ``count`` particles' ``(x - c) / h`` and ``v / h`` of each copy of ``n``, then the
+        goal's ``(goal - c_x) / h_x``, each computed in float64 (``ix, iy`` = 1 / h), rounded
+        to float32 and clipped to ``[lo, hi]``."""
+        for i in range(goal.shape[0]):
+            for k in range(count):
+                p = i * n + k
+                obs[i, 2 * k] = _unit((x[p, 0] - cx) * ix, lo, hi)
+                obs[i, 2 * k + 1] = _unit((x[p, 1] - cy) * iy, lo, hi)
+                obs[i, 2 * count + 2 * k] = _unit(v[p, 0] * ix, lo, hi)
+                obs[i, 2 * count + 2 * k + 1] = _unit(v[p, 1] * iy, lo, hi)
+            obs[i, 4 * count] = _unit((goal[i] - cx) * ix, lo, hi)
+
     @njit(nogil=True)
     def _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
         """Write ``obs`` (N, 4 n + 1) float32: ``(x - c) / h``, ``v / h``, the goal's
         ``(goal - c_x) / h_x``, each computed in float64 (``ix, iy`` = 1 / h), rounded to
         float32 and clipped to ``[-limit, limit]``."""
-        N = goal.shape[0]
-        hi = np.float32(limit)
-        lo = np.float32(-limit)
-        for i in range(N):
-            for k in range(n):
-                p = i * n + k
-                obs[i, 2 * k] = min(max(np.float32((x[p, 0] - cx) * ix), lo), hi)
-                obs[i, 2 * k + 1] = min(max(np.float32((x[p, 1] - cy) * iy), lo), hi)
-                obs[i, 2 * n + 2 * k] = min(max(np.float32(v[p, 0] * ix), lo), hi)
-                obs[i, 2 * n + 2 * k + 1] = min(max(np.float32(v[p, 1] * iy), lo), hi)
-            obs[i, 4 * n] = min(max(np.float32((goal[i] - cx) * ix), lo), hi)
-
-    @njit
-    def _unit(value, lo, hi):  # pragma: no cover - compiled
-        """``value`` rounded to float32 and clipped to ``[lo, hi]`` (float32 bounds)."""
-        return min(max(np.float32(value), lo), hi)
+        _observe_particles(x, v, n, n, goal, cx, cy, ix, iy, np.float32(-limit),
+                           np.float32(limit), obs)
 
     @njit(nogil=True)
     def _pin_observe(x, v, n, count, goal, cx, cy, ix, iy, limit, slots, placed, si, sj,
@@ -222,18 +229,11 @@ if ENABLED:
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
                 return False
-        N = goal.shape[0]
         hi = np.float32(limit)
         lo = np.float32(-limit)
+        _observe_particles(x, v, n, count, goal, cx, cy, ix, iy, lo, hi, obs)
         base = 4 * count + 1
-        for i in range(N):
-            for k in range(count):
-                p = i * n + k
-                obs[i, 2 * k] = _unit((x[p, 0] - cx) * ix, lo, hi)
-                obs[i, 2 * k + 1] = _unit((x[p, 1] - cy) * iy, lo, hi)
-                obs[i, 2 * count + 2 * k] = _unit(v[p, 0] * ix, lo, hi)
-                obs[i, 2 * count + 2 * k + 1] = _unit(v[p, 1] * iy, lo, hi)
-            obs[i, 4 * count] = _unit((goal[i] - cx) * ix, lo, hi)
+        for i in range(goal.shape[0]):
             for s in range(slots):
                 o = base + 7 * s
                 if s < placed[i]:

@@ -183,7 +183,8 @@ class ClothPin(ShapedTask, ParticleTask):
     def stiffness_action(self, ks: np.ndarray) -> np.ndarray:
         """The stiffness action in [-1, 1] for spring constants ``ks`` (N/m), clipped."""
         lo, hi = self.ks_range
-        return np.clip(2.0 * np.log(np.asarray(ks) / lo) / np.log(hi / lo) - 1.0, -1.0, 1.0)
+        action = 2.0 * np.log(np.asarray(ks) / lo) / np.log(hi / lo) - 1.0
+        return np.minimum(np.maximum(action, -1.0), 1.0)  # (np.clip's call overhead, without it)
 
     def _slots(self, envs: np.ndarray) -> np.ndarray:
         """Global spring-element indices (len(envs), max_springs) of copies ``envs``."""
@@ -410,13 +411,13 @@ class ClothPin(ShapedTask, ParticleTask):
         """The observed stiffness of springs ``ks`` (N/m): :meth:`stiffness_action` of ``ks``
         clipped into ``ks_range``."""
         lo, hi = self.ks_range
-        seen = 2.0 * np.log(np.minimum(np.maximum(ks, lo), hi) / lo) / math.log(hi / lo) - 1.0
-        return np.minimum(np.maximum(seen, -1.0), 1.0)  # (np.clip's overhead, without it)
+        return self.stiffness_action(np.minimum(np.maximum(ks, lo), hi))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
-        m, m["wall_force"] = self._measures(None, walls=True)
+        m, wall_force = self._measures(None, walls=True)
+        m["wall_force"] = wall_force
         v = self.velocities()[:, :self.cloth_n]
         m["speed"] = np.sqrt(np.einsum("ikd,ikd->i", v, v) * (1.0 / self.cloth_n))
         m["springs"] = self.placed.copy()
