@@ -50,13 +50,24 @@ from .fused_accel import (
     OK,
 )
 from .packing import (  # (the packing layer: its public names are this module's too)
-    _ELEMENT_TYPES,
     _F0,
     _NO_COUNTS,
     Packed,
     pack,
     spring_runs,  # noqa: F401
     supported,  # noqa: F401
+)
+from .records import (
+    CIRCLE,
+    LIVE_COMPONENTS,
+    LIVE_ELEMENTS,
+    LIVE_NEXT,
+    LIVE_PARTICLES,
+    LIVE_ROWS,
+    MOUSE,
+    Blocks,
+    Settings,
+    State,
 )
 from .solver import DIRECT_MAX
 
@@ -90,15 +101,16 @@ def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             state: tuple[Any, Any, Any, Any] | None = None
-            ) -> tuple[Packed, tuple[np.ndarray, ...], tuple] | None:
-    """The system's :class:`Packed` form, the state ``(x, v, mass, inv_mass)`` to step (read
-    from the system once, or the caller's ``state`` read once by it) and the arguments
-    :func:`fused_steps` takes after the state (``ks, kd, tol, divergence_limit,
-    residual_limit`` and the packed blocks), or None where the kernel cannot run: unsupported
-    blocks, an index out of range, a parameter array whose shape changed in place, or state
-    arrays (and the warm start ``lam``) not C-ordered float64 of the packed sizes. The
-    kernel's memory safety rests on these checks (O(1) per array: the arrays the kernel
-    indexes with were checked when the pack was built, and cannot change)."""
+            ) -> tuple[Packed, State, Settings, Blocks] | None:
+    """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose ``rows``,
+    ``work`` and ``live`` it also takes), the :class:`~.records.State` to step (``x, v, mass,
+    inv_mass`` read from the system once, or the caller's ``state`` read once by it, and the
+    warm start ``lam``), the :class:`~.records.Settings` (the system's, with
+    ``residual_limit``) and the blocks to step with; or None where the kernel cannot run:
+    unsupported blocks, an index out of range, a parameter array whose shape changed in place,
+    or state arrays (and ``lam``) not C-ordered float64 of the packed sizes. The kernel's
+    memory safety rests on these checks (O(1) per array: the arrays the kernel indexes with
+    were checked when the pack was built, and cannot change)."""
     p = pack(system)
     if not p.valid:  # unsupported blocks, or an index out of range
         return None
@@ -118,15 +130,15 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
             and mass.shape == inv_mass.shape == (p.n,)):
         return None
-    args = p.args
-    if len(p.mouse[2]):  # the kernel reads a copy of the mouse springs' ``active`` flags: the
-        # only index an in-place edit can switch on, checked once per call, may not change
-        # while the kernel runs (it releases the GIL, so another thread could edit the block)
-        particle, anchor, active, mks, mkd = p.mouse
-        args = (*args[:6], (particle, anchor, active.copy(), mks, mkd), *args[7:])
-    return p, (x, v, mass, inv_mass), (float(system.ks), float(system.kd), float(system.tol),
-                                       float(system.divergence_limit), float(residual_limit),
-                                       *args)
+    blocks = p.blocks
+    mouse = blocks.mouse
+    if len(mouse.active):  # the kernel reads a copy of the mouse springs' ``active`` flags:
+        # the only index an in-place edit can switch on, checked once per call, may not
+        # change while the kernel runs (it releases the GIL, so another thread could edit it)
+        blocks = blocks._replace(mouse=mouse._replace(active=mouse.active.copy()))
+    settings = Settings(float(system.ks), float(system.kd), float(system.tol),
+                        float(system.divergence_limit), float(residual_limit))
+    return p, State(x, v, mass, inv_mass, lam), settings, blocks
 
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
@@ -150,20 +162,20 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     ready = prepare(system, lam, residual_limit, state)
     if ready is None:
         return FALLBACK, None, None, 0
-    p, (x, v, mass, inv_mass), common = ready
+    p, start, settings, blocks = ready
     code, runge_kutta, rattle = integrator_args(method)
     h = float(dt)
-    x_out = np.empty_like(x)
-    v_out = np.empty_like(v)
+    x_out = np.empty_like(start.x)
+    v_out = np.empty_like(start.v)
     if pieces is None:
-        status, failed = fused_steps(code, runge_kutta, rattle, int(steps), h, _F0, _NO_COUNTS, x,
-                                     v, mass, inv_mass, lam, x_out, v_out, *common, None)
+        status, failed = fused_steps(code, runge_kutta, rattle, int(steps), h, _F0, _NO_COUNTS,
+                                     start, x_out, v_out, settings, blocks, p.rows, p.work, None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
     status, failed = fused_steps(code, runge_kutta, rattle, 0, h, h / pieces,
-                                 pieces * int(steps), x, v, mass, inv_mass, lam, x_out, v_out,
-                                 *common, p.ws_live)
+                                 pieces * int(steps), start, x_out, v_out, settings, blocks,
+                                 p.rows, p.work, p.live)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -174,6 +186,7 @@ if kernels.ENABLED:
         _borrowed,
         _check_inputs,
         _copy_flat,
+        _count,
         _distance_error,
         _euler_flat,
         _rattle,
@@ -192,30 +205,55 @@ if kernels.ENABLED:
         return k
 
     @njit
-    def _element_lists_fit(lists, grav, const, spring, ang, drag, wall, mouse, circ, rod, line,
-                           fixed):  # pragma: no cover - compiled
-        """True if each live-element list has room for every element of its type."""
-        return (lists[0].shape[0] >= grav[0].shape[0] and lists[1].shape[0] >= const[0].shape[0]
-                and lists[2].shape[0] >= spring[0].shape[0]
-                and lists[3].shape[0] >= ang[0].shape[0] and lists[4].shape[0] >= drag[0].shape[0]
-                and lists[5].shape[0] >= wall[0].shape[0]
-                and lists[6].shape[0] >= mouse[0].shape[0]
-                and lists[7].shape[0] >= circ[0].shape[0] and lists[8].shape[0] >= rod[0].shape[0]
-                and lists[9].shape[0] >= line[0].shape[0]
-                and lists[10].shape[0] >= fixed[0].shape[0])
+    def _live_fits(live, blocks, n, m, ncomp):  # pragma: no cover - compiled
+        """True if the live workspace has room for ``n`` particles, ``m`` rows, ``ncomp``
+        components and every element of each block type."""
+        types = len(blocks)
+        if not (live.mask.shape[0] == n and live.particles.shape[0] == n
+                and live.rows.shape[0] == m and live.components.shape[0] == ncomp
+                and live.sizes.shape[0] == LIVE_ELEMENTS + types + 1
+                and live.ptr.shape == (types, n + 1) and live.ranged.shape[0] == types
+                and live.comp_of.shape[0] == 2 * n and live.seen.shape[0] == ncomp):
+            return False
+        el = live.elements
+        return (el.gravity.shape[0] >= blocks.gravity.particles.shape[0]
+                and el.constant.shape[0] >= blocks.constant.particles.shape[0]
+                and el.spring.shape[0] >= blocks.spring.i.shape[0]
+                and el.angular.shape[0] >= blocks.angular.a.shape[0]
+                and el.drag.shape[0] >= blocks.drag.particles.shape[0]
+                and el.wall.shape[0] >= blocks.wall.particles.shape[0]
+                and el.mouse.shape[0] >= blocks.mouse.particle.shape[0]
+                and el.circle.shape[0] >= blocks.circle.particles.shape[0]
+                and el.rod.shape[0] >= blocks.rod.a.shape[0]
+                and el.line.shape[0] >= blocks.line.particles.shape[0]
+                and el.fixed.shape[0] >= blocks.fixed.particles.shape[0])
 
     @njit
-    def _gate(step, counts, cols, comp_rows, comp_ptr, firsts, mouse_active, live):
-        # pragma: no cover - compiled
+    def _work_fits(ws, n, m):  # pragma: no cover - compiled
+        """True if the workspace has the shapes of ``n`` particles and ``m`` rows."""
+        for a in (ws.spare_x, ws.spare_v, ws.a1, ws.a2, ws.a3, ws.a4, ws.xs, ws.vs, ws.vs2,
+                  ws.vs3, ws.x_mid, ws.v_mid):
+            if a.shape != (n, 2):
+                return False
+        for a in (ws.Jv, ws.Jdv, ws.J0):
+            if a.shape != (m, 4):
+                return False
+        for a in (ws.C, ws.Cdot, ws.b, ws.dl):
+            if a.shape[0] != m:
+                return False
+        return (ws.w2.shape[0] == 2 * n and ws.tmp.shape[0] == 2 * n
+                and ws.A.shape == (DIRECT_MAX, DIRECT_MAX) and ws.work.shape[0] == DIRECT_MAX)
+
+    @njit
+    def _gate(step, counts, rows, blocks, live):  # pragma: no cover - compiled
         """Which particles take step ``step`` (those with ``counts`` above it): the mask
-        ``live[0]`` and, when it changed, the lists of live particles, rows and components
-        (``live[1:4]``) and of the live elements of each block type (``live[5]``, in the order
-        of :data:`_ELEMENT_TYPES`; ``firsts`` holds each type's first-particle array), with
-        their lengths in ``live[4]``, whose last entry keeps the next step at which the mask
-        changes (until then nothing is scanned)."""
-        mask, plist, rlist, clist, sizes, elements, index = live
-        last = sizes.shape[0] - 1  # the next step at which the mask changes
-        if step > 0 and step < sizes[last]:
+        ``live.mask`` and, when it changed, the lists of live particles, rows, components
+        and elements of each block type, with their numbers in ``live.sizes``, whose last
+        entry (``LIVE_NEXT``) keeps the next step at which the mask changes (until then
+        nothing is scanned)."""
+        mask, plist, rlist, clist, sizes = (live.mask, live.particles, live.rows,
+                                            live.components, live.sizes)
+        if step > 0 and step < sizes[LIVE_NEXT]:
             return
         flips = 0
         for q in range(mask.shape[0]):  # (branch-free: the loop vectorizes)
@@ -227,21 +265,22 @@ if kernels.ENABLED:
             c = counts[q]
             if c > step and c < upcoming:
                 upcoming = c
-        sizes[last] = upcoming
+        sizes[LIVE_NEXT] = upcoming
         if step > 0 and flips == 0:
             return
         k = 0  # (branch-free, as in _firsts)
         for q in range(mask.shape[0]):
             plist[k] = q
             k += mask[q]
-        sizes[0] = k
+        sizes[LIVE_PARTICLES] = k
         # the live components (those of the live particles' coordinates: a component's
         # particles share a count), then their rows, in order within each component (so each
         # coordinate gets its rows' terms in row order, as on the path without a mask)
-        ptr, ranged, comp_of, seen = index
+        comp_of, seen = live.comp_of, live.seen
+        comp_rows, comp_ptr = rows.comp_rows, rows.comp_ptr
         ncomp = comp_ptr.shape[0] - 1
         k = 0
-        for i in range(sizes[0]):
+        for i in range(sizes[LIVE_PARTICLES]):
             q = plist[i]
             for col in range(2 * q, 2 * q + 2):
                 c = comp_of[col]
@@ -249,7 +288,7 @@ if kernels.ENABLED:
                     seen[c] = True
                     clist[k] = c
                     k += 1
-        sizes[2] = k
+        sizes[LIVE_COMPONENTS] = k
         j = 0
         for kk in range(k):
             c = clist[kk]
@@ -257,30 +296,39 @@ if kernels.ENABLED:
             for a in range(comp_ptr[c], min(comp_ptr[c + 1], comp_ptr[c] + rlist.shape[0] - j)):
                 rlist[j] = comp_rows[a]
                 j += 1
-        sizes[1] = j
-        live_n = sizes[0]
+        sizes[LIVE_ROWS] = j
+        live_n = sizes[LIVE_PARTICLES]
+        el = live.elements
+        firsts = (blocks.gravity.particles, blocks.constant.particles, blocks.spring.i,
+                  blocks.angular.a, blocks.drag.particles, blocks.wall.particles)
+        lists = (el.gravity, el.constant, el.spring, el.angular, el.drag, el.wall)
         for t in range(6):  # (a loop, not six calls with constants: one compiled version)
-            sizes[3 + t] = _live_elements(t, firsts[t], mask, plist, live_n, ptr, ranged,
-                                          elements[t])
+            sizes[LIVE_ELEMENTS + t] = _live_elements(t, firsts[t], mask, plist, live_n, live,
+                                                      lists[t])
         k = 0  # mouse springs: only active ones have a particle to ask about (a grab replaces
-        mi = firsts[6]  # the particle array, so they are always scanned)
-        for e in range(mi.shape[0]):
-            if mouse_active[e] and mask[mi[e]]:
-                elements[6][k] = e
+        mi, active = blocks.mouse.particle, blocks.mouse.active  # the particle array, so they
+        for e in range(mi.shape[0]):  # are always scanned)
+            if active[e] and mask[mi[e]]:
+                el.mouse[k] = e
                 k += 1
-        sizes[9] = k
-        for t in range(7, 11):
-            sizes[3 + t] = _live_elements(t, firsts[t], mask, plist, live_n, ptr, ranged,
-                                          elements[t])
+        sizes[LIVE_ELEMENTS + MOUSE] = k
+        firsts = (blocks.circle.particles, blocks.rod.a, blocks.line.particles,
+                  blocks.fixed.particles)
+        lists = (el.circle, el.rod, el.line, el.fixed)
+        for t in range(4):
+            sizes[LIVE_ELEMENTS + CIRCLE + t] = _live_elements(CIRCLE + t, firsts[t], mask,
+                                                               plist, live_n, live, lists[t])
 
     @njit
-    def _live_elements(t, idx, mask, plist, live_n, ptr, ranged, out):
+    def _live_elements(t, idx, mask, plist, live_n, live, out):
         # pragma: no cover - compiled
         """The live elements of block type ``t`` (first particles ``idx``) into ``out``, in
-        element order; their number. For a type ordered by first particle (``ranged[t]``),
-        the ranges ``ptr[t, q]:ptr[t, q + 1]`` of the ``live_n`` live particles in ``plist``
-        (clipped to ``out``'s length); otherwise a scan of every element (:func:`_firsts`)."""
-        if not ranged[t]:
+        element order; their number. For a type ordered by first particle
+        (``live.ranged[t]``), the ranges ``live.ptr[t, q]:live.ptr[t, q + 1]`` of the
+        ``live_n`` live particles in ``plist`` (clipped to ``out``'s length); otherwise a scan
+        of every element (:func:`_firsts`)."""
+        ptr = live.ptr
+        if not live.ranged[t]:
             return _firsts(idx, mask, out)
         top = min(idx.shape[0], out.shape[0])
         k = 0
@@ -293,33 +341,30 @@ if kernels.ENABLED:
         return k
 
     @njit
-    def _steps(method, runge_kutta, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass, lam,
-               x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
-               wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n, ws_J,
-               ws_r, ws_q, ws_A, live):  # pragma: no cover - compiled
-        """The step loop of :func:`fused_steps` (inputs checked, ``ws_q`` prepared by it):
-        ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
-        not empty; with ``live`` (the workspace of :func:`_gate`), particle q takes only
-        ``counts[q]`` of them. Reads ``x0, v0`` and writes ``x_out, v_out`` only.
+    def _steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out, settings,
+               blocks, rows, ws, live):  # pragma: no cover - compiled
+        """The step loop of :func:`fused_steps` (inputs checked, ``ws.w2`` and ``ws.tmp``
+        prepared by it): ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle
+        q if ``hp`` is not empty; with ``live`` (the workspace of :func:`_gate`), particle q
+        takes only ``counts[q]`` of them. Reads ``state.x, state.v`` and writes ``x_out,
+        v_out`` only.
 
         The integrator is RATTLE if ``rattle`` is not None, else the Runge-Kutta method
         ``method`` (1 midpoint, 2 rk4) if ``runge_kutta`` is not None, else ``method`` (0
-        euler, 3 symplectic_euler). Numba compiles a version per pattern of None and drops the other
-        branches from it, so a run compiles only the integrator families it steps with."""
+        euler, 3 symplectic_euler). Numba compiles a version per pattern of None and drops the
+        other branches from it, so a run compiles only the integrator families it steps
+        with."""
+        x0, v0 = state.x, state.v
         n = x0.shape[0]
-        m = lam.shape[0]
+        m = state.lam.shape[0]
         per_particle = hp.shape[0] > 0
-        w2, tmp = ws_q[0], ws_q[1]
-        Jv, Jdv, J0 = ws_J[0], ws_J[1], ws_J[2]
-        C, Cdot, b, dl = ws_r[0], ws_r[1], ws_r[2], ws_r[3]
-        work, A = ws_A[DIRECT_MAX], ws_A[:DIRECT_MAX]
-        a1, a2, a3, a4 = ws_n[2], ws_n[3], ws_n[4], ws_n[5]
-        vs2, vs3 = ws_n[8], ws_n[9]
+        a1, a2, a3, a4 = ws.a1, ws.a2, ws.a3, ws.a4
+        limit = settings.limit
         # the first step reads the caller's state, the last writes the caller's output: no
         # copies in or out, and x0, v0 are never written (the state before the call is kept)
         x, v = x0, v0
-        xs, vs = ws_n[6], ws_n[7]
-        spare_x, spare_v = ws_n[0], ws_n[1]
+        xs, vs = ws.xs, ws.vs
+        spare_x, spare_v = ws.spare_x, ws.spare_v
         if live is not None:  # a particle that waits is never read by the steps it sits out
             _copy_flat(x0, x_out)  # (its forces and rows are those of waiting particles only):
             _copy_flat(v0, v_out)  # it waits in the output, written when it stops stepping
@@ -327,31 +372,24 @@ if kernels.ENABLED:
             if step == steps - 1:
                 xs, vs = x_out, v_out
             if live is not None:
-                if step > 0 and step >= live[4][live[4].shape[0] - 1]:  # some stop here
-                    mask = live[0]
+                if step > 0 and step >= live.sizes[LIVE_NEXT]:  # some stop here
+                    mask = live.mask
                     for q in range(n):
                         if mask[q] and step >= counts[q]:
                             x_out[q, 0], x_out[q, 1] = x[q, 0], x[q, 1]
                             v_out[q, 0], v_out[q, 1] = v[q, 0], v[q, 1]
-                _gate(step, counts, cols, comp_rows, comp_ptr,
-                      (grav[0], const[0], spring[0], ang[0], drag[0], wall[0], mouse[0], circ[0],
-                       rod[0], line[0], fixed[0]), mouse[2], live)
+                _gate(step, counts, rows, blocks, live)
             if rattle is not None:
-                if not _rattle(x, v, xs, vs, a1, a2, h, mass, inv_mass, w2, grav, const, spring,
-                               ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz,
-                               comp_rows, comp_ptr, tol, C, Cdot, Jv, Jdv, J0, b, dl, work, A,
-                               tmp):
+                if not _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws):
                     return FALLBACK, step
             elif runge_kutta is None:  # euler / symplectic_euler
-                if not _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall,
-                              mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks,
-                              kd, tol, lam, a1, C, Cdot, Jv, Jdv, b, work, A, tmp, live):
+                if not _accel(x, v, a1, state, settings, blocks, rows, ws, live):
                     return FALLBACK, step
                 flat = live is None and not per_particle and n >= FLAT_MIN
                 if flat:
                     _euler_flat(method == 0, h, x, v, a1, xs, vs)
-                for i in range(0 if flat else n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
+                for i in range(0 if flat else _count(live, LIVE_PARTICLES, n)):
+                    q = i if live is None else live.particles[i]
                     hq = hp[q] if per_particle else h
                     for d in range(2):
                         if method == 0:
@@ -366,13 +404,13 @@ if kernels.ENABLED:
                 else:
                     tab_a, tab_w, tab_d = RK4_A, RK4_W, RK4_D
                 stages = tab_w.shape[0]
-                kv = (vs2, vs3, vs)  # the velocities of stages 1, 2, 3 (stage 0's is v)
+                kv = (ws.vs2, ws.vs3, vs)  # the velocities of stages 1, 2, 3 (stage 0's is v)
                 ka = (a1, a2, a3, a4)  # the accelerations of stages 0, 1, 2, 3
                 for stage in range(stages):
                     if stage > 0:  # its state: y + h sum_j A[stage, j] k_j (nonzero terms)
                         out_v = kv[stage - 1]
-                        for i in range(n if live is None else live[4][0]):
-                            q = i if live is None else live[1][i]
+                        for i in range(_count(live, LIVE_PARTICLES, n)):
+                            q = i if live is None else live.particles[i]
                             hq = hp[q] if per_particle else h
                             for d in range(2):
                                 px, pv = x[q, d], v[q, d]
@@ -386,14 +424,11 @@ if kernels.ENABLED:
                         sx, sv = xs, out_v
                     else:
                         sx, sv = x, v
-                    if not _accel(sx, sv, mass, inv_mass, w2, grav, const, spring, ang, drag,
-                                  wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
-                                  comp_ptr, ks, kd, tol, lam, ka[stage], C, Cdot, Jv, Jdv, b,
-                                  work, A, tmp, live):
+                    if not _accel(sx, sv, ka[stage], state, settings, blocks, rows, ws, live):
                         return FALLBACK, step
                 # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
-                for i in range(n if live is None else live[4][0]):
-                    q = i if live is None else live[1][i]
+                for i in range(_count(live, LIVE_PARTICLES, n)):
+                    q = i if live is None else live.particles[i]
                     scale = (hp[q] if per_particle else h) / tab_d
                     for d in range(2):
                         tx, tv, first = 0.0, 0.0, True
@@ -413,13 +448,13 @@ if kernels.ENABLED:
                 if _beyond_flat(xs, vs, limit):
                     return DIVERGED, step
             else:
-                for i in range(n if live is None else live[4][0]):  # (waiting particles are
-                    q = i if live is None else live[1][i]  # unchanged since they passed)
+                for i in range(_count(live, LIVE_PARTICLES, n)):  # (waiting particles are
+                    q = i if live is None else live.particles[i]  # unchanged since they passed)
                     for d in range(2):
                         if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                             return DIVERGED, step
-            if residual_limit < math.inf and m:
-                if not _distance_error(xs, circ, rod, line, fixed, live) <= residual_limit:
+            if settings.residual_limit < math.inf and m:
+                if not _distance_error(xs, blocks, live) <= settings.residual_limit:
                     return DIVERGED, step
             if step == 0:  # the new state becomes current; never reuse the caller's arrays
                 x, xs = xs, spare_x
@@ -434,47 +469,42 @@ if kernels.ENABLED:
 
 
     @njit(nogil=True)
-    def fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass, lam,
-                    x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const, spring, ang,
-                    drag, wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ws_n,
-                    ws_J, ws_r, ws_q, ws_A, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle q if ``hp`` is
-        not empty, with the integrator that ``method, runge_kutta, rattle`` give as
-        :func:`integrator_args` makes them. With ``live`` (the workspace of :func:`_gate`;
-        None: every particle takes every step), particle q takes ``counts[q]`` steps instead
-        (``steps`` is ignored): first the steps only some particles take (a particle with fewer
-        waits, and the elements, constraint rows and components of waiting particles are
-        skipped), then the steps every particle takes, without the mask. Each particle takes
-        its own steps in its own order, so each independent group of particles is stepped
-        exactly as it would be alone.
+    def fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
+                    settings, blocks, rows, ws, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds from ``state`` (:class:`~.records.State`; its
+        ``lam`` is the warm start, updated in place) into ``x_out, v_out``, or of ``hp[q]``
+        seconds for particle q if ``hp`` is not empty, with the integrator that ``method,
+        runge_kutta, rattle`` give as :func:`integrator_args` makes them, the system's
+        ``settings``, its packed ``blocks`` and constraint ``rows`` and the scratch space
+        ``ws`` (:mod:`.records`). With ``live`` (the workspace of :func:`_gate`; None: every
+        particle takes every step), particle q takes ``counts[q]`` steps instead (``steps``
+        is ignored): first the steps only some particles take (a particle with fewer waits,
+        and the elements, constraint rows and components of waiting particles are skipped),
+        then the steps every particle takes, without the mask. Each particle takes its own
+        steps in its own order, so each independent group of particles is stepped exactly as
+        it would be alone.
         Returns ``(status, steps done)``."""
-        n = x0.shape[0]
-        m = lam.shape[0]
+        n = state.x.shape[0]
+        m = state.lam.shape[0]
         per_particle = hp.shape[0] > 0
+        shape = state.x.shape
+        if (shape[1] != 2 or state.v.shape != shape or x_out.shape != shape
+                or v_out.shape != shape or state.mass.shape[0] != n
+                or state.inv_mass.shape[0] != n):
+            return FALLBACK, 0
         if per_particle and (rattle is not None or hp.shape[0] != n):
             return FALLBACK, 0
         if live is not None and (not per_particle or counts.shape[0] != n
-                                 or live[0].shape[0] != n or live[1].shape[0] != n
-                                 or live[2].shape[0] != m
-                                 or live[3].shape[0] != comp_ptr.shape[0] - 1
-                                 or live[4].shape[0] != 4 + len(_ELEMENT_TYPES)
-                                 or live[6][0].shape != (len(_ELEMENT_TYPES), n + 1)
-                                 or live[6][1].shape[0] != len(_ELEMENT_TYPES)
-                                 or live[6][2].shape[0] != 2 * n
-                                 or live[6][3].shape[0] != comp_ptr.shape[0] - 1
-                                 or not _element_lists_fit(live[5], grav, const, spring, ang,
-                                                           drag, wall, mouse, circ, rod, line,
-                                                           fixed)):
+                                 or not _live_fits(live, blocks, n, m,
+                                                   rows.comp_ptr.shape[0] - 1)):
             return FALLBACK, 0
         if live is None and counts.shape[0] != 0:
             return FALLBACK, 0
-        if not _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed,
-                             cols, nnz, n, m, lam, counts):
+        if not _check_inputs(blocks, rows, n, m, state.lam, counts):
             return FALLBACK, 0
-        if (ws_n.shape[0] < 12 or ws_n.shape[1] != n or ws_J.shape[1] != m or ws_r.shape[1] != m
-                or ws_q.shape[1] != 2 * n):
+        if not _work_fits(ws, n, m):
             return FALLBACK, 0
-        w2, tmp = ws_q[0], ws_q[1]
+        w2, tmp, inv_mass = ws.w2, ws.tmp, state.inv_mass
         for q in range(n):
             w2[2 * q] = inv_mass[q]
             w2[2 * q + 1] = inv_mass[q]
@@ -483,28 +513,25 @@ if kernels.ENABLED:
         # every array below lives in the caller for the whole call: no reference counting
         # (``live`` itself is never reassigned: Numba then drops the branch that a None
         # ``live`` rules out, so a run without pieces compiles no masked step)
-        hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, mask = _borrowed(
-            (hp, counts, x0, v0, mass, inv_mass, lam, x_out, v_out, ws_n, live))
-        args = _borrowed((ks, kd, tol, limit, residual_limit, grav, const, spring, ang, drag,
-                          wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr,
-                          ws_n, ws_J, ws_r, ws_q, ws_A))
+        hp, counts, state, x_out, v_out, blocks, rows, ws, mask = _borrowed(
+            (hp, counts, state, x_out, v_out, blocks, rows, ws, live))
         if live is None:
-            return _steps(method, runge_kutta, rattle, steps, h, hp, counts, x0, v0, mass, inv_mass,
-                          lam, x_out, v_out, *args, None)
+            return _steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
+                          settings, blocks, rows, ws, None)
         if n == 0:
             return OK, 0
         first, total = counts.min(), counts.max()
         if first == total:  # every particle takes every step
-            return _steps(method, runge_kutta, rattle, total, h, hp, counts, x0, v0, mass, inv_mass,
-                          lam, x_out, v_out, *args, None)
+            return _steps(method, runge_kutta, rattle, total, h, hp, counts, state, x_out, v_out,
+                          settings, blocks, rows, ws, None)
         # the steps only some particles take come first, while their data are likely still in
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
-        x_mid, v_mid = ws_n[10], ws_n[11]
-        status, done = _steps(method, runge_kutta, rattle, total - first, h, hp, counts - first, x0,
-                              v0, mass, inv_mass, lam, x_mid, v_mid, *args, mask)
+        status, done = _steps(method, runge_kutta, rattle, total - first, h, hp, counts - first,
+                              state, ws.x_mid, ws.v_mid, settings, blocks, rows, ws, mask)
         if status != OK:
             return status, done
-        status, more = _steps(method, runge_kutta, rattle, first, h, hp, counts, x_mid, v_mid, mass,
-                              inv_mass, lam, x_out, v_out, *args, None)
+        middle = State(ws.x_mid, ws.v_mid, state.mass, state.inv_mass, state.lam)
+        status, more = _steps(method, runge_kutta, rattle, first, h, hp, counts, middle, x_out,
+                              v_out, settings, blocks, rows, ws, None)
         return status, done + more

@@ -17,6 +17,23 @@ from typing import Any
 import numpy as np
 
 from . import kernels
+from .records import (
+    ANGULAR,
+    CIRCLE,
+    CONSTANT,
+    DRAG,
+    FIXED,
+    GRAVITY,
+    LINE,
+    LIVE_COMPONENTS,
+    LIVE_ELEMENTS,
+    LIVE_PARTICLES,
+    LIVE_ROWS,
+    MOUSE,
+    ROD,
+    SPRING,
+    WALL,
+)
 from .solver import DIRECT_MAX
 
 #: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
@@ -94,8 +111,7 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _check_inputs(grav, const, spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols,
-                      nnz, n, m, lam, counts):  # pragma: no cover - compiled
+    def _check_inputs(blocks, rows, n, m, lam, counts):  # pragma: no cover - compiled
         """False if the per-element arrays of a block disagree in length, if an active mouse
         spring's particle is outside [0, n), or (``counts`` not empty) if two particles
         coupled by a force element or a constraint row take different numbers of steps.
@@ -106,33 +122,45 @@ if kernels.ENABLED:
         array is read through an index. The mouse springs' ``active`` flags reach the kernel as
         a copy made by :func:`~.fused.prepare`: another thread cannot switch one on after this
         check."""
-        if (grav[1].shape[0] != grav[0].shape[0] or const[1].shape[0] != const[0].shape[0]
-                or wall[1].shape[0] != wall[0].shape[0] or wall[2].shape[0] != wall[3].shape[0]
-                or drag[1].shape[0] != drag[0].shape[0]):
+        grav, wall, drag = blocks.gravity, blocks.wall, blocks.drag
+        if (grav.block.shape[0] != grav.particles.shape[0]
+                or blocks.constant.force.shape[0] != blocks.constant.particles.shape[0]
+                or wall.block.shape[0] != wall.particles.shape[0]
+                or wall.normal.shape[0] != wall.params.shape[0]
+                or drag.kd.shape[0] != drag.particles.shape[0]):
             return False
-        k = spring[0].shape[0]
-        if (spring[1].shape[0] != k or spring[2].shape[0] != k or spring[3].shape[0] != k
-                or spring[4].shape[0] != k):
+        spring = blocks.spring
+        k = spring.i.shape[0]
+        if (spring.j.shape[0] != k or spring.rest.shape[0] != k or spring.ks.shape[0] != k
+                or spring.kd.shape[0] != k):
             return False
-        k = ang[0].shape[0]
-        if (ang[1].shape[0] != k or ang[2].shape[0] != k or ang[3].shape[0] != k
-                or ang[4].shape[0] != k or ang[5].shape[0] != k):
+        ang = blocks.angular
+        k = ang.a.shape[0]
+        if (ang.b.shape[0] != k or ang.c.shape[0] != k or ang.rest.shape[0] != k
+                or ang.k.shape[0] != k or ang.kd.shape[0] != k):
             return False
-        k = mouse[0].shape[0]
-        if (mouse[1].shape[0] != k or mouse[2].shape[0] != k or mouse[3].shape[0] != k
-                or mouse[4].shape[0] != k):
+        mouse = blocks.mouse
+        k = mouse.particle.shape[0]
+        if (mouse.anchor.shape[0] != k or mouse.active.shape[0] != k or mouse.ks.shape[0] != k
+                or mouse.kd.shape[0] != k):
             return False
-        if (circ[1].shape[0] != circ[0].shape[0] or circ[2].shape[0] != circ[0].shape[0]
-                or circ[3].shape[0] != circ[0].shape[0] or rod[1].shape[0] != rod[0].shape[0]
-                or rod[2].shape[0] != rod[0].shape[0] or rod[3].shape[0] != rod[0].shape[0]
-                or line[1].shape[0] != line[0].shape[0] or line[2].shape[0] != line[0].shape[0]
-                or line[3].shape[0] != line[0].shape[0]
-                or fixed[1].shape[0] != fixed[0].shape[0]
-                or fixed[2].shape[0] != fixed[0].shape[0]):
+        circ, rod, line, fixed = blocks.circle, blocks.rod, blocks.line, blocks.fixed
+        k = circ.particles.shape[0]
+        if circ.center.shape[0] != k or circ.radius.shape[0] != k or circ.row.shape[0] != k:
             return False
+        k = rod.a.shape[0]
+        if rod.b.shape[0] != k or rod.length.shape[0] != k or rod.row.shape[0] != k:
+            return False
+        k = line.particles.shape[0]
+        if line.normal.shape[0] != k or line.point.shape[0] != k or line.row.shape[0] != k:
+            return False
+        k = fixed.particles.shape[0]
+        if fixed.point.shape[0] != k or fixed.row.shape[0] != k:
+            return False
+        cols, nnz = rows.cols, rows.nnz
         if lam.shape[0] != m or cols.shape[0] != m or nnz.shape[0] != m:
             return False
-        mi, mact = mouse[0], mouse[2]
+        mi, mact = mouse.particle, mouse.active
         for e in range(mi.shape[0]):
             if mact[e] and (mi[e] < 0 or mi[e] >= n):
                 return False
@@ -140,8 +168,8 @@ if kernels.ENABLED:
             return True
         if counts.shape[0] != n:
             return False
-        if not (_same_count(counts, spring[0], spring[1]) and _same_count(counts, ang[0], ang[1])
-                and _same_count(counts, ang[1], ang[2])):
+        if not (_same_count(counts, spring.i, spring.j) and _same_count(counts, ang.a, ang.b)
+                and _same_count(counts, ang.b, ang.c)):
             return False
         for r in range(m):
             for k in range(1, nnz[r]):
@@ -150,11 +178,13 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _springs(x, v, F, si, sj, srest, sks, skd, runs):  # pragma: no cover - compiled
-        """Add the forces (N) of the springs ``(si, sj, srest, sks, skd)`` at ``(x, v)`` into
-        ``F``, in spring order: the ``runs`` (see :func:`spring_runs`, checked by
-        :func:`_check_inputs`) by :func:`_spring_run`, the springs between them by
+    def _springs(x, v, F, spring):  # pragma: no cover - compiled
+        """Add the forces (N) of the springs ``spring`` (:class:`~.records.SpringArrays`) at
+        ``(x, v)`` into ``F``, in spring order: the runs (see :func:`spring_runs`, checked when
+        packed) by :func:`_spring_run`, the springs between them by
         :func:`_scattered_springs`. Bitwise the plain loop's result either way."""
+        si, sj, srest, sks, skd, runs = (spring.i, spring.j, spring.rest, spring.ks, spring.kd,
+                                         spring.runs)
         k = si.shape[0]
         if runs.shape[0] == 0:
             _scattered_springs(x, v, F, si, sj, srest, sks, skd)
@@ -320,8 +350,14 @@ if kernels.ENABLED:
         return bad > 0
 
     @njit_inline
-    def _forces(x, v, mass, F, grav, const, spring, ang, drag, wall, mouse, live):
-        # pragma: no cover - compiled
+    def _count(live, kind, everything):  # pragma: no cover - compiled
+        """How many elements of block type ``kind`` (or, for ``LIVE_PARTICLES`` /
+        ``LIVE_ROWS`` / ``LIVE_COMPONENTS``, how many particles, rows, components) a loop
+        visits: ``everything`` without ``live``, else the live ones."""
+        return everything if live is None else live.sizes[kind]
+
+    @njit_inline
+    def _forces(x, v, mass, F, blocks, live):  # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
         all live), elements on particles that are not live are skipped, and so are those
@@ -329,153 +365,160 @@ if kernels.ENABLED:
         if live is None:
             F[:, :] = 0.0
         else:
-            for i in range(live[4][0]):
-                q = live[1][i]
+            for i in range(live.sizes[LIVE_PARTICLES]):
+                q = live.particles[i]
                 F[q, 0] = 0.0
                 F[q, 1] = 0.0
-        gi, gblock, gg = grav
-        for ee in range(gi.shape[0] if live is None else live[4][3]):
-            e = ee if live is None else live[5][0][ee]
-            q, k = np.uint64(gi[e]), np.uint64(gblock[e])  # (checked: no wraparound needed)
-            F[q, 0] += mass[q] * gg[k, 0]
-            F[q, 1] += mass[q] * gg[k, 1]
-        ci, cf = const
-        for ee in range(ci.shape[0] if live is None else live[4][4]):
-            e = ee if live is None else live[5][1][ee]
-            q = ci[e]
-            F[q, 0] += cf[e, 0]
-            F[q, 1] += cf[e, 1]
-        si, sj, srest, sks, skd, sruns = spring
+        grav = blocks.gravity
+        for ee in range(_count(live, LIVE_ELEMENTS + GRAVITY, grav.particles.shape[0])):
+            e = ee if live is None else live.elements.gravity[ee]
+            # (checked indices read as unsigned: no wraparound needed)
+            q, k = np.uint64(grav.particles[e]), np.uint64(grav.block[e])
+            F[q, 0] += mass[q] * grav.g[k, 0]
+            F[q, 1] += mass[q] * grav.g[k, 1]
+        const = blocks.constant
+        for ee in range(_count(live, LIVE_ELEMENTS + CONSTANT, const.particles.shape[0])):
+            e = ee if live is None else live.elements.constant[ee]
+            q = const.particles[e]
+            F[q, 0] += const.force[e, 0]
+            F[q, 1] += const.force[e, 1]
+        spring = blocks.spring
         if live is None:
-            _springs(x, v, F, si, sj, srest, sks, skd, sruns)
+            _springs(x, v, F, spring)
         else:
-            for ee in range(live[4][5]):
-                e = live[5][2][ee]
-                # (checked indices read as unsigned: no wraparound needed)
-                add_spring(x, v, F, np.uint64(si[e]), np.uint64(sj[e]), sks[e], skd[e],
-                           srest[e])
-        aa, ab, ac, arest, ak, akd = ang
-        for ee in range(aa.shape[0] if live is None else live[4][6]):
-            e = ee if live is None else live[5][3][ee]
-            a, b, c = aa[e], ab[e], ac[e]
+            for ee in range(live.sizes[LIVE_ELEMENTS + SPRING]):
+                e = live.elements.spring[ee]
+                add_spring(x, v, F, np.uint64(spring.i[e]), np.uint64(spring.j[e]),
+                           spring.ks[e], spring.kd[e], spring.rest[e])
+        ang = blocks.angular
+        for ee in range(_count(live, LIVE_ELEMENTS + ANGULAR, ang.a.shape[0])):
+            e = ee if live is None else live.elements.angular[ee]
+            a, b, c = ang.a[e], ang.b[e], ang.c[e]
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
-                v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ak[e], akd[e], arest[e])
+                v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ang.k[e], ang.kd[e],
+                ang.rest[e])
             F[a, 0] += fax
             F[a, 1] += fay
             F[b, 0] += fbx
             F[b, 1] += fby
             F[c, 0] += fcx
             F[c, 1] += fcy
-        di, dkd = drag
-        for ee in range(di.shape[0] if live is None else live[4][7]):
-            e = ee if live is None else live[5][4][ee]
-            q = di[e]
-            F[q, 0] -= dkd[e] * v[q, 0]
-            F[q, 1] -= dkd[e] * v[q, 1]
-        wi, wblock, wn, wpar = wall
-        for ee in range(wi.shape[0] if live is None else live[4][8]):
-            e = ee if live is None else live[5][5][ee]
-            q, k = wi[e], wblock[e]
+        drag = blocks.drag
+        for ee in range(_count(live, LIVE_ELEMENTS + DRAG, drag.particles.shape[0])):
+            e = ee if live is None else live.elements.drag[ee]
+            q = drag.particles[e]
+            F[q, 0] -= drag.kd[e] * v[q, 0]
+            F[q, 1] -= drag.kd[e] * v[q, 1]
+        wall = blocks.wall
+        wn, wpar = wall.normal, wall.params
+        for ee in range(_count(live, LIVE_ELEMENTS + WALL, wall.particles.shape[0])):
+            e = ee if live is None else live.elements.wall[ee]
+            q, k = wall.particles[e], wall.block[e]
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
             F[q, 1] += fy
-        mi, manchor, mact, mks, mkd = mouse
-        for ee in range(mi.shape[0] if live is None else live[4][9]):
-            e = ee if live is None else live[5][6][ee]
-            if mact[e]:
-                q = mi[e]
-                fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], manchor[e, 0],
-                                       manchor[e, 1], mks[e], mkd[e])
+        mouse = blocks.mouse
+        for ee in range(_count(live, LIVE_ELEMENTS + MOUSE, mouse.particle.shape[0])):
+            e = ee if live is None else live.elements.mouse[ee]
+            if mouse.active[e]:
+                q = mouse.particle[e]
+                fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], mouse.anchor[e, 0],
+                                       mouse.anchor[e, 1], mouse.ks[e], mouse.kd[e])
                 F[q, 0] += fx
                 F[q, 1] += fy
 
     @njit_inline
-    def _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live):
-        # pragma: no cover - compiled
+    def _rows(x, v, blocks, C, Cdot, Jv, Jdv, live):  # pragma: no cover - compiled
         """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
         that are not ``live`` are skipped; None: all live)."""
-        cp, cc, cr, crow = circ
-        for ee in range(cp.shape[0] if live is None else live[4][10]):
-            e = ee if live is None else live[5][7][ee]
-            q, r = cp[e], crow[e]
+        circ = blocks.circle
+        cc = circ.center
+        for ee in range(_count(live, LIVE_ELEMENTS + CIRCLE, circ.particles.shape[0])):
+            e = ee if live is None else live.elements.circle[ee]
+            q, r = circ.particles[e], circ.row[e]
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
-            C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], cr[e])
+            C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], circ.radius[e])
             Jv[r, 0], Jv[r, 1] = dx, dy
             Jdv[r, 0], Jdv[r, 1] = v[q, 0], v[q, 1]
-        ra, rb, rl, rrow = rod
-        for ee in range(ra.shape[0] if live is None else live[4][11]):
-            e = ee if live is None else live[5][8][ee]
-            a, b, r = ra[e], rb[e], rrow[e]
+        rod = blocks.rod
+        for ee in range(_count(live, LIVE_ELEMENTS + ROD, rod.a.shape[0])):
+            e = ee if live is None else live.elements.rod[ee]
+            a, b, r = rod.a[e], rod.b[e], rod.row[e]
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
-            C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rl[e])
+            C[r], Cdot[r] = rod_row(dx, dy, dvx, dvy, rod.length[e])
             Jv[r, 0], Jv[r, 1], Jv[r, 2], Jv[r, 3] = dx, dy, -dx, -dy
             Jdv[r, 0], Jdv[r, 1], Jdv[r, 2], Jdv[r, 3] = dvx, dvy, -dvx, -dvy
-        lp, ln, lpt, lrow = line
-        for ee in range(lp.shape[0] if live is None else live[4][12]):
-            e = ee if live is None else live[5][9][ee]
-            q, r = lp[e], lrow[e]
+        line = blocks.line
+        ln, lpt = line.normal, line.point
+        for ee in range(_count(live, LIVE_ELEMENTS + LINE, line.particles.shape[0])):
+            e = ee if live is None else live.elements.line[ee]
+            q, r = line.particles[e], line.row[e]
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
             Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
-        fp, fpt, frow = fixed
-        for ee in range(fp.shape[0] if live is None else live[4][13]):
-            e = ee if live is None else live[5][10][ee]
-            q, r = fp[e], frow[e]
+        fixed = blocks.fixed
+        for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
+            e = ee if live is None else live.elements.fixed[ee]
+            q, r = fixed.particles[e], fixed.row[e]
             for axis in range(2):
-                C[r + axis] = x[q, axis] - fpt[e, axis]
+                C[r + axis] = x[q, axis] - fixed.point[e, axis]
                 Cdot[r + axis] = v[q, axis]
                 Jv[r + axis, 0] = 1.0
                 Jdv[r + axis, 0] = 0.0
 
     @njit
-    def _distance_error(x, circ, rod, line, fixed, live):  # pragma: no cover - compiled
+    def _distance_error(x, blocks, live):  # pragma: no cover - compiled
         """Largest geometric constraint residual (m): how far any particle is off its wire,
         any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
         worst = 0.0
-        cp, cc, cr, _ = circ
-        for ee in range(cp.shape[0] if live is None else live[4][10]):
-            e = ee if live is None else live[5][7][ee]
-            q = cp[e]
-            d = length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], cr[e])
+        circ = blocks.circle
+        cc = circ.center
+        for ee in range(_count(live, LIVE_ELEMENTS + CIRCLE, circ.particles.shape[0])):
+            e = ee if live is None else live.elements.circle[ee]
+            q = circ.particles[e]
+            d = length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], circ.radius[e])
             if not d <= worst:
                 worst = d
-        ra, rb, rl, _ = rod
-        for ee in range(ra.shape[0] if live is None else live[4][11]):
-            e = ee if live is None else live[5][8][ee]
-            a, b = ra[e], rb[e]
-            d = length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rl[e])
+        rod = blocks.rod
+        for ee in range(_count(live, LIVE_ELEMENTS + ROD, rod.a.shape[0])):
+            e = ee if live is None else live.elements.rod[ee]
+            a, b = rod.a[e], rod.b[e]
+            d = length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rod.length[e])
             if not d <= worst:
                 worst = d
-        lp, ln, lpt, _ = line
-        for ee in range(lp.shape[0] if live is None else live[4][12]):
-            e = ee if live is None else live[5][9][ee]
-            q = lp[e]
+        line = blocks.line
+        ln, lpt = line.normal, line.point
+        for ee in range(_count(live, LIVE_ELEMENTS + LINE, line.particles.shape[0])):
+            e = ee if live is None else live.elements.line[ee]
+            q = line.particles[e]
             d = line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1], lpt[e, 0], lpt[e, 1])
             if not d <= worst:
                 worst = d
-        fp, fpt, _ = fixed
-        for ee in range(fp.shape[0] if live is None else live[4][13]):
-            e = ee if live is None else live[5][10][ee]
-            q = fp[e]
+        fixed = blocks.fixed
+        for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
+            e = ee if live is None else live.elements.fixed[ee]
+            q = fixed.particles[e]
             for axis in range(2):
-                d = abs(x[q, axis] - fpt[e, axis])
+                d = abs(x[q, axis] - fixed.point[e, axis])
                 if not d <= worst:
                     worst = d
         return worst
 
     @njit_inline
-    def _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work, A, tmp,
-                          live):  # pragma: no cover - compiled
-        """Solve ``J W J^T lam = b`` component by component (with ``live``, only those of
-        live particles: see :func:`_gate`); False if any solve is singular, ill-posed or does
-        not converge (the caller then uses the reference solver)."""
+    def _solve_components(rows, ws, b, lam, tol, live):  # pragma: no cover - compiled
+        """Solve ``J W J^T lam = b`` (``J`` the values ``ws.Jv`` on ``rows``) component by
+        component (with ``live``, only those of live particles: see :func:`_gate`); False if
+        any solve is singular, ill-posed or does not converge (the caller then uses the
+        reference solver)."""
+        cols, nnz, comp_rows, comp_ptr = rows.cols, rows.nnz, rows.comp_rows, rows.comp_ptr
+        w2, Jv, work, A, tmp = ws.w2, ws.Jv, ws.work, ws.A, ws.tmp
         ncomp = comp_ptr.shape[0] - 1
-        for kk in range(ncomp if live is None else live[4][2]):
-            k = kk if live is None else live[3][kk]
+        for kk in range(_count(live, LIVE_COMPONENTS, ncomp)):
+            k = kk if live is None else live.components[kk]
             start, stop = comp_ptr[k], comp_ptr[k + 1]
             s = stop - start
             if s <= DIRECT_MAX:
@@ -592,62 +635,70 @@ if kernels.ENABLED:
         return False
 
     @njit
-    def _accel(x, v, mass, inv_mass, w2, grav, const, spring, ang, drag, wall, mouse, circ,
-               rod, line, fixed, cols, nnz, comp_rows, comp_ptr, ks, kd, tol, lam, out,
-               C, Cdot, Jv, Jdv, b, work, A, tmp, live):  # pragma: no cover - compiled
-        """``qddot = W (Q + J^T lam)`` (m/s^2) into ``out`` (with ``live``, of the live
-        particles only: see :func:`_gate`); False if the solve failed."""
-        _forces(x, v, mass, out, grav, const, spring, ang, drag, wall, mouse, live)
+    def _accel(x, v, out, state, settings, blocks, rows, ws, live):
+        # pragma: no cover - compiled
+        """``qddot = W (Q + J^T lam)`` (m/s^2) at ``(x, v)`` into ``out`` (with ``live``, of
+        the live particles only: see :func:`_gate`), the multipliers into ``state.lam`` (warm
+        start in); False if the solve failed."""
+        mass, inv_mass, lam = state.mass, state.inv_mass, state.lam
+        _forces(x, v, mass, out, blocks, live)
+        C, Cdot, Jv, Jdv, b, w2 = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.b, ws.w2
+        cols, nnz = rows.cols, rows.nnz
         m = C.shape[0]
         if m:
-            _rows(x, v, circ, rod, line, fixed, C, Cdot, Jv, Jdv, live)
-            for rr in range(m if live is None else live[4][1]):  # b = -Jdot qdot - J W Q
-                r = rr if live is None else live[2][rr]             # - ks C - kd Cdot
+            _rows(x, v, blocks, C, Cdot, Jv, Jdv, live)
+            ks, kd = settings.ks, settings.kd
+            for rr in range(_count(live, LIVE_ROWS, m)):  # b = -Jdot qdot - J W Q
+                r = rr if live is None else live.rows[rr]  # - ks C - kd Cdot
                 acc = 0.0
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     q, axis = c // 2, c % 2
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
-            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, lam, tol, work,
-                                     A, tmp, live):
+            if not _solve_components(rows, ws, b, lam, settings.tol, live):
                 return False
-            for rr in range(m if live is None else live[4][1]):  # Q += J^T lam
-                r = rr if live is None else live[2][rr]
+            for rr in range(_count(live, LIVE_ROWS, m)):  # Q += J^T lam
+                r = rr if live is None else live.rows[rr]
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
         if live is None and x.shape[0] >= FLAT_MIN:
             _scale_flat(out, inv_mass)
             return True
-        for i in range(x.shape[0] if live is None else live[4][0]):
-            q = i if live is None else live[1][i]
+        for i in range(_count(live, LIVE_PARTICLES, x.shape[0])):
+            q = i if live is None else live.particles[i]
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True
 
     @njit
-    def _rattle(x, v, xs, vs, f0, f1, h, mass, inv_mass, w2, grav, const, spring, ang, drag,
-                wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows, comp_ptr, tol, C, Cdot,
-                Jv, Jdv, J0, b, dl, work, A, tmp):  # pragma: no cover - compiled
-        """One RATTLE step from (x, v) into (xs, vs), as :func:`constrained_particles.rattle.
-        rattle` does it; False where the reference must take over (it raises the errors)."""
+    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws):
+        # pragma: no cover - compiled
+        """One RATTLE step of ``h`` seconds from (x, v) into (xs, vs), as
+        :func:`constrained_particles.rattle.rattle` does it; False where the reference must
+        take over (it raises the errors)."""
+        mass, inv_mass, tol = state.mass, state.inv_mass, settings.tol
+        f0, f1 = ws.a1, ws.a2  # (stage buffers: RATTLE's force and predicted velocity)
+        C, Cdot, Jv, Jdv, J0, b, dl = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.J0, ws.b, ws.dl
+        w2, tmp = ws.w2, ws.tmp
+        cols, nnz, comp_rows, comp_ptr = rows.cols, rows.nnz, rows.comp_rows, rows.comp_ptr
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        _forces(x, v, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
+        _forces(x, v, mass, f0, blocks, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
-            _rows(x, v, circ, rod, line, fixed, C, Cdot, J0, Jdv, None)
+            _rows(x, v, blocks, C, Cdot, J0, Jdv, None)
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
             previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
-                _rows(xs, vs, circ, rod, line, fixed, C, Cdot, Jv, Jdv, None)
+                _rows(xs, vs, blocks, C, Cdot, Jv, Jdv, None)
                 remaining = 0
                 for k in range(ncomp):
                     worst = 0.0
@@ -681,8 +732,7 @@ if kernels.ENABLED:
                         r = comp_rows[i]
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
-                if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol,
-                                         work, A, tmp, None):
+                if not _solve_components(rows, ws, b, dl, tol, None):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -697,7 +747,7 @@ if kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        _forces(xs, f1, mass, f0, grav, const, spring, ang, drag, wall, mouse, None)
+        _forces(xs, f1, mass, f0, blocks, None)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
@@ -709,8 +759,7 @@ if kernels.ENABLED:
                     acc += Jv[r, k] * vs[c // 2, c % 2]
                 b[r] = acc
                 dl[r] = 0.0
-            if not _solve_components(cols, nnz, comp_rows, comp_ptr, w2, Jv, b, dl, tol, work,
-                                     A, tmp, None):
+            if not _solve_components(rows, ws, b, dl, tol, None):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):

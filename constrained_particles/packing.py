@@ -31,6 +31,25 @@ from . import kernels
 from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
 from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
 from .fused_accel import RUN_MIN
+from .records import (
+    LIVE_ELEMENTS,
+    AngularArrays,
+    Blocks,
+    CircleArrays,
+    ConstantArrays,
+    DragArrays,
+    Elements,
+    FixedArrays,
+    GravityArrays,
+    LineArrays,
+    Live,
+    MouseArrays,
+    RodArrays,
+    Rows,
+    SpringArrays,
+    WallArrays,
+    workspace,
+)
 from .solver import DIRECT_MAX, row_components
 from .terms import frozen, is_frozen
 
@@ -38,9 +57,8 @@ if TYPE_CHECKING:
     from .system import ParticleSystem
 
 
-#: The order of block types in the fused kernel's per-type element lists.
-_ELEMENT_TYPES = ("gravity", "constant", "spring", "angular", "drag", "wall", "mouse", "circle",
-                  "rod", "line", "fixed")
+#: The block types of :class:`~.records.Blocks`, in order.
+ELEMENT_TYPES = Blocks._fields
 _FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring)
 _CONSTRAINT_TYPES = (CircularWire, Rod, LineWire, HorizontalWire, FixedPoint)
 
@@ -183,22 +201,22 @@ class Packed:
         for k, g in enumerate(by_type.get(Gravity, [])):
             idx = idx_of(g, "particles")
             grav.append((idx, _ro(np.full(len(idx), k, np.int64)), f64(g, "g", 1).reshape(1, 2)))
-        self.grav = join(grav, (_I0, _I0, _F02))
-        self.const = join([(idx_of(c, "particles"), f64(c, "force", 2))
-                           for c in by_type.get(ConstantForce, [])], (_I0, _F02))
+        gravity = GravityArrays(*join(grav, (_I0, _I0, _F02)))
+        constant = ConstantArrays(*join([(idx_of(c, "particles"), f64(c, "force", 2))
+                                         for c in by_type.get(ConstantForce, [])], (_I0, _F02)))
         spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
                         f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
                       (_I0, _I0, _F0, _F0, _F0))
-        self.spring = (*spring, spring_runs(spring[0], spring[1]))
-        self.ang = join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"), f64(a, "rest", 1),
-                          f64(a, "k", 1), f64(a, "kd", 1))
-                         for a in by_type.get(AngularSpring, [])],
-                        (_I0, _I0, _I0, _F0, _F0, _F0))
+        springs = SpringArrays(*spring, spring_runs(spring[0], spring[1]))
+        angular = AngularArrays(*join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"),
+                                        f64(a, "rest", 1), f64(a, "k", 1), f64(a, "kd", 1))
+                                       for a in by_type.get(AngularSpring, [])],
+                                      (_I0, _I0, _I0, _F0, _F0, _F0)))
         drag = []
         for d in by_type.get(Drag, []):
             idx = idx_of(d, "particles")
             drag.append((idx, made(np.full(len(idx), scalar(d, "kd")))))
-        self.drag = join(drag, (_I0, _F0))
+        drags = DragArrays(*join(drag, (_I0, _F0)))
         wall = []
         for k, w in enumerate(by_type.get(Wall, [])):
             idx = idx_of(w, "particles")
@@ -206,7 +224,7 @@ class Packed:
                          f64(w, "normal", 1).reshape(1, 2),
                          made(np.array([[scalar(w, "offset"), scalar(w, "kw"),
                                          scalar(w, "cw")]]))))
-        self.wall = join(wall, (_I0, _I0, _F02, np.zeros((0, 3))), measured=True)
+        walls = WallArrays(*join(wall, (_I0, _I0, _F02, np.zeros((0, 3))), measured=True))
         mouse = []
         self._mouse_blocks = by_type.get(MouseSpring, [])
         for m in by_type.get(MouseSpring, []):
@@ -216,7 +234,7 @@ class Packed:
                 self.params.append((active, active.shape))
             mouse.append((idx_of(m, "particle"), f64(m, "anchor", 2), active, f64(m, "ks", 1),
                           f64(m, "kd", 1)))
-        self.mouse = join(mouse, (_I0, _F02, _B0, _F0, _F0))
+        mice = MouseArrays(*join(mouse, (_I0, _F02, _B0, _F0, _F0)))
 
         # constraints: per type, with the global row of each element (system block order)
         circ, rod, line, fixed = [], [], [], []
@@ -236,10 +254,13 @@ class Packed:
                 fixed.append((idx_of(c, "particles"), f64(c, "point", 2), rows))
             offset += c.n_rows
         self.m = offset
-        self.circ = join(circ, (_I0, _F02, _F0, _I0), measured=True)
-        self.rod = join(rod, (_I0, _I0, _F0, _I0), measured=True)
-        self.line = join(line, (_I0, _F02, _F02, _I0), measured=True)
-        self.fixed = join(fixed, (_I0, _F02, _I0), measured=True)
+        #: every block, as the kernels' named records (:class:`~.records.Blocks`)
+        self.blocks = Blocks(
+            gravity, constant, springs, angular, drags, walls, mice,
+            CircleArrays(*join(circ, (_I0, _F02, _F0, _I0), measured=True)),
+            RodArrays(*join(rod, (_I0, _I0, _F0, _I0), measured=True)),
+            LineArrays(*join(line, (_I0, _F02, _F02, _I0), measured=True)),
+            FixedArrays(*join(fixed, (_I0, _F02, _I0), measured=True)))
         if (previous is not None and previous.supported and previous.n == n
                 and previous.zero_copy and self.zero_copy
                 and len(previous.constraints) == len(self.constraints)
@@ -247,48 +268,39 @@ class Packed:
                                                strict=True))
                 and previous.constraint_versions == self.constraint_versions):
             # the same constraint blocks, unchanged: the same (immutable) rows and components
-            self.cols, self.nnz = previous.cols, previous.nnz
-            self.comp_rows, self.comp_ptr = previous.comp_rows, previous.comp_ptr
+            self.rows = previous.rows
             self.max_component, self.rows_valid = previous.max_component, previous.rows_valid
         else:
             self._build_rows(system)
         self.valid = self.rows_valid and self._consistent()
-        m = self.m
-        # scratch space reused by every call: state-sized stage arrays, per-row values,
-        # per-coordinate buffers, one dense component block
-        self.ws_n = np.zeros((12, n, 2))
-        self.ws_J = np.zeros((3, m, 4))
-        self.ws_r = np.zeros((5, m))
-        self.ws_q = np.zeros((2, 2 * n))
-        self.ws_A = np.zeros((DIRECT_MAX + 1, DIRECT_MAX))
-        self._ws_live: tuple | None = None  # (made on first use: see ws_live)
-        self.args = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
-                     self.mouse, self.circ, self.rod, self.line, self.fixed, self.cols, self.nnz,
-                     self.comp_rows, self.comp_ptr, self.ws_n, self.ws_J, self.ws_r, self.ws_q,
-                     self.ws_A)
+        #: scratch space reused by every call (:class:`~.records.Workspace`)
+        self.work = workspace(n, self.m, DIRECT_MAX)
+        self._live: Live | None = None  # (made on first use: see live)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
         m = self.m
+        blocks = self.blocks
         cols = np.full((m, 4), -1, np.int64)
-        for p, _, _, rows in [self.circ, self.line]:
+        for one in (blocks.circle, blocks.line):
+            p, rows = one.particles, one.row
             cols[rows, 0], cols[rows, 1] = 2 * p, 2 * p + 1
-        a, b, _, rows = self.rod
+        a, b, rows = blocks.rod.a, blocks.rod.b, blocks.rod.row
         cols[rows, 0], cols[rows, 1], cols[rows, 2], cols[rows, 3] = 2 * a, 2 * a + 1, 2 * b, \
             2 * b + 1
-        p, _, rows = self.fixed
+        p, rows = blocks.fixed.particles, blocks.fixed.row
         cols[rows, 0], cols[rows + 1, 0] = 2 * p, 2 * p + 1
         #: False if a constraint's particle index is out of range (the reference path then
         #: reports it)
         self.rows_valid = not (m and cols.max() >= 2 * self.n)
         if not self.rows_valid:
             cols = np.minimum(cols, 2 * self.n - 1)
-        self.cols = _ro(cols)
-        self.nnz = _ro((cols >= 0).sum(axis=1).astype(np.int64))
         r, k = np.nonzero(cols >= 0)
         comp_rows, comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
-        self.comp_rows, self.comp_ptr = _ro(comp_rows), _ro(comp_ptr)
-        sizes = np.diff(self.comp_ptr)
+        #: the constraint rows and their components (:class:`~.records.Rows`)
+        self.rows = Rows(_ro(cols), _ro((cols >= 0).sum(axis=1).astype(np.int64)),
+                         _ro(comp_rows), _ro(comp_ptr))
+        sizes = np.diff(self.rows.comp_ptr)
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
     def _consistent(self) -> bool:
@@ -297,6 +309,7 @@ class Packed:
         block numbers within their blocks, rows within [0, m), every row with 1 to 4 columns.
         (A mouse spring's particle is checked at every call, against its ``active`` flag.)"""
         n, m = self.n, self.m
+        blocks = self.blocks
 
         def inside(a: np.ndarray, top: int) -> bool:
             return len(a) == 0 or bool(a.min() >= 0 and a.max() < top)
@@ -304,60 +317,59 @@ class Packed:
         def aligned(arrays: tuple) -> bool:
             return all(len(a) == len(arrays[0]) for a in arrays)
 
-        gi, gblock, gg = self.grav
-        wi, wblock, wn, wpar = self.wall
-        si, sj, *_, runs = self.spring
-        return (aligned((gi, gblock)) and inside(gblock, len(gg)) and aligned((wi, wblock))
-                and aligned((wn, wpar)) and inside(wblock, len(wn)) and aligned(self.const)
-                and aligned(self.spring[:5]) and aligned(self.ang) and aligned(self.drag)
-                and aligned(self.mouse) and aligned(self.circ) and aligned(self.rod)
-                and aligned(self.line) and aligned(self.fixed)
+        grav, wall, spring = blocks.gravity, blocks.wall, blocks.spring
+        return (aligned((grav.particles, grav.block)) and inside(grav.block, len(grav.g))
+                and aligned((wall.particles, wall.block)) and aligned((wall.normal, wall.params))
+                and inside(wall.block, len(wall.normal)) and aligned(blocks.constant)
+                and aligned(spring[:-1]) and aligned(blocks.angular) and aligned(blocks.drag)
+                and aligned(blocks.mouse) and aligned(blocks.circle) and aligned(blocks.rod)
+                and aligned(blocks.line) and aligned(blocks.fixed)
                 and all(inside(idx, n) for idx in (
-                    gi, self.const[0], si, sj, *self.ang[:3], self.drag[0], wi, self.circ[0],
-                    *self.rod[:2], self.line[0], self.fixed[0]))
-                and all(inside(rows, m) for rows in (self.circ[3], self.rod[3], self.line[3]))
-                and inside(self.fixed[2], m - 1)
-                and bool(np.all((self.nnz >= 1) & (self.nnz <= 4)))
-                and np.array_equal(runs, spring_runs(si, sj)))
+                    grav.particles, blocks.constant.particles, spring.i, spring.j,
+                    blocks.angular.a, blocks.angular.b, blocks.angular.c,
+                    blocks.drag.particles, wall.particles, blocks.circle.particles,
+                    blocks.rod.a, blocks.rod.b, blocks.line.particles, blocks.fixed.particles))
+                and all(inside(rows, m) for rows in (blocks.circle.row, blocks.rod.row,
+                                                     blocks.line.row))
+                and inside(blocks.fixed.row, m - 1)
+                and bool(np.all((self.rows.nnz >= 1) & (self.rows.nnz <= 4)))
+                and np.array_equal(spring.runs, spring_runs(spring.i, spring.j)))
 
     @property
-    def ws_live(self) -> tuple:
-        """The workspace of per-particle step counts (made on first use, as only split steps
-        need it): the live mask, the live particle, row and component lists, their lengths,
-        the live element list of each block type and :meth:`_live_index`."""
-        if self._ws_live is None:
+    def live(self) -> Live:
+        """The workspace of per-particle step counts (:class:`~.records.Live`; made on first
+        use, as only split steps need it)."""
+        if self._live is None:
             n, m = self.n, self.m
-            blocks = (self.grav, self.const, self.spring, self.ang, self.drag, self.wall,
-                      self.mouse, self.circ, self.rod, self.line, self.fixed)
-            self._ws_live = (np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
-                             np.zeros(len(self.comp_ptr) - 1, np.int64),
-                             np.zeros(4 + len(_ELEMENT_TYPES), np.int64),
-                             tuple(np.zeros(len(b[0]), np.int64) for b in blocks),
-                             self._live_index(blocks))
-        return self._ws_live
+            ncomp = len(self.rows.comp_ptr) - 1
+            ptr, ranged, comp_of = self._live_index()
+            self._live = Live(np.ones(n, bool), np.zeros(n, np.int64), np.zeros(m, np.int64),
+                              np.zeros(ncomp, np.int64),
+                              np.zeros(LIVE_ELEMENTS + len(ELEMENT_TYPES) + 1, np.int64),
+                              Elements(*(np.zeros(len(b[0]), np.int64) for b in self.blocks)),
+                              ptr, ranged, comp_of, np.zeros(ncomp, bool))
+        return self._live
 
-    def _live_index(self, blocks: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                  np.ndarray]:
+    def _live_index(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What ``_gate`` needs to list the live rows, components and elements from the live
-        particles alone, instead of scanning every row and element: ``(ptr, ranged, comp_of,
-        seen)``. For a block type whose elements are ordered by their first particle
+        particles alone, instead of scanning every row and element: ``(ptr, ranged,
+        comp_of)``. For a block type whose elements are ordered by their first particle
         (``ranged[t]``), the elements of particle q are ``ptr[t, q]:ptr[t, q + 1]`` (so a list
         made particle by particle keeps the elements' order); other types are scanned.
-        ``comp_of[c]`` is the component of coordinate c (-1: none), ``seen`` a zeroed mark
-        per component."""
-        n = self.n
+        ``comp_of[c]`` is the component of coordinate c (-1: none)."""
+        n, blocks, rows = self.n, self.blocks, self.rows
         ranged = np.array([len(b[0]) == 0 or bool(np.all(np.diff(b[0]) >= 0)) for b in blocks])
         ptr = np.zeros((len(blocks), n + 1), np.int64)
         for t, b in enumerate(blocks):
             if ranged[t]:
                 ptr[t] = np.searchsorted(b[0], np.arange(n + 1))
-        ncomp = len(self.comp_ptr) - 1
+        ncomp = len(rows.comp_ptr) - 1
         row_comp = np.empty(self.m, np.int64)
-        row_comp[self.comp_rows] = np.repeat(np.arange(ncomp), np.diff(self.comp_ptr))
+        row_comp[rows.comp_rows] = np.repeat(np.arange(ncomp), np.diff(rows.comp_ptr))
         comp_of = np.full(2 * n, -1, np.int64)
-        used = self.cols >= 0
-        comp_of[self.cols[used]] = np.broadcast_to(row_comp[:, None], self.cols.shape)[used]
-        return (_ro(ptr), _ro(ranged), _ro(comp_of), np.zeros(len(self.comp_ptr) - 1, bool))
+        used = rows.cols >= 0
+        comp_of[rows.cols[used]] = np.broadcast_to(row_comp[:, None], rows.cols.shape)[used]
+        return _ro(ptr), _ro(ranged), _ro(comp_of)
 
     def refresh(self, measured_only: bool = False) -> None:
         """Copy the parameter arrays of types with several blocks into their joined arrays
@@ -390,15 +402,14 @@ class Packed:
         is all that changed in it; False if the pack must be rebuilt."""
         if len(self._mouse_blocks) != 1 or block is not self._mouse_blocks[0]:
             return False
-        particle, anchor, active, ks, kd = self.mouse
-        if not (block.anchor is anchor and block.active is active and block.ks is ks
-                and block.kd is kd):
+        mouse = self.blocks.mouse
+        if not (block.anchor is mouse.anchor and block.active is mouse.active
+                and block.ks is mouse.ks and block.kd is mouse.kd):
             return False
         new, same = _i64(block.particle)
-        if not (same and new.shape == particle.shape):
+        if not (same and new.shape == mouse.particle.shape):
             return False
-        self.mouse = (new, anchor, active, ks, kd)
-        self.args = (*self.args[:6], self.mouse, *self.args[7:])
+        self.blocks = self.blocks._replace(mouse=mouse._replace(particle=new))
         return True
 
     def shapes_hold(self) -> bool:

@@ -24,13 +24,110 @@ reproduces a single env bit for bit.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from constrained_particles import kernels
 
 ENABLED = kernels.ENABLED  #: True when the compiled bookkeeping is in use
+
+
+class Goal(NamedTuple):
+    """What the success test of a task's copies reads."""
+
+    n: int  #: particles per copy
+    goal: np.ndarray  #: (N,) float64, each copy's goal x (m)
+    track: np.ndarray  #: tracked particles (indices within a copy), whose mean x meets the goal
+    track_scale: float  #: 1 / len(track)
+    tolerance: float  #: goal tolerance (m)
+    rest_speed: float  #: rest speed (m/s)
+    hold_steps: int  #: consecutive settled steps for success
+
+
+class Rest(NamedTuple):
+    """The rest test's state (``ParticleTask.advance_rest``), updated in place."""
+
+    hold: np.ndarray  #: (N,) int64 consecutive settled steps
+    mean_v: np.ndarray  #: (N n, 2) each particle's moving average velocity (m/s)
+    alpha: float  #: the average's weight, 1 / rest_window
+
+
+class View(NamedTuple):
+    """How the observation normalizes: ``(x - c) / h`` and ``v / h``, clipped."""
+
+    cx: float  #: view centre (m)
+    cy: float
+    ix: float  #: 1 / half-width (1/m)
+    iy: float  #: 1 / half-height (1/m)
+    limit: float  #: clip bound
+
+
+class Crank(NamedTuple):
+    """SliderCrank's crank geometry and per-copy crank measures (outputs filled in place)."""
+
+    r: float  #: crank radius (m)
+    r2: float  #: r^2 (m^2)
+    rod2: float  #: rod length squared (m^2)
+    height: np.ndarray  #: (N,) out: the crank's y (m)
+    to_go: np.ndarray  #: (N,) out: arc length to the goal's crank angle (m)
+    below: np.ndarray  #: (N,) bool out: the crank is not above the slider's wire
+    seen: np.ndarray  #: (N,) the goals the angles in ``target`` were computed for (NaN: none)
+    target: np.ndarray  #: (N,) the goal's crank angle (rad)
+
+
+class Reward(NamedTuple):
+    """The shaped reward ``(before - Phi) scale - time_cost + bonus [success]``."""
+
+    before: np.ndarray  #: (N,) the potentials of the last step, updated in place
+    scale: float
+    time_cost: float
+    bonus: float
+    reward: np.ndarray  #: (N,) out
+
+
+class Episode(NamedTuple):
+    """The episode counters of a step every copy took (updated in place)."""
+
+    steps: np.ndarray  #: (N,) int64 steps taken
+    max_steps: int
+    terminated: np.ndarray  #: (N,) bool out
+    truncated: np.ndarray  #: (N,) bool out
+    ended: np.ndarray  #: (N,) bool out
+
+
+class Finish(NamedTuple):
+    """Everything :func:`crank_finish` writes after SliderCrank's physics step."""
+
+    crank: Crank
+    task: Goal
+    rest: Rest
+    every: np.ndarray  #: (N,) bool, all True: the copies that stepped
+    out: np.ndarray  #: (5, N) out: the rows of :func:`measures`
+    success: np.ndarray  #: (N,) bool out
+    frame: View  #: the observation's normalization
+    obs: np.ndarray  #: (N, 4 n + 1) float32 out
+    reward: Reward
+    episode: Episode
+
+
+class Push(NamedTuple):
+    """SliderCrank's force action and its step splitting (``kernels.group_pieces``)."""
+
+    raw: np.ndarray  #: (N, 1) the actions as given
+    action: np.ndarray  #: (N, 1) float64 out: clipped to [-1, 1]
+    max_force: float  #: N
+    force: np.ndarray  #: (N, 2) out: the actuator's force rows (N)
+    frow: np.ndarray  #: the actuator's row of each particle (-1: none)
+    horizon: float  #: the env step's duration (s)
+    travel: float  #: the largest travel per piece (m)
+    max_pieces: int
+    need: np.ndarray  #: (n,) scratch
+    rows: np.ndarray  #: (n,) int64 scratch: pieces per particle
+    hp: np.ndarray  #: (n,) scratch: each particle's piece (s)
+    counts: np.ndarray  #: (n,) int64 scratch: each particle's number of pieces
+    substeps: int  #: physics steps per env step
+    dt: float  #: physics step (s)
 
 
 def packed(system: Any) -> Any:
@@ -84,24 +181,24 @@ if ENABLED:
             residual[i] = d
 
     @njit(nogil=True)
-    def _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                  walls, rest, stepped, blocked, tolerance, rest_speed, hold_steps,
-                  out, success):  # pragma: no cover - compiled
+    def _measures(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success):
+        # pragma: no cover - compiled
         """Fill ``out`` (5, N) with distance (m), speed (m/s), kinetic energy (J), constraint
-        residual (m) and wall force (N) per copy, advance the rest test of the ``stepped``
-        copies and write ``success = hold >= hold_steps``.
+        residual (m) and wall force (N) per copy of ``task.n`` particles (the constraint and
+        wall blocks read from the packed ``blocks``), advance the rest test of the
+        ``stepped`` copies and write ``success = hold >= hold_steps``.
 
-        ``rest = (hold, mean_v, alpha)``: the counts of consecutive settled steps (N,), each
-        particle's moving average velocity (N n, 2) m/s and its weight ``alpha`` (1 /
-        ``rest_window``). A stepped copy's averages move ``alpha`` of the way to the
+        ``rest`` (:class:`Rest`): a stepped copy's averages move ``alpha`` of the way to the
         velocities (``mean_v + (v - mean_v) alpha``); it is settled, and its count advances
-        (else restarts at 0), if within ``tolerance`` of the goal with the RMS of the
-        averages below ``rest_speed``, not ``blocked`` and touching no wall.
+        (else restarts at 0), if within ``task.tolerance`` of the goal with the RMS of the
+        averages below ``task.rest_speed``, not ``blocked`` and touching no wall.
 
-        ``track`` holds the particles (within a copy) whose mean x, ``track_scale`` times their
-        sum, is driven to ``goal``. ``walls``: compute the walls' contact force and let a step
-        touching a wall restart the count; ``blocked`` copies restart it too.
+        ``task.track`` holds the particles (within a copy) whose mean x, ``track_scale``
+        times their sum, is driven to ``task.goal``. ``walls``: compute the walls' contact
+        force and let a step touching a wall restart the count; ``blocked`` copies restart it
+        too.
         """
+        n, goal, track, track_scale = task.n, task.goal, task.track, task.track_scale
         N = goal.shape[0]
         distance, speed, energy, residual, wall_force = out[0], out[1], out[2], out[3], out[4]
         for i in range(N):
@@ -119,26 +216,28 @@ if ENABLED:
             distance[i] = abs(t * track_scale - goal[i])
             residual[i] = 0.0
             wall_force[i] = 0.0
-        cp, cc, cr, _ = circ
-        for e in range(cp.shape[0]):
-            q = cp[e]
+        circ, rod, line, fixed = blocks.circle, blocks.rod, blocks.line, blocks.fixed
+        cc, cr = circ.center, circ.radius
+        for e in range(circ.particles.shape[0]):
+            q = circ.particles[e]
             _worse(residual, q // n, length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], cr[e]))
-        ra, rb, rl, _ = rod
-        for e in range(ra.shape[0]):
-            a, b = ra[e], rb[e]
-            _worse(residual, a // n, length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rl[e]))
-        lp, ln, lpt, _ = line
-        for e in range(lp.shape[0]):
-            q = lp[e]
+        for e in range(rod.a.shape[0]):
+            a, b = rod.a[e], rod.b[e]
+            _worse(residual, a // n, length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
+                                                  rod.length[e]))
+        ln, lpt = line.normal, line.point
+        for e in range(line.particles.shape[0]):
+            q = line.particles[e]
             _worse(residual, q // n, line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1],
                                                 lpt[e, 0], lpt[e, 1]))
-        fp, fpt, _ = fixed
-        for e in range(fp.shape[0]):
-            q = fp[e]
+        fpt = fixed.point
+        for e in range(fixed.particles.shape[0]):
+            q = fixed.particles[e]
             _worse(residual, q // n, abs(x[q, 0] - fpt[e, 0]))
             _worse(residual, q // n, abs(x[q, 1] - fpt[e, 1]))
         if walls:
-            wi, wk, wn, wp = wall
+            wall = blocks.wall
+            wi, wk, wn, wp = wall.particles, wall.block, wall.normal, wall.params
             fx = np.zeros(x.shape[0])
             touching = False
             for e in range(wi.shape[0]):
@@ -154,8 +253,8 @@ if ENABLED:
                     for k in range(i * n, (i + 1) * n):
                         f += abs(fx[k])
                     wall_force[i] = f
-        _advance_hold(v, n, n, distance, blocked, wall_force, rest, stepped, tolerance,
-                      rest_speed, hold_steps, success)
+        _advance_hold(v, n, n, distance, blocked, wall_force, rest, stepped, task.tolerance,
+                      task.rest_speed, task.hold_steps, success)
 
     @njit
     def _advance_hold(v, n, count, distance, blocked, wall_force, rest, stepped, tolerance,
@@ -167,7 +266,7 @@ if ENABLED:
         ``count`` particles below ``rest_speed`` (m/s), it is not ``blocked`` and its
         ``wall_force`` (N) is not positive. Writes ``success = hold >= hold_steps`` for every
         copy."""
-        hold, mean_v, alpha = rest
+        hold, mean_v, alpha = rest.hold, rest.mean_v, rest.alpha
         for i in range(distance.shape[0]):
             if stepped[i]:
                 d2 = 0.0
@@ -207,30 +306,32 @@ if ENABLED:
             obs[i, 4 * count] = _unit((goal[i] - cx) * ix, lo, hi)
 
     @njit(nogil=True)
-    def _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+    def _observe(x, v, n, goal, view, obs):  # pragma: no cover - compiled
         """Write ``obs`` (N, 4 n + 1) float32: ``(x - c) / h``, ``v / h``, the goal's
-        ``(goal - c_x) / h_x``, each computed in float64 (``ix, iy`` = 1 / h), rounded to
-        float32 and clipped to ``[-limit, limit]``."""
-        _observe_particles(x, v, n, n, goal, cx, cy, ix, iy, np.float32(-limit),
-                           np.float32(limit), obs)
+        ``(goal - c_x) / h_x``, each computed in float64 (``view``: ``ix, iy`` = 1 / h),
+        rounded to float32 and clipped to ``[-limit, limit]``."""
+        _observe_particles(x, v, n, n, goal, view.cx, view.cy, view.ix, view.iy,
+                           np.float32(-view.limit), np.float32(view.limit), obs)
 
     @njit(nogil=True)
-    def _pin_observe(x, v, n, count, goal, cx, cy, ix, iy, limit, slots, placed, si, sj,
-                     stiffness, rest, obs):  # pragma: no cover - compiled
+    def _pin_observe(x, v, n, count, goal, view, slots, placed, si, sj, stiffness, rest, obs):
+        # pragma: no cover - compiled
         """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
-        slots) float32: the first ``count`` particles' ``(x - c) / h`` and ``v / h`` of each
-        copy of ``n``, the goal's ``(goal - c_x) / h_x``, then per spring slot of the copy
-        (element ``i * slots + s`` of the spring arrays) ``(1, ends (x - c) / h, stiffness,
-        rest / h_x)`` if ``s < placed[i]``, else zeros; each value computed in float64 (``ix,
-        iy`` = 1 / h), rounded to float32 and clipped to ``[-limit, limit]``. ``stiffness``
-        holds each spring's observed stiffness (``ClothPin._stiffness_seen``). Returns False,
-        writing nothing, if a spring end is not a particle index."""
+        slots) float32 (``view``: :class:`View`): the first ``count`` particles' ``(x - c) /
+        h`` and ``v / h`` of each copy of ``n``, the goal's ``(goal - c_x) / h_x``, then per
+        spring slot of the copy (element ``i * slots + s`` of the spring arrays) ``(1, ends
+        (x - c) / h, stiffness, rest / h_x)`` if ``s < placed[i]``, else zeros; each value
+        computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and clipped to
+        ``[-limit, limit]``. ``stiffness`` holds each spring's observed stiffness
+        (``ClothPin._stiffness_seen``). Returns False, writing nothing, if a spring end is
+        not a particle index."""
         total = x.shape[0]
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
                 return False
-        hi = np.float32(limit)
-        lo = np.float32(-limit)
+        hi = np.float32(view.limit)
+        lo = np.float32(-view.limit)
+        cx, cy, ix, iy = view.cx, view.cy, view.ix, view.iy
         _observe_particles(x, v, n, count, goal, cx, cy, ix, iy, lo, hi, obs)
         base = 4 * count + 1
         for i in range(goal.shape[0]):
@@ -302,10 +403,10 @@ if ENABLED:
         return True
 
     @njit
-    def _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target):
-        # pragma: no cover - compiled
-        """SliderCrank's crank measures per copy (particle 0 of each copy is the crank, on a
-        circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is ``rod2``):
+    def _crank(x, n, goal, crank):  # pragma: no cover - compiled
+        """SliderCrank's crank measures per copy (:class:`Crank`: particle 0 of each copy is
+        the crank, on a circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is
+        ``rod2``):
         ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
         ``to_go`` the arc length (m) the short way round to the point above the wire that puts
         the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``, the
@@ -313,6 +414,9 @@ if ENABLED:
         ``exp(i d)``: the same to rounding). The goal's angle is kept in ``target`` and
         recomputed only where ``goal`` differs from ``seen`` (the goals it was computed for;
         NaN: never)."""
+        r, r2, rod2 = crank.r, crank.r2, crank.rod2
+        height, to_go, below, seen, target = (crank.height, crank.to_go, crank.below,
+                                              crank.seen, crank.target)
         for i in range(goal.shape[0]):
             px, py = x[i * n, 0], x[i * n, 1]
             g = goal[i]
@@ -355,52 +459,47 @@ if ENABLED:
             before[i] = phi[i]
 
     @njit(nogil=True)
-    def _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                          walls, rest, stepped, blocked, tolerance, rest_speed, hold_steps, out,
-                          success, cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+    def _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success,
+                          view, obs):  # pragma: no cover - compiled
         """:func:`_measures` then :func:`_observe` (one call from Python instead of two)."""
-        _measures(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall, walls,
-                  rest, stepped, blocked, tolerance, rest_speed, hold_steps, out, success)
-        _observe(x, v, n, goal, cx, cy, ix, iy, limit, obs)
+        _measures(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success)
+        _observe(x, v, task.n, task.goal, view, obs)
 
     @njit(nogil=True)
-    def _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
-                                goal, track, track_scale, circ, rod, line, fixed, wall, walls,
-                                rest, stepped, tolerance, rest_speed, hold_steps, out, success,
-                                cx, cy, ix, iy, limit, obs):  # pragma: no cover - compiled
+    def _crank_measures_observe(crank, x, v, mass, task, blocks, walls, rest, stepped, out,
+                                success, view, obs):  # pragma: no cover - compiled
         """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
         slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
         after a step in one call."""
-        _crank(x, n, goal, r, r2, rod2, height, to_go, below, seen, target)
-        _measures_observe(x, v, mass, n, goal, track, track_scale, circ, rod, line, fixed, wall,
-                          walls, rest, stepped, below, tolerance, rest_speed, hold_steps, out,
-                          success, cx, cy, ix, iy, limit, obs)
+        _crank(x, task.n, task.goal, crank)
+        _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, crank.below, out,
+                          success, view, obs)
 
     @njit(nogil=True)
-    def _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n, goal,
-                      track, track_scale, circ, rod, line, fixed, wall, rest, every, tolerance,
-                      rest_speed, hold_steps, out, success, cx, cy, ix, iy, limit, obs, before,
-                      scale, time_cost, bonus, reward, steps, max_steps, terminated, truncated,
-                      ended):  # pragma: no cover - compiled
-        """The end of a SliderCrank env step that ``every`` copy took: the measures and
-        observation (:func:`_crank_measures_observe`), the shaped reward
-        (:func:`_shaped_reward`, no penalties) of the potential ``Phi = crank_to_go + speed``
-        (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the episode counters:
-        ``steps`` advance, ``terminated = success``, ``truncated = steps >= max_steps``,
-        ``ended`` either. Returns how many copies ended."""
-        no_walls = ended.shape[0] < 0  # (False as a run-time bool: a constant False would
-        # compile the measures once more, for its own literal type)
-        _crank_measures_observe(r, r2, rod2, height, to_go, below, seen, target, x, v, mass, n,
-                                goal, track, track_scale, circ, rod, line, fixed, wall, no_walls,
-                                rest, every, tolerance, rest_speed, hold_steps, out, success,
-                                cx, cy, ix, iy, limit, obs)
-        phi = to_go + out[1]  # SliderCrank.potential
-        _shaped_reward(before, phi, success, phi[:0], scale, time_cost, bonus, reward)
+    def _crank_finish(x, v, mass, blocks, finish):  # pragma: no cover - compiled
+        """The end of a SliderCrank env step that every copy took (``finish``:
+        :class:`Finish`): the measures and observation (:func:`_crank_measures_observe`), the
+        shaped reward (:func:`_shaped_reward`, no penalties) of the potential ``Phi =
+        crank_to_go + speed`` (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the
+        episode counters: ``steps`` advance, ``terminated = success``, ``truncated = steps >=
+        max_steps``, ``ended`` either. Returns how many copies ended."""
+        episode, reward = finish.episode, finish.reward
+        no_walls = episode.ended.shape[0] < 0  # (False as a run-time bool: a constant False
+        # would compile the measures once more, for its own literal type)
+        _crank_measures_observe(finish.crank, x, v, mass, finish.task, blocks, no_walls,
+                                finish.rest, finish.every, finish.out, finish.success,
+                                finish.frame, finish.obs)
+        phi = finish.crank.to_go + finish.out[1]  # SliderCrank.potential
+        success = finish.success
+        _shaped_reward(reward.before, phi, success, phi[:0], reward.scale, reward.time_cost,
+                       reward.bonus, reward.reward)
         count = 0
-        for i in range(goal.shape[0]):
+        steps, terminated, truncated, ended = (episode.steps, episode.terminated,
+                                               episode.truncated, episode.ended)
+        for i in range(steps.shape[0]):
             steps[i] += 1
             terminated[i] = success[i]
-            truncated[i] = steps[i] >= max_steps
+            truncated[i] = steps[i] >= episode.max_steps
             ended[i] = terminated[i] or truncated[i]
             count += ended[i]
         return count
@@ -412,62 +511,51 @@ if ENABLED:
     from constrained_particles.kernels import group_pieces as _group_pieces
 
     @njit(nogil=True)
-    def _crank_step(raw, action, max_force, force, frow, horizon, travel, max_pieces, need, rows,
-                    hp, counts, code, runge_kutta, rattle, substeps, dt, x, v, mass, inv_mass, lam,
-                    lam_saved, x_out, v_out, ks, kd, tol, limit, residual_limit, grav, const,
-                    spring, ang, drag, wall, mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
-                    comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live, r, r2, rod2, height, to_go,
-                    below, seen, target, n, goal, track, track_scale, rest, every, tolerance,
-                    rest_speed, hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs, before,
-                    scale, time_cost, bonus, reward, steps, max_steps, terminated, truncated,
-                    ended):
-        # pragma: no cover - compiled
+    def _crank_step(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
+                    settings, blocks, rows, ws, live, finish):  # pragma: no cover - compiled
         """A SliderCrank env step with force actions in which every copy steps, as the
-        general path takes it, in one call: the ``raw`` actions checked (status
-        :data:`NONFINITE`, nothing written, if one is not finite) and clipped into ``action``;
-        the crank's push written into the actuator's ``force`` rows; each copy's step
-        splitting (``kernels.group_pieces`` through the row map ``frow``); ``substeps``
-        fused steps of ``dt`` from ``(x, v)`` into ``(x_out, v_out)`` (``fused.fused_steps``;
-        split copies take their pieces); then :func:`_crank_finish` on the new state.
-        Returns ``(status, copies ended)``; a status other than ``fused.OK`` leaves the
-        state and the warm start ``lam`` as they were (the caller takes the general path,
-        which writes the same actions and forces again)."""
-        N = goal.shape[0]
+        general path takes it, in one call: the ``push.raw`` actions checked (status
+        :data:`NONFINITE`, nothing written, if one is not finite) and clipped into
+        ``push.action``; the crank's push written into the actuator's ``push.force`` rows;
+        each copy's step splitting (``kernels.group_pieces`` through the row map
+        ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
+        ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
+        rattle``, ``settings``, ``blocks``, ``rows``, workspace ``ws`` and, for split copies,
+        ``live``); then :func:`_crank_finish` on the new state. Returns ``(status, copies
+        ended)``; a status other than ``fused.OK`` leaves the state and the warm start
+        ``state.lam`` as they were (``lam_saved`` holds it meanwhile; the caller takes the
+        general path, which writes the same actions and forces again)."""
+        x, v, inv_mass, lam = state.x, state.v, state.inv_mass, state.lam
+        n, N = finish.task.n, finish.task.goal.shape[0]
+        raw = push.raw
         flat = raw.reshape(-1)
         for k in range(flat.shape[0]):  # every entry checked before anything is written
             if not math.isfinite(np.float64(flat[k])):
                 return NONFINITE, 0
-        _clip_actions(raw, action)
-        _crank_push(x.reshape((N, n, 2)), action, max_force, force.reshape((N, 1, 2)))
-        largest = _group_pieces(v, force, frow, inv_mass, n, horizon, dt, travel, max_pieces,
-                                need, rows)
+        _clip_actions(raw, push.action)
+        _crank_push(x.reshape((N, n, 2)), push.action, push.max_force,
+                    push.force.reshape((N, 1, 2)))
+        rows_of = push.rows
+        largest = _group_pieces(v, push.force, push.frow, inv_mass, n, push.horizon, push.dt,
+                                push.travel, push.max_pieces, push.need, rows_of)
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
+        hp, counts, dt, substeps = push.hp, push.counts, push.dt, push.substeps
         if largest == 1:
-            status, _ = fused_steps(code, runge_kutta, rattle, substeps, dt, hp[:0], counts[:0], x,
-                                     v, mass, inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
-                                     residual_limit, grav, const, spring, ang, drag, wall,
-                                     mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
-                                     comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, None)
+            status, _ = fused_steps(method, runge_kutta, rattle, substeps, dt, hp[:0],
+                                     counts[:0], state, x_out, v_out, settings, blocks, rows,
+                                     ws, None)
         else:
-            for q in range(rows.shape[0]):
-                hp[q] = dt / rows[q]
-                counts[q] = rows[q] * substeps
-            status, _ = fused_steps(code, runge_kutta, rattle, substeps * 0, dt, hp, counts, x,
-                                     v, mass, inv_mass, lam, x_out, v_out, ks, kd, tol, limit,
-                                     residual_limit, grav, const, spring, ang, drag, wall,
-                                     mouse, circ, rod, line, fixed, cols, nnz, comp_rows,
-                                     comp_ptr, ws_n, ws_J, ws_r, ws_q, ws_A, live)
+            for q in range(rows_of.shape[0]):
+                hp[q] = dt / rows_of[q]
+                counts[q] = rows_of[q] * substeps
+            status, _ = fused_steps(method, runge_kutta, rattle, substeps * 0, dt, hp, counts,
+                                     state, x_out, v_out, settings, blocks, rows, ws, live)
         if status != _OK:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]
             return status, 0
-        return status, _crank_finish(r, r2, rod2, height, to_go, below, seen, target, x_out,
-                                     v_out, mass, n, goal, track, track_scale, circ, rod, line,
-                                     fixed, wall, rest, every, tolerance, rest_speed,
-                                     hold_steps, out, success, cx, cy, ix, iy, obs_limit, obs,
-                                     before, scale, time_cost, bonus, reward, steps, max_steps,
-                                     terminated, truncated, ended)
+        return status, _crank_finish(x_out, v_out, state.mass, blocks, finish)
 
     measures = _measures
     advance_hold = _advance_hold

@@ -201,7 +201,7 @@ class ParticleTask(SteppedCopies):
         self._no_copies = np.zeros(self.num_envs, bool)
         #: The ``stepped`` mask of a step every copy took (never written).
         self._every_copy = np.ones(self.num_envs, bool)
-        self._scale: tuple[float, float, float, float] | None = None
+        self._scale: _measure.View | None = None
         self._track: tuple[np.ndarray, float] | None = None
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
         self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (4 * n + 1,), np.float32)
@@ -498,8 +498,7 @@ class ParticleTask(SteppedCopies):
         obs = np.empty((N, 4 * n + 1), np.float32)
         state = self._compiled_state()
         if state is not None and _owned(self.goal, np.float64, (N,)):
-            _measure.observe(state[0], state[1], n, self.goal, *self._obs_scale(), OBS_LIMIT,
-                             obs)
+            _measure.observe(state[0], state[1], n, self.goal, self._view(), obs)
             return obs
         inv_half = 1.0 / self.half
         pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
@@ -510,12 +509,13 @@ class ParticleTask(SteppedCopies):
         np.clip(obs, -OBS_LIMIT, OBS_LIMIT, out=obs)
         return obs
 
-    def _obs_scale(self) -> tuple[float, float, float, float]:
-        """The view box's centre and inverse half-sizes (1/m) as the compiled observation
-        takes them."""
+    def _view(self) -> _measure.View:
+        """The view box's centre and inverse half-sizes (1/m), and the clip bound, as the
+        compiled observation takes them."""
         if self._scale is None:
-            self._scale = (float(self.center[0]), float(self.center[1]),
-                           float(1.0 / self.half[0]), float(1.0 / self.half[1]))
+            self._scale = _measure.View(float(self.center[0]), float(self.center[1]),
+                                        float(1.0 / self.half[0]), float(1.0 / self.half[1]),
+                                        float(OBS_LIMIT))
         return self._scale
 
     def measure_observe(self, stepped: np.ndarray | None = None
@@ -573,10 +573,11 @@ class ParticleTask(SteppedCopies):
             return x, v, mass
         return None
 
-    def _compiled_post(self) -> tuple[Any, tuple[np.ndarray, float], tuple] | None:
-        """``(pack, tracking, (x, v, mass))`` for the compiled measures, or None where the
-        numpy reference must run (compiled bookkeeping off, no tracked particles, blocks it
-        does not know, or arrays not of the shapes and types it reads)."""
+    def _compiled_post(self) -> tuple[Any, _measure.Goal, tuple] | None:
+        """``(pack, goal, (x, v, mass))`` for the compiled measures (``goal``: the success
+        test's :class:`envs._measure.Goal`), or None where the numpy reference must run
+        (compiled bookkeeping off, no tracked particles, blocks it does not know, or arrays
+        not of the shapes and types it reads)."""
         N = self.num_envs
         track = self._tracking() if _measure.ENABLED else None
         state = self._compiled_state()
@@ -586,7 +587,12 @@ class ParticleTask(SteppedCopies):
         p = _measure.packed(self.system)
         if p is None or p.n != self.num_envs * self.n:
             return None
-        return p, track, state
+        return p, self._goal_record(track), state
+
+    def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal:
+        """The success test as the compiled measures read it (``track``: :meth:`_tracking`)."""
+        return _measure.Goal(self.n, self.goal, track[0], track[1], float(self.goal_tolerance),
+                             float(self.rest_speed), int(self.hold_steps))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -649,17 +655,15 @@ class ParticleTask(SteppedCopies):
         s = self.system
         post = self._compiled_post()
         if post is not None:
-            p, track, (x, v, mass) = post
+            p, goal, (x, v, mass) = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            args = (x, v, mass, n, self.goal, track[0], track[1], p.circ, p.rod, p.line,
-                    p.fixed, p.wall, walls, self._rest(), self._mask(stepped),
-                    self._mask(blocked),
-                    self.goal_tolerance, self.rest_speed, self.hold_steps, out, success)
+            args = (x, v, mass, goal, p.blocks, walls, self._rest(), self._mask(stepped),
+                    self._mask(blocked), out, success)
             if obs is None:
                 _measure.measures(*args)
             else:
-                _measure.measures_observe(*args, *self._obs_scale(), OBS_LIMIT, obs)
+                _measure.measures_observe(*args, self._view(), obs)
             return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
@@ -690,9 +694,9 @@ class ParticleTask(SteppedCopies):
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}, wall_force
 
-    def _rest(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """The rest test's state as the compiled measures take it: ``(hold, mean_v, alpha)``."""
-        return self.hold, self.mean_v, self._alpha
+    def _rest(self) -> _measure.Rest:
+        """The rest test's state as the compiled measures take it."""
+        return _measure.Rest(self.hold, self.mean_v, self._alpha)
 
     def _rest_owned(self) -> bool:
         """True if the compiled measures may read and write the rest test's arrays."""

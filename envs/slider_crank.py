@@ -10,7 +10,7 @@ import numpy as np
 from constrained_particles import Drag, ParticleSystem, fused, scenes
 
 from . import _measure
-from .base import OBS_LIMIT, ParticleTask, _measured
+from .base import ParticleTask, _measured
 from .checks import _owned, away, check_goal_range, check_positive, scaled
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 from .single import ParticleEnv
@@ -163,8 +163,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         state = self._compiled_state()
         if state is not None and _owned(g, np.float64, (N,)):
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            _measure.crank(state[0], self.n, g, r, r**2, L**2, height, to_go, below,
-                           *self._goal_angles())
+            _measure.crank(state[0], self.n, g, self._crank_record(height, to_go, below))
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()
@@ -185,16 +184,32 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and type(self).observe is ParticleTask.observe else None)
         if post is None:
             return super().measure_observe(stepped)
-        p, track, (x, v, mass) = post
-        r = self.radius
+        p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
-            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
-            v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
-            p.wall, False, self._rest(), self._mask(stepped),
-            self.goal_tolerance, self.rest_speed, self.hold_steps, values[:5], flags[0],
-            *self._obs_scale(), OBS_LIMIT, obs)
+            self._crank_record(values[5], values[6], flags[1]), x, v, mass, goal, p.blocks,
+            False, self._rest(), self._mask(stepped), values[:5], flags[0], self._view(), obs)
         return m, obs
+
+    def _crank_record(self, height: np.ndarray, to_go: np.ndarray, below: np.ndarray
+                      ) -> _measure.Crank:
+        """The compiled crank measure's geometry, outputs and goal-angle cache."""
+        r = float(self.radius)
+        seen, target = self._goal_angles()
+        return _measure.Crank(r, r**2, float(self.rod)**2, height, to_go, below, seen, target)
+
+    def _finish_record(self, goal: _measure.Goal, values: np.ndarray, flags: np.ndarray,
+                       obs: np.ndarray, before: np.ndarray, steps: np.ndarray, max_steps: int
+                       ) -> _measure.Finish:
+        """What the compiled end of a step writes (see :func:`envs._measure.crank_finish`) into
+        :meth:`_crank_outputs`' blocks ``values``, ``flags`` and ``obs``."""
+        success, below, terminated, truncated, ended = flags
+        return _measure.Finish(
+            self._crank_record(values[5], values[6], below), goal, self._rest(),
+            self._every_copy, values[:5], success, self._view(), obs,
+            _measure.Reward(before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS,
+                            values[7]),
+            _measure.Episode(steps, int(max_steps), terminated, truncated, ended))
 
     def _crank_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Fresh outputs of the compiled crank bookkeeping, filled in place by the kernels: a
@@ -225,16 +240,11 @@ class SliderCrank(ShapedTask, ParticleTask):
         before = self._phi()
         if post is None or before.dtype != np.float64 or before.shape != (self.num_envs,):
             return None
-        p, track, (x, v, mass) = post
-        r = self.radius
+        p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            r, r**2, self.rod**2, values[5], values[6], flags[1], *self._goal_angles(), x,
-            v, mass, self.n, self.goal, track[0], track[1], p.circ, p.rod, p.line, p.fixed,
-            p.wall, self._rest(), self._every_copy, self.goal_tolerance, self.rest_speed,
-            self.hold_steps, values[:5], flags[0], *self._obs_scale(), OBS_LIMIT, obs, before,
-            float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, values[7], steps,
-            int(max_steps), flags[2], flags[3], flags[4])
+            x, v, mass, p.blocks, self._finish_record(goal, values, flags, obs, before, steps,
+                                                      max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
 
     def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
@@ -266,25 +276,21 @@ class SliderCrank(ShapedTask, ParticleTask):
         if (ready is None or track is None or before.dtype != np.float64
                 or before.shape != (N,) or ready[0].n != N * self.n):
             return None
-        p, (x, v, mass, inv_mass), common = ready
+        p, state, settings, blocks = ready
         need, rows, frow = self._pushed[1:]
         if self._scratch is None or self._scratch[2].shape != lam.shape:
             self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
-        x_out, v_out = np.empty_like(x), np.empty_like(v)
+        x_out, v_out = np.empty_like(state.x), np.empty_like(state.v)
         values, flags, obs, m = self._crank_outputs()
-        out, height, to_go, reward = values[:5], values[5], values[6], values[7]
-        success, below, terminated, truncated, ended = flags
-        r = self.radius
+        push = _measure.Push(actions, self.action, float(self.max_force), act.force, frow,
+                             float(self.substeps * self.dt), float(self.step_travel), MAX_PIECES,
+                             need, rows, *self._scratch[:2], int(self.substeps), float(self.dt))
+        finish = self._finish_record(self._goal_record(track), values, flags, obs, before, steps,
+                                     max_steps)
         status, count = _measure.crank_step(
-            actions, self.action, self.max_force, act.force, frow, self.substeps * self.dt,
-            self.step_travel, MAX_PIECES, need, rows, *self._scratch[:2],
-            *fused.integrator_args(self.integrator), self.substeps, self.dt, x, v, mass,
-            inv_mass, lam, self._scratch[2], x_out, v_out, *common, p.ws_live, r, r**2,
-            self.rod**2, height, to_go, below, *self._goal_angles(), self.n, self.goal,
-            track[0], track[1], self._rest(), self._every_copy, self.goal_tolerance,
-            self.rest_speed, self.hold_steps, out, success, *self._obs_scale(), OBS_LIMIT, obs,
-            before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS, reward, steps,
-            int(max_steps), terminated, truncated, ended)
+            push, *fused.integrator_args(self.integrator), state, self._scratch[2], x_out, v_out,
+            settings, blocks, p.rows, p.work, p.live, finish)
+        reward, terminated, truncated, ended = values[7], flags[2], flags[3], flags[4]
         if status == _measure.NONFINITE:
             raise ValueError(f"action must be finite, got {actions!r}")
         if status != fused.OK:

@@ -239,8 +239,9 @@ def test_index_arrays_cannot_be_reopened_for_writing() -> None:
     arrays = [getattr(b, name) for b in (*system.forces, *system.constraints)
               for name in b.index_fields if getattr(b, name) is not None]
     p = fused.pack(system)
-    arrays += [p.spring[0], p.spring[1], p.spring[5], p.cols, p.nnz, p.comp_rows, p.comp_ptr,
-               p.line[0], p.line[3], p.grav[0], p.grav[1]]
+    b = p.blocks
+    arrays += [b.spring.i, b.spring.j, b.spring.runs, *p.rows, b.line.particles, b.line.row,
+               b.gravity.particles, b.gravity.block]
     assert len(arrays) > 10
     for arr in arrays:
         assert is_frozen(arr)

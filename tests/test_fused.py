@@ -36,6 +36,7 @@ from constrained_particles import (
     scenes,
 )
 from constrained_particles.integrators import METHODS
+from constrained_particles.records import SpringArrays
 
 pytestmark = pytest.mark.skipif(not kernels.ENABLED, reason="compiled path disabled "
                                 "(CPARTICLES_NUMBA=0): nothing to compare")
@@ -183,14 +184,14 @@ def test_a_rewired_force_block_keeps_the_constraint_rows_and_steps_as_a_fresh_pa
     fresh = s.copy()
     fresh._packed = None
     new = fused.pack(s)
-    assert new is not old and new.comp_rows is old.comp_rows and new.cols is old.cols
+    assert new is not old and new.rows is old.rows
     s.step(1e-3, "rk4")
     fresh.step(1e-3, "rk4")
-    assert fused.pack(fresh).comp_rows is not old.comp_rows
+    assert fused.pack(fresh).rows is not old.rows
     np.testing.assert_array_equal(s.x, fresh.x)
     np.testing.assert_array_equal(s.v, fresh.v)
     s.constraints[0].radius = s.constraints[0].radius * 1.0  # a new array: new rows
-    assert fused.pack(s).comp_rows is not new.comp_rows
+    assert fused.pack(s).rows is not new.rows
 
 
 def test_out_of_range_index_never_reaches_compiled_code():
@@ -219,7 +220,7 @@ def test_out_of_range_index_never_reaches_compiled_code():
         t.forces[block].__dict__[name] = bad
         status, *_ = fused.run(t, 1e-3, "rk4", 1, t.constraint_solver.lam.copy(), np.inf)
         assert status == fused.OK  # (the pack's own checked copy)
-        assert fused.pack(t).spring[0].max() < t.n
+        assert fused.pack(t).blocks.spring.i.max() < t.n
         t._packed = None
         status, *_ = fused.run(t, 1e-3, "rk4", 1, t.constraint_solver.lam.copy(), np.inf)
         assert status == fused.FALLBACK, (block, name)
@@ -355,37 +356,35 @@ def test_live_lists_are_the_elements_rows_and_components_of_the_live_particles()
     s = every_block(3).tile(5)
     s.add(Drag(0.1))
     p = fused.pack(s)
-    live = p.ws_live
-    blocks = (p.grav, p.const, p.spring, p.ang, p.drag, p.wall, p.mouse, p.circ, p.rod, p.line,
-              p.fixed)
-    assert not live[6][1].all() and live[6][1].any()  # both kinds of types are in the scene
+    live = p.live
+    blocks, rows = p.blocks, p.rows
+    assert not live.ranged.all() and live.ranged.any()  # both kinds of types are in the scene
     rng = np.random.default_rng(0)
     for trial in range(6):
         counts = np.repeat(rng.integers(0, 3, 5), s.n // 5).astype(np.int64)
         step = int(trial % 2)
-        live[4][-1] = 0
-        fused._gate(step, counts, p.cols, p.comp_rows, p.comp_ptr, tuple(b[0] for b in blocks),
-                    p.mouse[2], live)
-        mask, plist, rlist, clist, sizes, elements, _ = live
+        live.sizes[-1] = 0
+        fused._gate(step, counts, rows, blocks, live)
+        sizes = live.sizes
         alive = counts > step
-        assert mask.tolist() == alive.tolist()
-        assert plist[:sizes[0]].tolist() == np.flatnonzero(alive).tolist()
+        assert live.mask.tolist() == alive.tolist()
+        assert live.particles[:sizes[0]].tolist() == np.flatnonzero(alive).tolist()
         for t, b in enumerate(blocks):
-            want = np.flatnonzero(alive[b[0]])
+            want = np.flatnonzero(alive[b[0]])  # (each record's first field: first particles)
             if t == 6:  # mouse springs: the active ones
-                want = want[p.mouse[2][want]]
-            assert elements[t][:sizes[3 + t]].tolist() == want.tolist(), t
-        rows = rlist[:sizes[1]]
-        assert sorted(rows.tolist()) == np.flatnonzero(alive[p.cols[:, 0] // 2]).tolist()
-        comps = clist[:sizes[2]]
-        firsts = p.cols[p.comp_rows[p.comp_ptr[:-1]], 0] // 2
+                want = want[blocks.mouse.active[want]]
+            assert live.elements[t][:sizes[3 + t]].tolist() == want.tolist(), t
+        live_rows = live.rows[:sizes[1]]
+        assert sorted(live_rows.tolist()) == np.flatnonzero(alive[rows.cols[:, 0] // 2]).tolist()
+        comps = live.components[:sizes[2]]
+        firsts = rows.cols[rows.comp_rows[rows.comp_ptr[:-1]], 0] // 2
         assert sorted(comps.tolist()) == np.flatnonzero(alive[firsts]).tolist()
         k = 0
         for c in comps:  # rows grouped by component, in row order within each
-            mine = p.comp_rows[p.comp_ptr[c]:p.comp_ptr[c + 1]]
-            assert rows[k:k + len(mine)].tolist() == sorted(mine.tolist())
+            mine = rows.comp_rows[rows.comp_ptr[c]:rows.comp_ptr[c + 1]]
+            assert live_rows[k:k + len(mine)].tolist() == sorted(mine.tolist())
             k += len(mine)
-        assert not live[6][3].any()  # the marks are cleared for the next call
+        assert not live.seen.any()  # the marks are cleared for the next call
 
 
 def test_per_copy_pieces_refuse_what_they_cannot_do():
@@ -423,7 +422,8 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     i[5] = j[5]  # zero length: no force
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     blocks = np.zeros((n, 2))
-    fused_accel._springs(x, v, blocks, i, j, rest, ks, kd, fused.spring_runs(i, j))
+    fused_accel._springs(x, v, blocks,
+                         SpringArrays(i, j, rest, ks, kd, fused.spring_runs(i, j)))
     plain = np.zeros((n, 2))
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert blocks.tobytes() == plain.tobytes()
@@ -463,7 +463,7 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     got, plain = rng.normal(size=(n, 2)), np.zeros((n, 2))
     plain[:] = got  # forces add to what F holds
-    fused_accel._springs(x, v, got, i, j, rest, ks, kd, runs)
+    fused_accel._springs(x, v, got, SpringArrays(i, j, rest, ks, kd, runs))
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert got.tobytes() == plain.tobytes()
 
@@ -474,14 +474,14 @@ def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
     hold make the pack invalid, and the pack's runs cannot be reopened for writing."""
     s = scenes.cloth(40, 3, wall_x=None)
     p = fused.pack(s)
-    si, sj, *rest, runs = p.spring
+    runs = p.blocks.spring.runs
     assert len(runs) > 0 and p._consistent()
     with pytest.raises(ValueError):
         runs.flags.writeable = True
     bad = np.array(runs)
     bad[0, 1] += 1  # one spring too many
     for wrong in (bad, np.ascontiguousarray(runs[:, :1])):  # (the second: no ends column)
-        p.spring = (si, sj, *rest, packing._ro(wrong))
+        p.blocks = p.blocks._replace(spring=p.blocks.spring._replace(runs=packing._ro(wrong)))
         assert not p._consistent()
 
 
@@ -493,7 +493,7 @@ def test_tiled_cloths_are_copy_exact_with_the_spring_blocks(method):
     single = scenes.cloth(nx=5, ny=4, push=0.3)
     n = single.n
     tiled = single.tile(8)
-    assert len(fused.pack(tiled).spring[0]) > 2 * fused_accel.SPRING_BLOCK
+    assert len(fused.pack(tiled).blocks.spring.i) > 2 * fused_accel.SPRING_BLOCK
     rng = np.random.default_rng(1)
     alone = []
     for c in range(8):

@@ -88,9 +88,8 @@ def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
 
 def _pin_args(task):
     sp = task.springs
-    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, *task._obs_scale(),
-            10.0, task.max_springs, task.placed, sp.i, sp.j, task._stiffness_seen(sp.ks),
-            sp.rest)
+    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, task._view(),
+            task.max_springs, task.placed, sp.i, sp.j, task._stiffness_seen(sp.ks), sp.rest)
 
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
@@ -116,7 +115,7 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
     task = env.unwrapped.task
     args = list(_pin_args(task))
     obs = np.full((2, task.single_observation_space.shape[0]), 7.0, np.float32)
-    for k, bad in ((12, -1), (13, len(task.system.x))):  # spring_i, spring_j
+    for k, bad in ((8, -1), (9, len(task.system.x))):  # spring_i, spring_j
         broken = list(args)
         broken[k] = args[k].copy()
         broken[k][-1] = bad

@@ -1,0 +1,250 @@
+"""The named records that the compiled step's kernels pass around (see :mod:`.packing`).
+
+Every array a kernel reads travels in a record of named fields: a block type's element arrays
+(:class:`SpringArrays`, ...), all of a system's blocks (:class:`Blocks`), the constraint rows
+and their components (:class:`Rows`), the state (:class:`State`), the solver settings
+(:class:`Settings`), the scratch space (:class:`Workspace`) and the live sets of a split step
+(:class:`Live`). They are named tuples: Numba passes them to compiled code as one argument
+each, typed once per layout, and a kernel reads ``blocks.spring.rest`` where it used to read
+``spring[2]``. A pack builds them once per topology (:class:`~.packing.Packed`), so a call
+hands over a few prebuilt records instead of some eighty arrays.
+
+Units are SI: positions in m, velocities in m/s, masses in kg, forces in N. Index arrays are
+int64 particle indices (global, into the system's state) and are immutable once packed.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+# ---------------------------------------------------------------------------------------------
+# force blocks, one record per type (several blocks of a type are joined into one)
+
+
+class GravityArrays(NamedTuple):
+    """Uniform gravity: particle ``particles[e]`` takes ``mass * g[block[e]]`` (N)."""
+
+    particles: np.ndarray  #: (k,) int64
+    block: np.ndarray  #: (k,) int64, the row of ``g`` (one per gravity block)
+    g: np.ndarray  #: (blocks, 2) m/s^2
+
+
+class ConstantArrays(NamedTuple):
+    """Applied forces: ``force[e]`` (N) on particle ``particles[e]``."""
+
+    particles: np.ndarray  #: (k,) int64
+    force: np.ndarray  #: (k, 2) N
+
+
+class SpringArrays(NamedTuple):
+    """Damped springs between ``i[e]`` and ``j[e]``, with the runs of consecutive ends."""
+
+    i: np.ndarray  #: (k,) int64
+    j: np.ndarray  #: (k,) int64
+    rest: np.ndarray  #: (k,) m
+    ks: np.ndarray  #: (k,) N/m
+    kd: np.ndarray  #: (k,) N s/m
+    runs: np.ndarray  #: (runs, 2) int64 spans [lo, hi) (see ``packing.spring_runs``)
+
+
+class AngularArrays(NamedTuple):
+    """Angular springs on the angle at ``b[e]`` between ``a[e]`` and ``c[e]``."""
+
+    a: np.ndarray  #: (k,) int64
+    b: np.ndarray  #: (k,) int64
+    c: np.ndarray  #: (k,) int64
+    rest: np.ndarray  #: (k,) rad
+    k: np.ndarray  #: (k,) N m/rad
+    kd: np.ndarray  #: (k,) N m s/rad
+
+
+class DragArrays(NamedTuple):
+    """Linear drag ``-kd[e] v`` (N) on particle ``particles[e]``."""
+
+    particles: np.ndarray  #: (k,) int64
+    kd: np.ndarray  #: (k,) N s/m
+
+
+class WallArrays(NamedTuple):
+    """Penalty walls: particle ``particles[e]`` against wall ``block[e]``."""
+
+    particles: np.ndarray  #: (k,) int64
+    block: np.ndarray  #: (k,) int64, the row of ``normal`` and ``params``
+    normal: np.ndarray  #: (walls, 2) unit normals
+    params: np.ndarray  #: (walls, 3): offset (m), stiffness kw (N/m), damping cw (N s/m)
+
+
+class MouseArrays(NamedTuple):
+    """Mouse springs: particle ``particle[e]`` pulled to ``anchor[e]`` while ``active[e]``."""
+
+    particle: np.ndarray  #: (k,) int64, checked at every call where active
+    anchor: np.ndarray  #: (k, 2) m
+    active: np.ndarray  #: (k,) bool
+    ks: np.ndarray  #: (k,) N/m
+    kd: np.ndarray  #: (k,) N s/m
+
+
+# ---------------------------------------------------------------------------------------------
+# constraint blocks: each element's first constraint row is ``row[e]`` (system block order)
+
+
+class CircleArrays(NamedTuple):
+    """Circular wires: ``|x_p - center| = radius``."""
+
+    particles: np.ndarray  #: (k,) int64
+    center: np.ndarray  #: (k, 2) m
+    radius: np.ndarray  #: (k,) m
+    row: np.ndarray  #: (k,) int64
+
+
+class RodArrays(NamedTuple):
+    """Rods: ``|x_a - x_b| = length``."""
+
+    a: np.ndarray  #: (k,) int64
+    b: np.ndarray  #: (k,) int64
+    length: np.ndarray  #: (k,) m
+    row: np.ndarray  #: (k,) int64
+
+
+class LineArrays(NamedTuple):
+    """Line wires: ``n . (x_p - point) = 0``."""
+
+    particles: np.ndarray  #: (k,) int64
+    normal: np.ndarray  #: (k, 2) unit normals
+    point: np.ndarray  #: (k, 2) m
+    row: np.ndarray  #: (k,) int64
+
+
+class FixedArrays(NamedTuple):
+    """Fixed points: ``x_p = point`` (two rows, ``row[e]`` and ``row[e] + 1``)."""
+
+    particles: np.ndarray  #: (k,) int64
+    point: np.ndarray  #: (k, 2) m
+    row: np.ndarray  #: (k,) int64
+
+
+class Blocks(NamedTuple):
+    """Every block of a packed system, by type (in the order of ``packing.ELEMENT_TYPES``)."""
+
+    gravity: GravityArrays
+    constant: ConstantArrays
+    spring: SpringArrays
+    angular: AngularArrays
+    drag: DragArrays
+    wall: WallArrays
+    mouse: MouseArrays
+    circle: CircleArrays
+    rod: RodArrays
+    line: LineArrays
+    fixed: FixedArrays
+
+
+class Rows(NamedTuple):
+    """The constraint rows' sparsity and their connected components (fixed per topology)."""
+
+    cols: np.ndarray  #: (m, 4) int64 coordinates (2 q + axis) of each row's nonzeros, -1 unused
+    nnz: np.ndarray  #: (m,) int64 nonzeros per row, 1 to 4
+    comp_rows: np.ndarray  #: (m,) int64 rows grouped by component
+    comp_ptr: np.ndarray  #: (components + 1,) int64: component c is comp_rows[ptr[c]:ptr[c+1]]
+
+
+class State(NamedTuple):
+    """The state a step starts from, with the solver's warm start."""
+
+    x: np.ndarray  #: (n, 2) m
+    v: np.ndarray  #: (n, 2) m/s
+    mass: np.ndarray  #: (n,) kg
+    inv_mass: np.ndarray  #: (n,) 1/kg (0 for a pinned particle)
+    lam: np.ndarray  #: (m,) Lagrange multipliers, updated in place
+
+
+class Settings(NamedTuple):
+    """The system's solver and safety settings."""
+
+    ks: float  #: constraint drift feedback on C (1/s^2)
+    kd: float  #: constraint drift feedback on Cdot (1/s)
+    tol: float  #: conjugate gradients' relative tolerance
+    limit: float  #: divergence limit on |x| (m) and |v| (m/s)
+    residual_limit: float  #: largest constraint residual (m) a step may leave (inf: none)
+
+
+class Workspace(NamedTuple):
+    """Scratch space reused by every call of one pack (sizes: n particles, m rows)."""
+
+    spare_x: np.ndarray  #: (n, 2) a state buffer the step loop swaps in
+    spare_v: np.ndarray  #: (n, 2)
+    a1: np.ndarray  #: (n, 2) m/s^2, the accelerations of stages 1 to 4
+    a2: np.ndarray  #: (n, 2)
+    a3: np.ndarray  #: (n, 2)
+    a4: np.ndarray  #: (n, 2)
+    xs: np.ndarray  #: (n, 2) the stage (and new) state
+    vs: np.ndarray  #: (n, 2)
+    vs2: np.ndarray  #: (n, 2) the velocities of Runge-Kutta stages 1 and 2
+    vs3: np.ndarray  #: (n, 2)
+    x_mid: np.ndarray  #: (n, 2) the state between the two passes of a split step
+    v_mid: np.ndarray  #: (n, 2)
+    Jv: np.ndarray  #: (m, 4) the values of J
+    Jdv: np.ndarray  #: (m, 4) the values of Jdot
+    J0: np.ndarray  #: (m, 4) J at the step's start (RATTLE)
+    C: np.ndarray  #: (m,) constraint values
+    Cdot: np.ndarray  #: (m,)
+    b: np.ndarray  #: (m,) right-hand side
+    dl: np.ndarray  #: (m,) multiplier corrections (RATTLE)
+    w2: np.ndarray  #: (2 n,) inverse mass per coordinate
+    tmp: np.ndarray  #: (2 n,) zeroed per-coordinate buffer
+    A: np.ndarray  #: (DIRECT_MAX, DIRECT_MAX) one dense component block
+    work: np.ndarray  #: (DIRECT_MAX,) its solve's vector
+
+
+def workspace(n: int, m: int, direct_max: int) -> Workspace:
+    """A zeroed :class:`Workspace` for ``n`` particles, ``m`` rows and dense component blocks
+    of up to ``direct_max`` rows."""
+    state = [np.zeros((n, 2)) for _ in range(12)]
+    rows = [np.zeros((m, 4)) for _ in range(3)]
+    per_row = [np.zeros(m) for _ in range(4)]
+    return Workspace(*state, *rows, *per_row, np.zeros(2 * n), np.zeros(2 * n),
+                     np.zeros((direct_max, direct_max)), np.zeros(direct_max))
+
+
+class Elements(NamedTuple):
+    """Per block type, the live elements of a split step (room for every element)."""
+
+    gravity: np.ndarray
+    constant: np.ndarray
+    spring: np.ndarray
+    angular: np.ndarray
+    drag: np.ndarray
+    wall: np.ndarray
+    mouse: np.ndarray
+    circle: np.ndarray
+    rod: np.ndarray
+    line: np.ndarray
+    fixed: np.ndarray
+
+
+#: Each block type's position in :class:`Blocks` and :class:`Elements`.
+GRAVITY, CONSTANT, SPRING, ANGULAR, DRAG, WALL, MOUSE, CIRCLE, ROD, LINE, FIXED = range(11)
+
+#: Entries of :attr:`Live.sizes`: the numbers of live particles, rows and components, then
+#: of live elements of each block type (from :data:`LIVE_ELEMENTS`, in the order of
+#: :class:`Elements`), and last (:data:`LIVE_NEXT`) the next step at which the mask changes.
+LIVE_PARTICLES, LIVE_ROWS, LIVE_COMPONENTS, LIVE_ELEMENTS = 0, 1, 2, 3
+LIVE_NEXT = -1
+
+
+class Live(NamedTuple):
+    """The workspace of a step in which particles take different numbers of steps: which
+    particles, rows, components and elements take the current one (``_gate`` fills it)."""
+
+    mask: np.ndarray  #: (n,) bool, live particles
+    particles: np.ndarray  #: (n,) int64, the live particles first
+    rows: np.ndarray  #: (m,) int64, the live rows first
+    components: np.ndarray  #: (components,) int64, the live components first
+    sizes: np.ndarray  #: (4 + block types,) int64, see LIVE_PARTICLES ... LIVE_NEXT
+    elements: Elements
+    ptr: np.ndarray  #: (types, n + 1) int64: type t's elements of particle q (if ranged[t])
+    ranged: np.ndarray  #: (types,) bool: elements ordered by first particle
+    comp_of: np.ndarray  #: (2 n,) int64 component of each coordinate (-1: none)
+    seen: np.ndarray  #: (components,) bool, zeroed marks
