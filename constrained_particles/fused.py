@@ -65,9 +65,13 @@ from .records import (
     LIVE_PARTICLES,
     LIVE_ROWS,
     MOUSE,
-    Blocks,
+    Rows,
     Settings,
     State,
+    Workspace,
+    blocks_record,
+    live_record,
+    plain,
 )
 from .solver import DIRECT_MAX
 
@@ -101,12 +105,13 @@ def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             state: tuple[Any, Any, Any, Any] | None = None
-            ) -> tuple[Packed, State, Settings, Blocks] | None:
-    """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose ``rows``,
-    ``work`` and ``live`` it also takes), the :class:`~.records.State` to step (``x, v, mass,
-    inv_mass`` read from the system once, or the caller's ``state`` read once by it, and the
-    warm start ``lam``), the :class:`~.records.Settings` (the system's, with
-    ``residual_limit``) and the blocks to step with; or None where the kernel cannot run:
+            ) -> tuple[Packed, State, Settings, tuple] | None:
+    """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose plain
+    ``rows``, ``work`` and ``live`` it also takes), the :class:`~.records.State` to step (``x,
+    v, mass, inv_mass`` read from the system once, or the caller's ``state`` read once by it,
+    and the warm start ``lam``), the :class:`~.records.Settings` (the system's, with
+    ``residual_limit``) and the blocks to step with, in :func:`~.records.plain` form; or None
+    where the kernel cannot run:
     unsupported blocks, an index out of range, a parameter array whose shape changed in place,
     or state arrays (and ``lam``) not C-ordered float64 of the packed sizes. The kernel's
     memory safety rests on these checks (O(1) per array: the arrays the kernel indexes with
@@ -130,12 +135,12 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
             and mass.shape == inv_mass.shape == (p.n,)):
         return None
-    blocks = p.blocks
-    mouse = blocks.mouse
+    blocks = p.plain_blocks
+    mouse = p.blocks.mouse
     if len(mouse.active):  # the kernel reads a copy of the mouse springs' ``active`` flags:
         # the only index an in-place edit can switch on, checked once per call, may not
         # change while the kernel runs (it releases the GIL, so another thread could edit it)
-        blocks = blocks._replace(mouse=mouse._replace(active=mouse.active.copy()))
+        blocks = plain(p.blocks._replace(mouse=mouse._replace(active=mouse.active.copy())))
     settings = Settings(float(system.ks), float(system.kd), float(system.tol),
                         float(system.divergence_limit), float(residual_limit))
     return p, State(x, v, mass, inv_mass, lam), settings, blocks
@@ -169,13 +174,15 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     v_out = np.empty_like(start.v)
     if pieces is None:
         status, failed = fused_steps(code, runge_kutta, rattle, int(steps), h, _F0, _NO_COUNTS,
-                                     start, x_out, v_out, settings, blocks, p.rows, p.work, None)
+                                     tuple(start), x_out, v_out, tuple(settings), blocks,
+                                     p.plain_rows, p.plain_work, None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
     status, failed = fused_steps(code, runge_kutta, rattle, 0, h, h / pieces,
-                                 pieces * int(steps), start, x_out, v_out, settings, blocks,
-                                 p.rows, p.work, p.live)
+                                 pieces * int(steps), tuple(start), x_out, v_out,
+                                 tuple(settings), blocks, p.plain_rows, p.plain_work,
+                                 p.plain_live)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -471,6 +478,24 @@ if kernels.ENABLED:
     @njit(nogil=True)
     def fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
                     settings, blocks, rows, ws, live):  # pragma: no cover - compiled
+        """:func:`_fused_steps`, entered with its records in :func:`~.records.plain` form (the
+        cheap form to pass from Python): ``State(*state)``, ``Settings(*settings)``,
+        ``blocks_record(blocks)``, ``Rows(*rows)``, ``Workspace(*ws)``,
+        ``live_record(live)``.
+
+        Every array here lives in the caller for the whole call, so the records are built
+        from borrowed arrays (:func:`~.fused_accel._borrowed`): passing and unpacking them
+        costs no reference counting. (The caller's plain tuples are borrowed, never a record
+        built here: a record is a temporary of this function.)"""
+        hp, counts, state, x_out, v_out, blocks, rows, ws, live = _borrowed(
+            (hp, counts, state, x_out, v_out, blocks, rows, ws, live))
+        return _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, State(*state),
+                            x_out, v_out, Settings(*settings), blocks_record(blocks),
+                            Rows(*rows), Workspace(*ws), live_record(live))
+
+    @njit
+    def _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
+                     settings, blocks, rows, ws, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds from ``state`` (:class:`~.records.State`; its
         ``lam`` is the warm start, updated in place) into ``x_out, v_out``, or of ``hp[q]``
         seconds for particle q if ``hp`` is not empty, with the integrator that ``method,
@@ -510,11 +535,8 @@ if kernels.ENABLED:
             w2[2 * q + 1] = inv_mass[q]
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
-        # every array below lives in the caller for the whole call: no reference counting
-        # (``live`` itself is never reassigned: Numba then drops the branch that a None
-        # ``live`` rules out, so a run without pieces compiles no masked step)
-        hp, counts, state, x_out, v_out, blocks, rows, ws, mask = _borrowed(
-            (hp, counts, state, x_out, v_out, blocks, rows, ws, live))
+        # (``live`` is never reassigned: Numba then drops the branch that a None ``live`` rules
+        # out, so a run without pieces compiles no masked step)
         if live is None:
             return _steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
                           settings, blocks, rows, ws, None)
@@ -528,7 +550,7 @@ if kernels.ENABLED:
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
         status, done = _steps(method, runge_kutta, rattle, total - first, h, hp, counts - first,
-                              state, ws.x_mid, ws.v_mid, settings, blocks, rows, ws, mask)
+                              state, ws.x_mid, ws.v_mid, settings, blocks, rows, ws, live)
         if status != OK:
             return status, done
         middle = State(ws.x_mid, ws.v_mid, state.mass, state.inv_mass, state.lam)

@@ -48,6 +48,7 @@ from .records import (
     Rows,
     SpringArrays,
     WallArrays,
+    plain,
     workspace,
 )
 from .solver import DIRECT_MAX, row_components
@@ -276,6 +277,10 @@ class Packed:
         #: scratch space reused by every call (:class:`~.records.Workspace`)
         self.work = workspace(n, self.m, DIRECT_MAX)
         self._live: Live | None = None  # (made on first use: see live)
+        self._plain_live: tuple | None = None
+        #: the blocks, rows and workspace as they cross into compiled code (:func:`plain`)
+        self.plain_blocks = plain(self.blocks)
+        self.plain_rows, self.plain_work = plain(self.rows), plain(self.work)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -348,7 +353,15 @@ class Packed:
                               np.zeros(LIVE_ELEMENTS + len(ELEMENT_TYPES) + 1, np.int64),
                               Elements(*(np.zeros(len(b[0]), np.int64) for b in self.blocks)),
                               ptr, ranged, comp_of, np.zeros(ncomp, bool))
+            self._plain_live = plain(self._live)
         return self._live
+
+    @property
+    def plain_live(self) -> tuple:
+        """:attr:`live` as it crosses into compiled code (:func:`~.records.plain`)."""
+        if self._plain_live is None:
+            self.live  # noqa: B018 (made with it)
+        return self._plain_live
 
     def _live_index(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What ``_gate`` needs to list the live rows, components and elements from the live
@@ -410,6 +423,7 @@ class Packed:
         if not (same and new.shape == mouse.particle.shape):
             return False
         self.blocks = self.blocks._replace(mouse=mouse._replace(particle=new))
+        self.plain_blocks = plain(self.blocks)
         return True
 
     def shapes_hold(self) -> bool:

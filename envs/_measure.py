@@ -173,6 +173,7 @@ NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 if ENABLED:
     from constrained_particles.jit import njit
     from constrained_particles.kernels import length_error, line_error, wall_element
+    from constrained_particles.records import State, blocks_record
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -521,11 +522,14 @@ if ENABLED:
         ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
         ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
         rattle``, ``settings``, ``blocks``, ``rows``, workspace ``ws`` and, for split copies,
-        ``live``); then :func:`_crank_finish` on the new state. Returns ``(status, copies
-        ended)``; a status other than ``fused.OK`` leaves the state and the warm start
-        ``state.lam`` as they were (``lam_saved`` holds it meanwhile; the caller takes the
-        general path, which writes the same actions and forces again)."""
-        x, v, inv_mass, lam = state.x, state.v, state.inv_mass, state.lam
+        ``live``, all in the plain form it takes); then :func:`_crank_finish` on the new
+        state. Returns ``(status, copies ended)``; a status other than ``fused.OK`` leaves
+        the state and the warm start ``state.lam`` as they were (``lam_saved`` holds it
+        meanwhile; the caller takes the general path, which writes the same actions and
+        forces again)."""
+        start = State(*state)  # (state, settings, blocks, rows, ws and live stay in the plain
+        # form in which fused_steps takes them)
+        x, v, inv_mass, lam = start.x, start.v, start.inv_mass, start.lam
         n, N = finish.task.n, finish.task.goal.shape[0]
         raw = push.raw
         flat = raw.reshape(-1)
@@ -555,18 +559,78 @@ if ENABLED:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]
             return status, 0
-        return status, _crank_finish(x_out, v_out, state.mass, blocks, finish)
+        return status, _crank_finish(x_out, v_out, start.mass, blocks_record(blocks), finish)
 
-    measures = _measures
-    advance_hold = _advance_hold
-    observe = _observe
-    pin_observe = _pin_observe
-    crank_step = _crank_step
-    crank_finish = _crank_finish
-    measures_observe = _measures_observe
-    crank_measures_observe = _crank_measures_observe
+    # The entry points from Python take their records in plain form
+    # (constrained_particles.records.plain: typed in C, about half the cost of a named tuple's
+    # typing per array) and rebuild them here.
+    @njit
+    def _finish_record(t):  # pragma: no cover - compiled
+        """The :class:`Finish` whose plain form is ``t``."""
+        crank, task, rest, every, out, success, frame, obs, reward, episode = t
+        return Finish(Crank(*crank), Goal(*task), Rest(*rest), every, out, success,
+                      View(*frame), obs, Reward(*reward), Episode(*episode))
+
+    @njit(nogil=True)
+    def _measures_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success):
+        # pragma: no cover - compiled
+        _measures(x, v, mass, Goal(*task), blocks_record(blocks), walls, Rest(*rest), stepped,
+                  blocked, out, success)
+
+    @njit(nogil=True)
+    def _advance_hold_entry(v, n, count, distance, blocked, wall_force, rest, stepped,
+                            tolerance, rest_speed, hold_steps, success):
+        # pragma: no cover - compiled
+        _advance_hold(v, n, count, distance, blocked, wall_force, Rest(*rest), stepped,
+                      tolerance, rest_speed, hold_steps, success)
+
+    @njit(nogil=True)
+    def _observe_entry(x, v, n, goal, view, obs):  # pragma: no cover - compiled
+        _observe(x, v, n, goal, View(*view), obs)
+
+    @njit(nogil=True)
+    def _pin_observe_entry(x, v, n, count, goal, view, slots, placed, si, sj, stiffness, rest,
+                           obs):  # pragma: no cover - compiled
+        return _pin_observe(x, v, n, count, goal, View(*view), slots, placed, si, sj, stiffness,
+                            rest, obs)
+
+    @njit(nogil=True)
+    def _crank_step_entry(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
+                          settings, blocks, rows, ws, live, finish):
+        # pragma: no cover - compiled
+        return _crank_step(Push(*push), method, runge_kutta, rattle, state, lam_saved, x_out,
+                           v_out, settings, blocks, rows, ws, live, _finish_record(finish))
+
+    @njit(nogil=True)
+    def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
+        return _crank_finish(x, v, mass, blocks_record(blocks), _finish_record(finish))
+
+    @njit(nogil=True)
+    def _measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out,
+                                success, view, obs):  # pragma: no cover - compiled
+        _measures_observe(x, v, mass, Goal(*task), blocks_record(blocks), walls, Rest(*rest),
+                          stepped, blocked, out, success, View(*view), obs)
+
+    @njit(nogil=True)
+    def _crank_measures_observe_entry(crank, x, v, mass, task, blocks, walls, rest, stepped,
+                                      out, success, view, obs):  # pragma: no cover - compiled
+        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), blocks_record(blocks),
+                                walls, Rest(*rest), stepped, out, success, View(*view), obs)
+
+    @njit(nogil=True)
+    def _crank_entry(x, n, goal, crank):  # pragma: no cover - compiled
+        _crank(x, n, goal, Crank(*crank))
+
+    measures = _measures_entry
+    advance_hold = _advance_hold_entry
+    observe = _observe_entry
+    pin_observe = _pin_observe_entry
+    crank_step = _crank_step_entry
+    crank_finish = _crank_finish_entry
+    measures_observe = _measures_observe_entry
+    crank_measures_observe = _crank_measures_observe_entry
     grab = _grab
     clip_actions = _clip_actions
-    crank = _crank
+    crank = _crank_entry
     crank_push = _crank_push
     shaped_reward = _shaped_reward

@@ -498,7 +498,7 @@ class ParticleTask(SteppedCopies):
         obs = np.empty((N, 4 * n + 1), np.float32)
         state = self._compiled_state()
         if state is not None and _owned(self.goal, np.float64, (N,)):
-            _measure.observe(state[0], state[1], n, self.goal, self._view(), obs)
+            _measure.observe(state[0], state[1], n, self.goal, tuple(self._view()), obs)
             return obs
         inv_half = 1.0 / self.half
         pos = obs[:, :2 * n].reshape(N, n, 2)  # views: only the last axis is split
@@ -658,12 +658,12 @@ class ParticleTask(SteppedCopies):
             p, goal, (x, v, mass) = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            args = (x, v, mass, goal, p.blocks, walls, self._rest(), self._mask(stepped),
-                    self._mask(blocked), out, success)
+            args = (x, v, mass, tuple(goal), p.plain_blocks, walls, tuple(self._rest()),
+                    self._mask(stepped), self._mask(blocked), out, success)
             if obs is None:
                 _measure.measures(*args)
             else:
-                _measure.measures_observe(*args, self._view(), obs)
+                _measure.measures_observe(*args, tuple(self._view()), obs)
             return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)

@@ -45,7 +45,7 @@ def track_success(task: ParticleTask, m: dict[str, np.ndarray], stepped: np.ndar
             # the same rule in one compiled pass (envs._measure.advance_hold)
             m["is_success"] = success = np.empty(N, bool)
             _measure.advance_hold(state[1], task.n, task.n if count is None else count,
-                                  distance, task._mask(None), np.zeros(N), task._rest(),
+                                  distance, task._mask(None), np.zeros(N), tuple(task._rest()),
                                   task._mask(stepped), task.goal_tolerance, task.rest_speed,
                                   task.hold_steps, success)
             return m

@@ -380,7 +380,8 @@ class ClothPin(ShapedTask, ParticleTask):
                 and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
                 and _owned(rest, np.float64, (N * B,))):
             obs = np.empty((N, 4 * nc + 1 + SLOT_SIZE * B), np.float32)
-            if _measure.pin_observe(state[0], state[1], n, nc, goal, self._view(), B, placed,
+            if _measure.pin_observe(state[0], state[1], n, nc, goal, tuple(self._view()), B,
+                                    placed,
                                     si, sj, self._stiffness_seen(ks), rest, obs):
                 return obs
         return self.observe_reference()

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from constrained_particles import Drag, ParticleSystem, fused, scenes
+from constrained_particles.records import plain
 
 from . import _measure
 from .base import ParticleTask, _measured
@@ -163,7 +164,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         state = self._compiled_state()
         if state is not None and _owned(g, np.float64, (N,)):
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            _measure.crank(state[0], self.n, g, self._crank_record(height, to_go, below))
+            _measure.crank(state[0], self.n, g, tuple(self._crank_record(height, to_go, below)))
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()
@@ -187,8 +188,9 @@ class SliderCrank(ShapedTask, ParticleTask):
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
-            self._crank_record(values[5], values[6], flags[1]), x, v, mass, goal, p.blocks,
-            False, self._rest(), self._mask(stepped), values[:5], flags[0], self._view(), obs)
+            tuple(self._crank_record(values[5], values[6], flags[1])), x, v, mass, tuple(goal),
+            p.plain_blocks, False, tuple(self._rest()), self._mask(stepped), values[:5],
+            flags[0], tuple(self._view()), obs)
         return m, obs
 
     def _crank_record(self, height: np.ndarray, to_go: np.ndarray, below: np.ndarray
@@ -200,16 +202,17 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def _finish_record(self, goal: _measure.Goal, values: np.ndarray, flags: np.ndarray,
                        obs: np.ndarray, before: np.ndarray, steps: np.ndarray, max_steps: int
-                       ) -> _measure.Finish:
+                       ) -> tuple:
         """What the compiled end of a step writes (see :func:`envs._measure.crank_finish`) into
-        :meth:`_crank_outputs`' blocks ``values``, ``flags`` and ``obs``."""
+        :meth:`_crank_outputs`' blocks ``values``, ``flags`` and ``obs``, in the plain form
+        (``constrained_particles.records.plain``) in which the kernels take it."""
         success, below, terminated, truncated, ended = flags
-        return _measure.Finish(
+        return plain(_measure.Finish(
             self._crank_record(values[5], values[6], below), goal, self._rest(),
             self._every_copy, values[:5], success, self._view(), obs,
             _measure.Reward(before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS,
                             values[7]),
-            _measure.Episode(steps, int(max_steps), terminated, truncated, ended))
+            _measure.Episode(steps, int(max_steps), terminated, truncated, ended)))
 
     def _crank_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Fresh outputs of the compiled crank bookkeeping, filled in place by the kernels: a
@@ -243,8 +246,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            x, v, mass, p.blocks, self._finish_record(goal, values, flags, obs, before, steps,
-                                                      max_steps))
+            x, v, mass, p.plain_blocks, self._finish_record(goal, values, flags, obs, before,
+                                                            steps, max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
 
     def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
@@ -288,8 +291,9 @@ class SliderCrank(ShapedTask, ParticleTask):
         finish = self._finish_record(self._goal_record(track), values, flags, obs, before, steps,
                                      max_steps)
         status, count = _measure.crank_step(
-            push, *fused.integrator_args(self.integrator), state, self._scratch[2], x_out, v_out,
-            settings, blocks, p.rows, p.work, p.live, finish)
+            tuple(push), *fused.integrator_args(self.integrator), tuple(state), self._scratch[2],
+            x_out, v_out, tuple(settings), blocks, p.plain_rows, p.plain_work, p.plain_live,
+            finish)
         reward, terminated, truncated, ended = values[7], flags[2], flags[3], flags[4]
         if status == _measure.NONFINITE:
             raise ValueError(f"action must be finite, got {actions!r}")
