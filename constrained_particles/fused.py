@@ -68,10 +68,11 @@ from .records import (
     Rows,
     Settings,
     State,
-    Workspace,
     blocks_record,
+    borrowed,
     live_record,
-    plain,
+    workspace_fits,
+    workspace_record,
 )
 from .solver import DIRECT_MAX
 
@@ -140,7 +141,8 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
     if len(mouse.active):  # the kernel reads a copy of the mouse springs' ``active`` flags:
         # the only index an in-place edit can switch on, checked once per call, may not
         # change while the kernel runs (it releases the GIL, so another thread could edit it)
-        blocks = plain(p.blocks._replace(mouse=mouse._replace(active=mouse.active.copy())))
+        own = tuple(mouse._replace(active=mouse.active.copy()))
+        blocks = (*blocks[:MOUSE], own, *blocks[MOUSE + 1:])
     settings = Settings(float(system.ks), float(system.kd), float(system.tol),
                         float(system.divergence_limit), float(residual_limit))
     return p, State(x, v, mass, inv_mass, lam), settings, blocks
@@ -190,7 +192,6 @@ if kernels.ENABLED:
     from .fused_accel import (
         _accel,
         _beyond_flat,
-        _borrowed,
         _check_inputs,
         _copy_flat,
         _count,
@@ -480,18 +481,21 @@ if kernels.ENABLED:
                     settings, blocks, rows, ws, live):  # pragma: no cover - compiled
         """:func:`_fused_steps`, entered with its records in :func:`~.records.plain` form (the
         cheap form to pass from Python): ``State(*state)``, ``Settings(*settings)``,
-        ``blocks_record(blocks)``, ``Rows(*rows)``, ``Workspace(*ws)``,
+        ``blocks_record(blocks)``, ``Rows(*rows)``, ``workspace_record(*ws)`` (``ws``: the
+        backing arrays of ``records.workspace``),
         ``live_record(live)``.
 
         Every array here lives in the caller for the whole call, so the records are built
-        from borrowed arrays (:func:`~.fused_accel._borrowed`): passing and unpacking them
+        from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them
         costs no reference counting. (The caller's plain tuples are borrowed, never a record
         built here: a record is a temporary of this function.)"""
-        hp, counts, state, x_out, v_out, blocks, rows, ws, live = _borrowed(
+        hp, counts, state, x_out, v_out, blocks, rows, ws, live = borrowed(
             (hp, counts, state, x_out, v_out, blocks, rows, ws, live))
+        if not workspace_fits(*ws):
+            return FALLBACK, 0
         return _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, State(*state),
                             x_out, v_out, Settings(*settings), blocks_record(blocks),
-                            Rows(*rows), Workspace(*ws), live_record(live))
+                            Rows(*rows), workspace_record(*ws), live_record(live))
 
     @njit
     def _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,

@@ -12,7 +12,6 @@ docstring for the design (packing, safety at the boundary, the spring loop).
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
@@ -52,10 +51,6 @@ OK, DIVERGED, FALLBACK = 0, 1, 2
 
 
 if kernels.ENABLED:
-    from numba.core import cgutils, types
-    from numba.extending import intrinsic
-    from numba.np.arrayobj import make_array
-
     # fused_steps releases the GIL (another thread may step another system meanwhile): the
     # arrays it reads stay alive as its arguments, and their index arrays cannot change.
     from .jit import njit
@@ -75,32 +70,6 @@ if kernels.ENABLED:
     # (a call of _accel with nothing to do cost 1.4 us, now 0.7; a single SliderCrank env's
     # physics step 10.7 -> 8.9 us), for some 20 s more of first-run compilation
     njit_inline = njit(inline="always")
-
-    def _strip(context: Any, builder: Any, ty: Any, value: Any) -> Any:
-        """``value`` of type ``ty`` with every array in it (tuples recursively) carrying no
-        reference count (null meminfo and parent): see :func:`_borrowed`."""
-        if isinstance(ty, types.Array):
-            ary = make_array(ty)(context, builder, value=value)
-            ary.meminfo = cgutils.get_null_value(ary.meminfo.type)
-            ary.parent = cgutils.get_null_value(ary.parent.type)
-            return ary._getvalue()
-        if isinstance(ty, types.BaseTuple):
-            items = [_strip(context, builder, t, builder.extract_value(value, i))
-                     for i, t in enumerate(ty.types)]
-            return context.make_tuple(builder, ty, items)
-        return value
-
-    @intrinsic
-    def _borrowed(typingctx: Any, value: Any) -> Any:  # pragma: no cover - compiled
-        """``value`` (an array, a scalar, None or a nested tuple of them) with its arrays'
-        reference counts detached: the same data, shapes and strides, but passing or
-        unpacking them no longer costs an atomic increment and decrement each (about 1 us
-        per call of :func:`_accel`, whose arguments hold some 80 arrays). Only for arrays
-        that the caller keeps alive for longer than any use of the result, which must not
-        escape the call (the fused step's inputs, outputs and workspace)."""
-        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
-            return _strip(context, builder, value, args[0])
-        return value(value), codegen
 
     @njit
     def _same_count(counts, a, b):  # pragma: no cover - compiled

@@ -33,6 +33,7 @@ from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, M
 from .fused_accel import RUN_MIN
 from .records import (
     LIVE_ELEMENTS,
+    MOUSE,
     AngularArrays,
     Blocks,
     CircleArrays,
@@ -48,8 +49,10 @@ from .records import (
     Rows,
     SpringArrays,
     WallArrays,
+    measured,
     plain,
     workspace,
+    workspace_view,
 )
 from .solver import DIRECT_MAX, row_components
 from .terms import frozen, is_frozen
@@ -274,13 +277,17 @@ class Packed:
         else:
             self._build_rows(system)
         self.valid = self.rows_valid and self._consistent()
-        #: scratch space reused by every call (:class:`~.records.Workspace`)
-        self.work = workspace(n, self.m, DIRECT_MAX)
+        #: scratch space reused by every call: the backing arrays, which cross into compiled
+        #: code, and the named :class:`~.records.Workspace` over them
+        self.plain_work = workspace(n, self.m, DIRECT_MAX)
+        self.work = workspace_view(self.plain_work)
         self._live: Live | None = None  # (made on first use: see live)
         self._plain_live: tuple | None = None
         #: the blocks, rows and workspace as they cross into compiled code (:func:`plain`)
         self.plain_blocks = plain(self.blocks)
-        self.plain_rows, self.plain_work = plain(self.rows), plain(self.work)
+        self.plain_rows = plain(self.rows)
+        #: the blocks the envs' measures read, as they cross into compiled code
+        self.plain_measured = plain(measured(self.blocks))
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -387,8 +394,8 @@ class Packed:
     def refresh(self, measured_only: bool = False) -> None:
         """Copy the parameter arrays of types with several blocks into their joined arrays
         (``measured_only``: only those the env measures read, walls' and constraints')."""
-        for joined, parts, measured in self._refresh:
-            if measured or not measured_only:
+        for joined, parts, read_by_measures in self._refresh:
+            if read_by_measures or not measured_only:
                 np.concatenate(parts, out=joined)
 
     def current(self, system: ParticleSystem) -> bool:
@@ -422,8 +429,10 @@ class Packed:
         new, same = _i64(block.particle)
         if not (same and new.shape == mouse.particle.shape):
             return False
-        self.blocks = self.blocks._replace(mouse=mouse._replace(particle=new))
-        self.plain_blocks = plain(self.blocks)
+        mouse = mouse._replace(particle=new)
+        self.blocks = self.blocks._replace(mouse=mouse)
+        plain_blocks = self.plain_blocks  # (only the mouse record is new)
+        self.plain_blocks = (*plain_blocks[:MOUSE], tuple(mouse), *plain_blocks[MOUSE + 1:])
         return True
 
     def shapes_hold(self) -> bool:

@@ -173,7 +173,13 @@ NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 if ENABLED:
     from constrained_particles.jit import njit
     from constrained_particles.kernels import length_error, line_error, wall_element
-    from constrained_particles.records import State, blocks_record
+    from constrained_particles.records import (
+        State,
+        blocks_record,
+        borrowed,
+        measured_of,
+        measured_record,
+    )
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -559,11 +565,14 @@ if ENABLED:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]
             return status, 0
-        return status, _crank_finish(x_out, v_out, start.mass, blocks_record(blocks), finish)
+        return status, _crank_finish(x_out, v_out, start.mass,
+                                     measured_of(blocks_record(blocks)), finish)
 
     # The entry points from Python take their records in plain form
     # (constrained_particles.records.plain: typed in C, about half the cost of a named tuple's
-    # typing per array) and rebuild them here.
+    # typing per array) and rebuild them here from borrowed arrays (records.borrowed: the
+    # caller keeps its arguments alive for the whole call, so the records cost no reference
+    # counting).
     @njit
     def _finish_record(t):  # pragma: no cover - compiled
         """The :class:`Finish` whose plain form is ``t``."""
@@ -574,7 +583,8 @@ if ENABLED:
     @njit(nogil=True)
     def _measures_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success):
         # pragma: no cover - compiled
-        _measures(x, v, mass, Goal(*task), blocks_record(blocks), walls, Rest(*rest), stepped,
+        task, blocks, rest = borrowed((task, blocks, rest))
+        _measures(x, v, mass, Goal(*task), measured_record(blocks), walls, Rest(*rest), stepped,
                   blocked, out, success)
 
     @njit(nogil=True)
@@ -598,23 +608,27 @@ if ENABLED:
     def _crank_step_entry(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
                           settings, blocks, rows, ws, live, finish):
         # pragma: no cover - compiled
+        push, finish = borrowed((push, finish))
         return _crank_step(Push(*push), method, runge_kutta, rattle, state, lam_saved, x_out,
                            v_out, settings, blocks, rows, ws, live, _finish_record(finish))
 
     @njit(nogil=True)
     def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
-        return _crank_finish(x, v, mass, blocks_record(blocks), _finish_record(finish))
+        blocks, finish = borrowed((blocks, finish))
+        return _crank_finish(x, v, mass, measured_record(blocks), _finish_record(finish))
 
     @njit(nogil=True)
     def _measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out,
                                 success, view, obs):  # pragma: no cover - compiled
-        _measures_observe(x, v, mass, Goal(*task), blocks_record(blocks), walls, Rest(*rest),
+        task, blocks, rest = borrowed((task, blocks, rest))
+        _measures_observe(x, v, mass, Goal(*task), measured_record(blocks), walls, Rest(*rest),
                           stepped, blocked, out, success, View(*view), obs)
 
     @njit(nogil=True)
     def _crank_measures_observe_entry(crank, x, v, mass, task, blocks, walls, rest, stepped,
                                       out, success, view, obs):  # pragma: no cover - compiled
-        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), blocks_record(blocks),
+        crank, task, blocks, rest = borrowed((crank, task, blocks, rest))
+        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), measured_record(blocks),
                                 walls, Rest(*rest), stepped, out, success, View(*view), obs)
 
     @njit(nogil=True)

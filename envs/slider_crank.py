@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 
 from constrained_particles import Drag, ParticleSystem, fused, scenes
-from constrained_particles.records import plain
 
 from . import _measure
 from .base import ParticleTask, _measured
@@ -189,7 +188,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
             tuple(self._crank_record(values[5], values[6], flags[1])), x, v, mass, tuple(goal),
-            p.plain_blocks, False, tuple(self._rest()), self._mask(stepped), values[:5],
+            p.plain_measured, False, tuple(self._rest()), self._mask(stepped), values[:5],
             flags[0], tuple(self._view()), obs)
         return m, obs
 
@@ -207,12 +206,12 @@ class SliderCrank(ShapedTask, ParticleTask):
         :meth:`_crank_outputs`' blocks ``values``, ``flags`` and ``obs``, in the plain form
         (``constrained_particles.records.plain``) in which the kernels take it."""
         success, below, terminated, truncated, ended = flags
-        return plain(_measure.Finish(
-            self._crank_record(values[5], values[6], below), goal, self._rest(),
-            self._every_copy, values[:5], success, self._view(), obs,
-            _measure.Reward(before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS,
-                            values[7]),
-            _measure.Episode(steps, int(max_steps), terminated, truncated, ended)))
+        return tuple(_measure.Finish(
+            tuple(self._crank_record(values[5], values[6], below)), tuple(goal),
+            tuple(self._rest()), self._every_copy, values[:5], success, tuple(self._view()), obs,
+            tuple(_measure.Reward(before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS,
+                                  values[7])),
+            tuple(_measure.Episode(steps, int(max_steps), terminated, truncated, ended))))
 
     def _crank_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Fresh outputs of the compiled crank bookkeeping, filled in place by the kernels: a
@@ -246,7 +245,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            x, v, mass, p.plain_blocks, self._finish_record(goal, values, flags, obs, before,
+            x, v, mass, p.plain_measured, self._finish_record(goal, values, flags, obs, before,
                                                             steps, max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
 
