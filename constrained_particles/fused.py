@@ -479,85 +479,77 @@ if kernels.ENABLED:
     @njit(nogil=True)
     def fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
                     settings, blocks, rows, ws, live):  # pragma: no cover - compiled
-        """:func:`_fused_steps`, entered with its records in :func:`~.records.plain` form (the
-        cheap form to pass from Python): ``State(*state)``, ``Settings(*settings)``,
-        ``blocks_record(blocks)``, ``Rows(*rows)``, ``workspace_record(*ws)`` (``ws``: the
-        backing arrays of ``records.workspace``),
-        ``live_record(live)``.
-
-        Every array here lives in the caller for the whole call, so the records are built
-        from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them
-        costs no reference counting. (The caller's plain tuples are borrowed, never a record
-        built here: a record is a temporary of this function.)"""
-        hp, counts, state, x_out, v_out, blocks, rows, ws, live = borrowed(
-            (hp, counts, state, x_out, v_out, blocks, rows, ws, live))
-        if not workspace_fits(*ws):
-            return FALLBACK, 0
-        return _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, State(*state),
-                            x_out, v_out, Settings(*settings), blocks_record(blocks),
-                            Rows(*rows), workspace_record(*ws), live_record(live))
-
-    @njit
-    def _fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
-                     settings, blocks, rows, ws, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds from ``state`` (:class:`~.records.State`; its
-        ``lam`` is the warm start, updated in place) into ``x_out, v_out``, or of ``hp[q]``
-        seconds for particle q if ``hp`` is not empty, with the integrator that ``method,
-        runge_kutta, rattle`` give as :func:`integrator_args` makes them, the system's
-        ``settings``, its packed ``blocks`` and constraint ``rows`` and the scratch space
-        ``ws`` (:mod:`.records`). With ``live`` (the workspace of :func:`_gate`; None: every
+        """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
+        ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
+        ``method, runge_kutta, rattle`` give as :func:`integrator_args` makes them. The
+        records come in :func:`~.records.plain` form (the cheap form to pass from Python) and
+        are rebuilt here: ``State(*state)`` (its ``lam`` is the warm start, updated in
+        place), ``Settings(*settings)``, ``blocks_record(blocks)``, ``Rows(*rows)``,
+        ``workspace_record(*ws)`` (``ws``: the backing arrays of ``records.workspace``) and
+        ``live_record(live)``. With ``live`` (the workspace of :func:`_gate`; None: every
         particle takes every step), particle q takes ``counts[q]`` steps instead (``steps``
         is ignored): first the steps only some particles take (a particle with fewer waits,
         and the elements, constraint rows and components of waiting particles are skipped),
         then the steps every particle takes, without the mask. Each particle takes its own
         steps in its own order, so each independent group of particles is stepped exactly as
-        it would be alone.
-        Returns ``(status, steps done)``."""
-        n = state.x.shape[0]
-        m = state.lam.shape[0]
-        per_particle = hp.shape[0] > 0
-        shape = state.x.shape
-        if (shape[1] != 2 or state.v.shape != shape or x_out.shape != shape
-                or v_out.shape != shape or state.mass.shape[0] != n
-                or state.inv_mass.shape[0] != n):
+        it would be alone. Returns ``(status, steps done)``.
+
+        Every array here lives in the caller for the whole call, so the records are built
+        from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them costs
+        no reference counting. (The caller's plain tuples are borrowed, never a record built
+        here: a record is a temporary of this function.) ``live`` itself is never reassigned
+        and is what the None tests read: Numba then drops the branch that a None ``live``
+        rules out, so a run without pieces compiles no masked step."""
+        b_hp, b_counts, b_state, b_out, b_blocks, b_rows, b_ws, b_live = borrowed(
+            (hp, counts, state, (x_out, v_out), blocks, rows, ws, live))
+        if not workspace_fits(*b_ws):
             return FALLBACK, 0
-        if per_particle and (rattle is not None or hp.shape[0] != n):
+        start, xo, vo = State(*b_state), b_out[0], b_out[1]
+        cfg, packed, rws = Settings(*settings), blocks_record(b_blocks), Rows(*b_rows)
+        work, lv = workspace_record(*b_ws), live_record(b_live)
+        n = start.x.shape[0]
+        m = start.lam.shape[0]
+        per_particle = b_hp.shape[0] > 0
+        shape = start.x.shape
+        if (shape[1] != 2 or start.v.shape != shape or xo.shape != shape or vo.shape != shape
+                or start.mass.shape[0] != n or start.inv_mass.shape[0] != n):
             return FALLBACK, 0
-        if live is not None and (not per_particle or counts.shape[0] != n
-                                 or not _live_fits(live, blocks, n, m,
-                                                   rows.comp_ptr.shape[0] - 1)):
+        if per_particle and (rattle is not None or b_hp.shape[0] != n):
             return FALLBACK, 0
-        if live is None and counts.shape[0] != 0:
+        if live is not None and (not per_particle or b_counts.shape[0] != n
+                                 or not _live_fits(lv, packed, n, m,
+                                                   rws.comp_ptr.shape[0] - 1)):
             return FALLBACK, 0
-        if not _check_inputs(blocks, rows, n, m, state.lam, counts):
+        if live is None and b_counts.shape[0] != 0:
             return FALLBACK, 0
-        if not _work_fits(ws, n, m):
+        if not _check_inputs(packed, rws, n, m, start.lam, b_counts):
             return FALLBACK, 0
-        w2, tmp, inv_mass = ws.w2, ws.tmp, state.inv_mass
+        if not _work_fits(work, n, m):
+            return FALLBACK, 0
+        w2, tmp, inv_mass = work.w2, work.tmp, start.inv_mass
         for q in range(n):
             w2[2 * q] = inv_mass[q]
             w2[2 * q + 1] = inv_mass[q]
             tmp[2 * q] = 0.0
             tmp[2 * q + 1] = 0.0
-        # (``live`` is never reassigned: Numba then drops the branch that a None ``live`` rules
-        # out, so a run without pieces compiles no masked step)
         if live is None:
-            return _steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
-                          settings, blocks, rows, ws, None)
+            return _steps(method, runge_kutta, rattle, steps, h, b_hp, b_counts, start, xo, vo,
+                          cfg, packed, rws, work, None)
         if n == 0:
             return OK, 0
-        first, total = counts.min(), counts.max()
+        first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return _steps(method, runge_kutta, rattle, total, h, hp, counts, state, x_out, v_out,
-                          settings, blocks, rows, ws, None)
+            return _steps(method, runge_kutta, rattle, total, h, b_hp, b_counts, start, xo, vo,
+                          cfg, packed, rws, work, None)
         # the steps only some particles take come first, while their data are likely still in
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
-        status, done = _steps(method, runge_kutta, rattle, total - first, h, hp, counts - first,
-                              state, ws.x_mid, ws.v_mid, settings, blocks, rows, ws, live)
+        status, done = _steps(method, runge_kutta, rattle, total - first, h, b_hp,
+                              b_counts - first, start, work.x_mid, work.v_mid, cfg, packed, rws,
+                              work, lv)
         if status != OK:
             return status, done
-        middle = State(ws.x_mid, ws.v_mid, state.mass, state.inv_mass, state.lam)
-        status, more = _steps(method, runge_kutta, rattle, first, h, hp, counts, middle, x_out,
-                              v_out, settings, blocks, rows, ws, None)
+        middle = State(work.x_mid, work.v_mid, start.mass, start.inv_mass, start.lam)
+        status, more = _steps(method, runge_kutta, rattle, first, h, b_hp, b_counts, middle, xo,
+                              vo, cfg, packed, rws, work, None)
         return status, done + more

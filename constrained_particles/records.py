@@ -314,7 +314,7 @@ measured_record: Any = None
 measured_of: Any = None  #: compiled :func:`measured`
 #: compiled: True if the backing arrays hold every slice of :func:`workspace_record`
 workspace_fits: Any = None
-live_record: Any = None  #: compiled: a :class:`Live` (or None) from its :func:`plain` form
+live_record: Any = None  #: compiled: a :class:`Live` (None: None) from its :func:`plain` form
 #: compiled: a value with its arrays' reference counts detached (see ``_borrowed``)
 borrowed: Any = None
 
@@ -370,18 +370,31 @@ if kernels.ENABLED:
         return MeasuredBlocks(CircleArrays(*circle), RodArrays(*rod), LineArrays(*line),
                               FixedArrays(*fixed), WallArrays(*wall))
 
-    @njit
-    def _live_record(t):  # pragma: no cover - compiled
-        """The :class:`Live` whose :func:`plain` form is ``t`` (None: None)."""
-        if t is None:
-            return None
-        mask, particles, rows, components, sizes, elements, ptr, ranged, comp_of, seen = t
-        return Live(mask, particles, rows, components, sizes, Elements(*elements), ptr, ranged,
-                    comp_of, seen)
+    from numba.extending import overload
+
+    def _live_of(t: Any) -> Any:
+        """The :class:`Live` whose :func:`plain` form is ``t``, or None for None (compiled
+        only: see :func:`_typed_live`)."""
+        raise NotImplementedError("compiled code only")
+
+    @overload(_live_of)
+    def _typed_live(t):  # (no annotations: Numba compares the signature with impl's)
+        """:func:`_live_of` for the type of ``t``: None stays None (the result is then of
+        type None, so each kernel it reaches drops its branch for the masked step; an
+        ``if t is None`` inside one compiled function would make the result Optional, and
+        every kernel compile both branches), a plain tuple becomes a :class:`Live`."""
+        if isinstance(t, types.NoneType):
+            return lambda t: None
+
+        def impl(t):  # pragma: no cover - compiled
+            mask, particles, rows, components, sizes, elements, ptr, ranged, comp_of, seen = t
+            return Live(mask, particles, rows, components, sizes, Elements(*elements), ptr,
+                        ranged, comp_of, seen)
+        return impl
 
     measured_record = _measured_record
     measured_of = njit(measured)
     workspace_record = njit(_name_workspace)
     workspace_fits = njit(_backing_fits)
     blocks_record = _blocks_record
-    live_record = _live_record
+    live_record = _live_of

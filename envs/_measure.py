@@ -521,7 +521,8 @@ if ENABLED:
     def _crank_step(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
                     settings, blocks, rows, ws, live, finish):  # pragma: no cover - compiled
         """A SliderCrank env step with force actions in which every copy steps, as the
-        general path takes it, in one call: the ``push.raw`` actions checked (status
+        general path takes it, in one call (``push``: a :class:`Push` and ``finish``: a
+        :class:`Finish`, both in plain form): the ``push.raw`` actions checked (status
         :data:`NONFINITE`, nothing written, if one is not finite) and clipped into
         ``push.action``; the crank's push written into the actuator's ``push.force`` rows;
         each copy's step splitting (``kernels.group_pieces`` through the row map
@@ -533,24 +534,26 @@ if ENABLED:
         the state and the warm start ``state.lam`` as they were (``lam_saved`` holds it
         meanwhile; the caller takes the general path, which writes the same actions and
         forces again)."""
+        b_push, b_finish = borrowed((push, finish))  # (records of this call's own arguments)
+        pr, fin = Push(*b_push), _finish_record(b_finish)
         start = State(*state)  # (state, settings, blocks, rows, ws and live stay in the plain
         # form in which fused_steps takes them)
         x, v, inv_mass, lam = start.x, start.v, start.inv_mass, start.lam
-        n, N = finish.task.n, finish.task.goal.shape[0]
-        raw = push.raw
+        n, N = fin.task.n, fin.task.goal.shape[0]
+        raw = pr.raw
         flat = raw.reshape(-1)
         for k in range(flat.shape[0]):  # every entry checked before anything is written
             if not math.isfinite(np.float64(flat[k])):
                 return NONFINITE, 0
-        _clip_actions(raw, push.action)
-        _crank_push(x.reshape((N, n, 2)), push.action, push.max_force,
-                    push.force.reshape((N, 1, 2)))
-        rows_of = push.rows
-        largest = _group_pieces(v, push.force, push.frow, inv_mass, n, push.horizon, push.dt,
-                                push.travel, push.max_pieces, push.need, rows_of)
+        _clip_actions(raw, pr.action)
+        _crank_push(x.reshape((N, n, 2)), pr.action, pr.max_force,
+                    pr.force.reshape((N, 1, 2)))
+        rows_of = pr.rows
+        largest = _group_pieces(v, pr.force, pr.frow, inv_mass, n, pr.horizon, pr.dt,
+                                pr.travel, pr.max_pieces, pr.need, rows_of)
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
-        hp, counts, dt, substeps = push.hp, push.counts, push.dt, push.substeps
+        hp, counts, dt, substeps = pr.hp, pr.counts, pr.dt, pr.substeps
         if largest == 1:
             status, _ = fused_steps(method, runge_kutta, rattle, substeps, dt, hp[:0],
                                      counts[:0], state, x_out, v_out, settings, blocks, rows,
@@ -566,7 +569,7 @@ if ENABLED:
                 lam[i] = lam_saved[i]
             return status, 0
         return status, _crank_finish(x_out, v_out, start.mass,
-                                     measured_of(blocks_record(blocks)), finish)
+                                     measured_of(blocks_record(blocks)), fin)
 
     # The entry points from Python take their records in plain form
     # (constrained_particles.records.plain: typed in C, about half the cost of a named tuple's
@@ -605,14 +608,6 @@ if ENABLED:
                             rest, obs)
 
     @njit(nogil=True)
-    def _crank_step_entry(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
-                          settings, blocks, rows, ws, live, finish):
-        # pragma: no cover - compiled
-        push, finish = borrowed((push, finish))
-        return _crank_step(Push(*push), method, runge_kutta, rattle, state, lam_saved, x_out,
-                           v_out, settings, blocks, rows, ws, live, _finish_record(finish))
-
-    @njit(nogil=True)
     def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
         blocks, finish = borrowed((blocks, finish))
         return _crank_finish(x, v, mass, measured_record(blocks), _finish_record(finish))
@@ -639,7 +634,7 @@ if ENABLED:
     advance_hold = _advance_hold_entry
     observe = _observe_entry
     pin_observe = _pin_observe_entry
-    crank_step = _crank_step_entry
+    crank_step = _crank_step
     crank_finish = _crank_finish_entry
     measures_observe = _measures_observe_entry
     crank_measures_observe = _crank_measures_observe_entry
