@@ -212,7 +212,7 @@ if kernels.ENABLED:
             k += mask[idx[e]]
         return k
 
-    @njit
+    @njit(inline="always")
     def _live_fits(live, blocks, n, m, ncomp):  # pragma: no cover - compiled
         """True if the live workspace has room for ``n`` particles, ``m`` rows, ``ncomp``
         components and every element of each block type."""
@@ -236,7 +236,7 @@ if kernels.ENABLED:
                 and el.line.shape[0] >= blocks.line.particles.shape[0]
                 and el.fixed.shape[0] >= blocks.fixed.particles.shape[0])
 
-    @njit
+    @njit(inline="always")
     def _work_fits(ws, n, m):  # pragma: no cover - compiled
         """True if the workspace has the shapes of ``n`` particles and ``m`` rows."""
         for a in (ws.spare_x, ws.spare_v, ws.a1, ws.a2, ws.a3, ws.a4, ws.xs, ws.vs, ws.vs2,

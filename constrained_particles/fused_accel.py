@@ -79,7 +79,7 @@ if kernels.ENABLED:
                 return False
         return True
 
-    @njit
+    @njit_inline
     def _check_inputs(blocks, rows, n, m, lam, counts):  # pragma: no cover - compiled
         """False if the per-element arrays of a block disagree in length, if an active mouse
         spring's particle is outside [0, n), or (``counts`` not empty) if two particles

@@ -354,7 +354,9 @@ if kernels.ENABLED:
 
     borrowed = _borrowed
 
-    @njit
+    # the record builders are inlined where they are called: compiled on their own, each took
+    # a compile of its own (1-3 s, most of it moving its records' fields)
+    @njit(inline="always")
     def _blocks_record(t):  # pragma: no cover - compiled
         """The :class:`Blocks` whose :func:`plain` form is ``t`` (fields in record order)."""
         return Blocks(GravityArrays(*t[GRAVITY]), ConstantArrays(*t[CONSTANT]),
@@ -363,7 +365,7 @@ if kernels.ENABLED:
                       CircleArrays(*t[CIRCLE]), RodArrays(*t[ROD]), LineArrays(*t[LINE]),
                       FixedArrays(*t[FIXED]))
 
-    @njit
+    @njit(inline="always")
     def _measured_record(t):  # pragma: no cover - compiled
         """The :class:`MeasuredBlocks` whose :func:`plain` form is ``t``."""
         circle, rod, line, fixed, wall = t
@@ -393,8 +395,8 @@ if kernels.ENABLED:
         return impl
 
     measured_record = _measured_record
-    measured_of = njit(measured)
-    workspace_record = njit(_name_workspace)
+    measured_of = njit(inline="always")(measured)
+    workspace_record = njit(_name_workspace)  # (called with *args: not inlinable)
     workspace_fits = njit(_backing_fits)
     blocks_record = _blocks_record
     live_record = _live_of
