@@ -320,7 +320,7 @@ borrowed: Any = None
 
 if kernels.ENABLED:
     from numba.core import cgutils, types
-    from numba.extending import intrinsic
+    from numba.extending import intrinsic, overload
     from numba.np.arrayobj import make_array
 
     from .jit import njit
@@ -371,8 +371,6 @@ if kernels.ENABLED:
         circle, rod, line, fixed, wall = t
         return MeasuredBlocks(CircleArrays(*circle), RodArrays(*rod), LineArrays(*line),
                               FixedArrays(*fixed), WallArrays(*wall))
-
-    from numba.extending import overload
 
     def _live_of(t: Any) -> Any:
         """The :class:`Live` whose :func:`plain` form is ``t``, or None for None (compiled
