@@ -65,14 +65,10 @@ from .records import (
     LIVE_PARTICLES,
     LIVE_ROWS,
     MOUSE,
-    Rows,
     Settings,
     State,
-    blocks_record,
     borrowed,
     live_record,
-    workspace_fits,
-    workspace_record,
 )
 from .solver import DIRECT_MAX
 
@@ -106,17 +102,16 @@ def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             state: tuple[Any, Any, Any, Any] | None = None
-            ) -> tuple[Packed, State, Settings, tuple] | None:
-    """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose plain
-    ``rows``, ``work`` and ``live`` it also takes), the :class:`~.records.State` to step (``x,
-    v, mass, inv_mass`` read from the system once, or the caller's ``state`` read once by it,
-    and the warm start ``lam``), the :class:`~.records.Settings` (the system's, with
-    ``residual_limit``) and the blocks to step with, in :func:`~.records.plain` form; or None
-    where the kernel cannot run:
-    unsupported blocks, an index out of range, a parameter array whose shape changed in place,
-    or state arrays (and ``lam``) not C-ordered float64 of the packed sizes. The kernel's
-    memory safety rests on these checks (O(1) per array: the arrays the kernel indexes with
-    were checked when the pack was built, and cannot change)."""
+            ) -> tuple[Packed, State, Settings] | None:
+    """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose
+    :attr:`~.packing.Packed.refs` it takes), the :class:`~.records.State` to step (``x, v,
+    mass, inv_mass`` read from the system once, or the caller's ``state`` read once by it, and
+    the warm start ``lam``) and the :class:`~.records.Settings` (the system's, with
+    ``residual_limit``); or None where the kernel cannot run: unsupported blocks, an index out
+    of range, a parameter array whose shape changed in place, or state arrays (and ``lam``)
+    not C-ordered float64 of the packed sizes. The kernel's memory safety rests on these
+    checks (O(1) per array: the arrays the kernel indexes with were checked when the pack was
+    built, and cannot change; the mouse springs' particles and flags are copied here)."""
     p = pack(system)
     if not p.valid:  # unsupported blocks, or an index out of range
         return None
@@ -136,16 +131,11 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
             and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
             and mass.shape == inv_mass.shape == (p.n,)):
         return None
-    blocks = p.plain_blocks
-    mouse = p.blocks.mouse
-    if len(mouse.active):  # the kernel reads a copy of the mouse springs' ``active`` flags:
-        # the only index an in-place edit can switch on, checked once per call, may not
-        # change while the kernel runs (it releases the GIL, so another thread could edit it)
-        own = tuple(mouse._replace(active=mouse.active.copy()))
-        blocks = (*blocks[:MOUSE], own, *blocks[MOUSE + 1:])
+    if not p.take_mouse():
+        return None
     settings = Settings(float(system.ks), float(system.kd), float(system.tol),
                         float(system.divergence_limit), float(residual_limit))
-    return p, State(x, v, mass, inv_mass, lam), settings, blocks
+    return p, State(x, v, mass, inv_mass, lam), settings
 
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
@@ -169,21 +159,22 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     ready = prepare(system, lam, residual_limit, state)
     if ready is None:
         return FALLBACK, None, None, 0
-    p, start, settings, blocks = ready
+    p, start, settings = ready
+    refs = p.refs
     code, runge_kutta, rattle = integrator_args(method)
     h = float(dt)
     x_out = np.empty_like(start.x)
     v_out = np.empty_like(start.v)
     if pieces is None:
         status, failed = fused_steps(code, runge_kutta, rattle, int(steps), h, _F0, _NO_COUNTS,
-                                     tuple(start), x_out, v_out, tuple(settings), blocks,
-                                     p.plain_rows, p.plain_work, None)
+                                     tuple(start), x_out, v_out, tuple(settings), refs.blocks,
+                                     refs.rows, refs.work, None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
     status, failed = fused_steps(code, runge_kutta, rattle, 0, h, h / pieces,
                                  pieces * int(steps), tuple(start), x_out, v_out,
-                                 tuple(settings), blocks, p.plain_rows, p.plain_work,
+                                 tuple(settings), refs.blocks, refs.rows, refs.work,
                                  p.plain_live)
     return int(status), x_out, v_out, int(failed)
 
@@ -216,7 +207,7 @@ if kernels.ENABLED:
     def _live_fits(live, blocks, n, m, ncomp):  # pragma: no cover - compiled
         """True if the live workspace has room for ``n`` particles, ``m`` rows, ``ncomp``
         components and every element of each block type."""
-        types = len(blocks)
+        types = len(live.elements)  # (one entry per block type)
         if not (live.mask.shape[0] == n and live.particles.shape[0] == n
                 and live.rows.shape[0] == m and live.components.shape[0] == ncomp
                 and live.sizes.shape[0] == LIVE_ELEMENTS + types + 1
@@ -482,11 +473,11 @@ if kernels.ENABLED:
         """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
         ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
         ``method, runge_kutta, rattle`` give as :func:`integrator_args` makes them. The
-        records come in :func:`~.records.plain` form (the cheap form to pass from Python) and
-        are rebuilt here: ``State(*state)`` (its ``lam`` is the warm start, updated in
-        place), ``Settings(*settings)``, ``blocks_record(blocks)``, ``Rows(*rows)``,
-        ``workspace_record(*ws)`` (``ws``: the backing arrays of ``records.workspace``) and
-        ``live_record(live)``. With ``live`` (the workspace of :func:`_gate`; None: every
+        records come as the pack holds them: ``blocks``, ``rows`` and the workspace ``ws``
+        by reference (:attr:`~.packing.Packed.refs`), the others in
+        :func:`~.records.plain` form, rebuilt here: ``State(*state)`` (its ``lam`` is the
+        warm start, updated in place), ``Settings(*settings)`` and ``live_record(live)``.
+        With ``live`` (the workspace of :func:`_gate`; None: every
         particle takes every step), particle q takes ``counts[q]`` steps instead (``steps``
         is ignored): first the steps only some particles take (a particle with fewer waits,
         and the elements, constraint rows and components of waiting particles are skipped),
@@ -494,19 +485,17 @@ if kernels.ENABLED:
         steps in its own order, so each independent group of particles is stepped exactly as
         it would be alone. Returns ``(status, steps done)``.
 
-        Every array here lives in the caller for the whole call, so the records are built
-        from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them costs
-        no reference counting. (The caller's plain tuples are borrowed, never a record built
-        here: a record is a temporary of this function.) ``live`` itself is never reassigned
-        and is what the None tests read: Numba then drops the branch that a None ``live``
-        rules out, so a run without pieces compiles no masked step."""
-        b_hp, b_counts, b_state, b_out, b_blocks, b_rows, b_ws, b_live = borrowed(
-            (hp, counts, state, (x_out, v_out), blocks, rows, ws, live))
-        if not workspace_fits(*b_ws):
-            return FALLBACK, 0
+        Every array here lives in the caller for the whole call, so the plain records are
+        built from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them
+        costs no reference counting. (The caller's plain tuples are borrowed, never a record
+        built here: a record is a temporary of this function.) ``live`` itself is never
+        reassigned and is what the None tests read: Numba then drops the branch that a None
+        ``live`` rules out, so a run without pieces compiles no masked step."""
+        b_hp, b_counts, b_state, b_out, b_live = borrowed((hp, counts, state, (x_out, v_out),
+                                                           live))
         start, xo, vo = State(*b_state), b_out[0], b_out[1]
-        cfg, packed, rws = Settings(*settings), blocks_record(b_blocks), Rows(*b_rows)
-        work, lv = workspace_record(*b_ws), live_record(b_live)
+        cfg, packed, rws, work = Settings(*settings), blocks, rows, ws
+        lv = live_record(b_live)
         n = start.x.shape[0]
         m = start.lam.shape[0]
         per_particle = b_hp.shape[0] > 0

@@ -23,7 +23,7 @@ unchanged, so a force block given new index arrays (a drawn spring) costs no new
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -33,7 +33,6 @@ from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, M
 from .fused_accel import RUN_MIN
 from .records import (
     LIVE_ELEMENTS,
-    MOUSE,
     AngularArrays,
     Blocks,
     CircleArrays,
@@ -49,9 +48,11 @@ from .records import (
     Rows,
     SpringArrays,
     WallArrays,
-    measured,
+    blocks_ref,
     plain,
+    rows_ref,
     workspace,
+    workspace_ref,
     workspace_view,
 )
 from .solver import DIRECT_MAX, row_components
@@ -126,6 +127,20 @@ def spring_runs(i: np.ndarray, j: np.ndarray, minimum: int = RUN_MIN) -> np.ndar
     keep = (ends - starts >= minimum) & (i[starts] != j[starts])
     return _ro(np.ascontiguousarray(np.stack([starts[keep], ends[keep]], axis=1),
                                     dtype=np.int64))
+
+
+class PackRefs(NamedTuple):
+    """A :class:`Packed` system's records as compiled code takes them: each held by reference
+    (:class:`~.records.RecordRef`), so that a call passes three pointers instead of some sixty
+    arrays."""
+
+    blocks: Any  #: the :class:`~.records.Blocks`, with the mouse springs' arrays below
+    rows: Any  #: the :class:`~.records.Rows`
+    work: Any  #: the :class:`~.records.Workspace` over ``Packed.backing``
+    #: the mouse springs' particles and ``active`` flags as the compiled code reads them: the
+    #: pack's own copies, refreshed before each call (:meth:`Packed.take_mouse`)
+    mouse_particle: np.ndarray
+    mouse_active: np.ndarray
 
 
 class Packed:
@@ -277,17 +292,13 @@ class Packed:
         else:
             self._build_rows(system)
         self.valid = self.rows_valid and self._consistent()
-        #: scratch space reused by every call: the backing arrays, which cross into compiled
-        #: code, and the named :class:`~.records.Workspace` over them
-        self.plain_work = workspace(n, self.m, DIRECT_MAX)
-        self.work = workspace_view(self.plain_work)
+        #: scratch space reused by every call: the backing arrays and the named
+        #: :class:`~.records.Workspace` over them
+        self.backing = workspace(n, self.m, DIRECT_MAX)
+        self.work = workspace_view(self.backing)
         self._live: Live | None = None  # (made on first use: see live)
         self._plain_live: tuple | None = None
-        #: the blocks, rows and workspace as they cross into compiled code (:func:`plain`)
-        self.plain_blocks = plain(self.blocks)
-        self.plain_rows = plain(self.rows)
-        #: the blocks the envs' measures read, as they cross into compiled code
-        self.plain_measured = plain(measured(self.blocks))
+        self._refs: PackRefs | None = None  # (made on first use: see refs)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -346,6 +357,34 @@ class Packed:
                 and inside(blocks.fixed.row, m - 1)
                 and bool(np.all((self.rows.nnz >= 1) & (self.rows.nnz <= 4)))
                 and np.array_equal(spring.runs, spring_runs(spring.i, spring.j)))
+
+    @property
+    def refs(self) -> PackRefs:
+        """The pack's records as compiled code takes them, each held by reference
+        (:class:`PackRefs`; made on first use, once per pack)."""
+        if self._refs is None:
+            mouse = self.blocks.mouse
+            particle, active = mouse.particle.copy(), mouse.active.copy()
+            blocks = self.blocks._replace(mouse=mouse._replace(particle=particle, active=active))
+            self._refs = PackRefs(blocks_ref(plain(blocks)), rows_ref(plain(self.rows)),
+                                  workspace_ref(*self.backing), particle, active)
+        return self._refs
+
+    def take_mouse(self) -> bool:
+        """Copy the mouse springs' particles and ``active`` flags into the ones the compiled
+        code reads (:attr:`PackRefs.mouse_particle`, ``mouse_active``), before each call:
+        another thread can then not switch a spring on, or move it to another particle,
+        after the call has checked them. False (nothing copied) if an array's shape changed
+        in place."""
+        refs, mouse = self.refs, self.blocks.mouse
+        if not len(refs.mouse_active):
+            return True
+        if (mouse.particle.shape != refs.mouse_particle.shape
+                or mouse.active.shape != refs.mouse_active.shape):
+            return False
+        np.copyto(refs.mouse_particle, mouse.particle)
+        np.copyto(refs.mouse_active, mouse.active)
+        return True
 
     @property
     def live(self) -> Live:
@@ -429,10 +468,8 @@ class Packed:
         new, same = _i64(block.particle)
         if not (same and new.shape == mouse.particle.shape):
             return False
-        mouse = mouse._replace(particle=new)
-        self.blocks = self.blocks._replace(mouse=mouse)
-        plain_blocks = self.plain_blocks  # (only the mouse record is new)
-        self.plain_blocks = (*plain_blocks[:MOUSE], tuple(mouse), *plain_blocks[MOUSE + 1:])
+        # (the compiled code reads a copy, refreshed before each call: see take_mouse)
+        self.blocks = self.blocks._replace(mouse=mouse._replace(particle=new))
         return True
 
     def shapes_hold(self) -> bool:

@@ -7,11 +7,16 @@ and their components (:class:`Rows`), the state (:class:`State`), the solver set
 (:class:`Live`). They are named tuples, so a kernel reads ``blocks.spring.rest``, and a pack
 builds them once per topology (:class:`~.packing.Packed`).
 
-**At the boundary.** Numba types a plain tuple of arrays in C but a named tuple in Python (about
-0.2 us per array against 0.09: some 20 us for a fused step's hundred arrays), so records cross
-from Python into compiled code as plain tuples (:func:`plain`, made once per pack) and each
-entry point rebuilds them as records (:func:`blocks_record`, :func:`live_record`, or the
-record's class called on the tuple: ``State(*state)``), at no cost in compiled code.
+**At the boundary.** A pack's records cross into compiled code **by reference**
+(:class:`RecordRef`, a Numba structure reference made once per pack by :func:`blocks_ref`,
+:func:`rows_ref` and :func:`workspace_ref`): a call passes one pointer per record instead of
+every array in it, and so does every compiled function that passes a record on. Numba types a
+reference in well under a microsecond, where the same fields as a tuple of some fifty arrays
+cost several microseconds a call, and the compiled code that moves one pointer is smaller (and
+faster to compile) than code moving fifty array structures. The per-call records (the state,
+the settings, a split step's live set) cross as plain tuples (:func:`plain`) and each entry
+point rebuilds them (``State(*state)``, :func:`live_record`): Numba types a plain tuple of
+arrays in C but a named tuple in Python.
 
 Units are SI: positions in m, velocities in m/s, masses in kg, forces in N. Index arrays are
 int64 particle indices (global, into the system's state) and are immutable once packed.
@@ -147,23 +152,6 @@ class Blocks(NamedTuple):
     fixed: FixedArrays
 
 
-class MeasuredBlocks(NamedTuple):
-    """The blocks an environment's measures read (the constraint residual, the walls' contact
-    force): the fields of :class:`Blocks` of those names. Passed instead of the whole
-    :class:`Blocks`, so a measure's call unboxes 18 arrays, not 55."""
-
-    circle: CircleArrays
-    rod: RodArrays
-    line: LineArrays
-    fixed: FixedArrays
-    wall: WallArrays
-
-
-def measured(blocks: Blocks) -> MeasuredBlocks:
-    """The :class:`MeasuredBlocks` of ``blocks`` (also in compiled code)."""
-    return MeasuredBlocks(blocks.circle, blocks.rod, blocks.line, blocks.fixed, blocks.wall)
-
-
 class Rows(NamedTuple):
     """The constraint rows' sparsity and their connected components (fixed per topology)."""
 
@@ -224,9 +212,9 @@ class Workspace(NamedTuple):
 def workspace(n: int, m: int, direct_max: int) -> tuple[np.ndarray, ...]:
     """The backing arrays of a zeroed :class:`Workspace` for ``n`` particles, ``m`` rows and
     dense component blocks of up to ``direct_max`` rows: one array per kind of field, (12,
-    n, 2), (3, m, 4), (4, m), (2, 2 n) and (direct_max + 1, direct_max). They cross into
-    compiled code as these five arrays (each array passed costs the call about 0.3 us), and
-    :func:`workspace_record` names their slices (:func:`workspace_view` in Python)."""
+    n, 2), (3, m, 4), (4, m), (2, 2 n) and (direct_max + 1, direct_max), whose slices are the
+    fields (:func:`workspace_ref` holds them by reference, :func:`workspace_view` names them in
+    Python)."""
     return (np.zeros((12, n, 2)), np.zeros((3, m, 4)), np.zeros((4, m)), np.zeros((2, 2 * n)),
             np.zeros((direct_max + 1, direct_max)))
 
@@ -242,13 +230,6 @@ def _name_workspace(per_particle: np.ndarray, per_entry: np.ndarray, per_row: np
                      per_entry[0], per_entry[1], per_entry[2], per_row[0], per_row[1],
                      per_row[2], per_row[3], per_coordinate[0], per_coordinate[1], dense[:d],
                      dense[d])
-
-
-def _backing_fits(per_particle: np.ndarray, per_entry: np.ndarray, per_row: np.ndarray,
-                  per_coordinate: np.ndarray, dense: np.ndarray) -> bool:
-    """True if the backing arrays hold every slice :func:`_name_workspace` takes."""
-    return (per_particle.shape[0] >= 12 and per_entry.shape[0] >= 3 and per_row.shape[0] >= 4
-            and per_coordinate.shape[0] >= 2 and dense.shape[0] == dense.shape[1] + 1)
 
 
 def workspace_view(backing: tuple[np.ndarray, ...]) -> Workspace:
@@ -306,20 +287,23 @@ def plain(record: Any) -> Any:
     return record
 
 
-blocks_record: Any = None  #: compiled: a :class:`Blocks` from its :func:`plain` form
-#: compiled: the :class:`Workspace` over the backing arrays of :func:`workspace`
-workspace_record: Any = None
-#: compiled: a :class:`MeasuredBlocks` from its :func:`plain` form
-measured_record: Any = None
-measured_of: Any = None  #: compiled :func:`measured`
-#: compiled: True if the backing arrays hold every slice of :func:`workspace_record`
-workspace_fits: Any = None
+#: compiled: a :class:`RecordRef` to the :class:`Blocks` whose :func:`plain` form is given
+blocks_ref: Any = None
+#: compiled: a :class:`RecordRef` to the :class:`Rows` whose :func:`plain` form is given
+rows_ref: Any = None
+#: compiled: a :class:`RecordRef` to the :class:`Workspace` over the backing arrays of
+#: :func:`workspace`
+workspace_ref: Any = None
 live_record: Any = None  #: compiled: a :class:`Live` (None: None) from its :func:`plain` form
 #: compiled: a value with its arrays' reference counts detached (see ``_borrowed``)
 borrowed: Any = None
+#: the Python handle of a record held by reference (compiled path only; see the module
+#: docstring)
+RecordRef: Any = None
 
 if kernels.ENABLED:
     from numba.core import cgutils, types
+    from numba.experimental import structref
     from numba.extending import intrinsic, overload
     from numba.np.arrayobj import make_array
 
@@ -365,12 +349,55 @@ if kernels.ENABLED:
                       CircleArrays(*t[CIRCLE]), RodArrays(*t[ROD]), LineArrays(*t[LINE]),
                       FixedArrays(*t[FIXED]))
 
-    @njit(inline="always")
-    def _measured_record(t):  # pragma: no cover - compiled
-        """The :class:`MeasuredBlocks` whose :func:`plain` form is ``t``."""
-        circle, rod, line, fixed, wall = t
-        return MeasuredBlocks(CircleArrays(*circle), RodArrays(*rod), LineArrays(*line),
-                              FixedArrays(*fixed), WallArrays(*wall))
+    @structref.register
+    class RecordRefType(types.StructRef):
+        """Numba's type of a record held by reference: the fields of a named tuple, in a
+        reference-counted structure that crosses a call as one pointer."""
+
+        def preprocess_fields(self, fields: Any) -> Any:
+            return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+    class _RecordRef(structref.StructRefProxy):
+        """A record held by reference, as Python holds it: opaque (compiled code reads its
+        fields), immutable, and keeping its arrays alive (an array it holds cannot be
+        resized in place meanwhile: NumPy refuses, as the array is referenced)."""
+
+    structref.define_boxing(RecordRefType, _RecordRef)
+    RecordRef = _RecordRef
+
+    def _by_reference(record: Any) -> Any:
+        """``record`` (a named tuple) held by reference: a structure with the same fields
+        (compiled only)."""
+        raise NotImplementedError("compiled code only")
+
+    @overload(_by_reference)
+    def _typed_by_reference(record):  # (no annotations: Numba compares them with impl's)
+        """:func:`_by_reference` for the named tuple type of ``record``: a
+        :class:`RecordRefType` with its fields, each set from the field of that name."""
+        names = record.fields
+        ref_type = RecordRefType(list(zip(names, record.types, strict=True)))
+        lines = ["def impl(record):", "    ref = new(ref_type)"]
+        lines += [f"    ref.{name} = record.{name}" for name in names]
+        lines.append("    return ref")
+        scope = {"new": structref.new, "ref_type": ref_type}
+        exec("\n".join(lines), scope)  # (a field name is an attribute name: one line each)
+        return scope["impl"]
+
+    @njit
+    def _blocks_ref(t):  # pragma: no cover - compiled
+        return _by_reference(_blocks_record(t))
+
+    @njit
+    def _rows_ref(t):  # pragma: no cover - compiled
+        return _by_reference(Rows(*t))
+
+    _workspace_named = njit(inline="always")(_name_workspace)
+
+    @njit
+    def _workspace_ref(per_particle, per_entry, per_row, per_coordinate, dense):
+        # pragma: no cover - compiled
+        return _by_reference(_workspace_named(per_particle, per_entry, per_row,
+                                              per_coordinate, dense))
 
     def _live_of(t: Any) -> Any:
         """The :class:`Live` whose :func:`plain` form is ``t``, or None for None (compiled
@@ -392,9 +419,7 @@ if kernels.ENABLED:
                         ranged, comp_of, seen)
         return impl
 
-    measured_record = _measured_record
-    measured_of = njit(inline="always")(measured)
-    workspace_record = njit(_name_workspace)  # (called with *args: not inlinable)
-    workspace_fits = njit(_backing_fits)
-    blocks_record = _blocks_record
+    blocks_ref = _blocks_ref
+    rows_ref = _rows_ref
+    workspace_ref = _workspace_ref
     live_record = _live_of

@@ -173,13 +173,7 @@ NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 if ENABLED:
     from constrained_particles.jit import njit
     from constrained_particles.kernels import length_error, line_error, wall_element
-    from constrained_particles.records import (
-        State,
-        blocks_record,
-        borrowed,
-        measured_of,
-        measured_record,
-    )
+    from constrained_particles.records import State, borrowed
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -528,16 +522,16 @@ if ENABLED:
         each copy's step splitting (``kernels.group_pieces`` through the row map
         ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
         ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
-        rattle``, ``settings``, ``blocks``, ``rows``, workspace ``ws`` and, for split copies,
-        ``live``, all in the plain form it takes); then :func:`_crank_finish` on the new
-        state. Returns ``(status, copies ended)``; a status other than ``fused.OK`` leaves
-        the state and the warm start ``state.lam`` as they were (``lam_saved`` holds it
-        meanwhile; the caller takes the general path, which writes the same actions and
-        forces again)."""
+        rattle``, ``settings``, the pack's ``blocks``, ``rows`` and workspace ``ws`` by
+        reference and, for split copies, ``live``, all in the form it takes); then
+        :func:`_crank_finish` on the new state. Returns ``(status, copies ended)``; a status
+        other than ``fused.OK`` leaves the state and the warm start ``state.lam`` as they were
+        (``lam_saved`` holds it meanwhile; the caller takes the general path, which writes the
+        same actions and forces again)."""
         b_push, b_finish = borrowed((push, finish))  # (records of this call's own arguments)
         pr, fin = Push(*b_push), _finish_record(b_finish)
-        start = State(*state)  # (state, settings, blocks, rows, ws and live stay in the plain
-        # form in which fused_steps takes them)
+        start = State(*state)  # (state, settings and live stay in the plain form in which
+        # fused_steps takes them)
         x, v, inv_mass, lam = start.x, start.v, start.inv_mass, start.lam
         n, N = fin.task.n, fin.task.goal.shape[0]
         raw = pr.raw
@@ -568,14 +562,13 @@ if ENABLED:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]
             return status, 0
-        return status, _crank_finish(x_out, v_out, start.mass,
-                                     measured_of(blocks_record(blocks)), fin)
+        return status, _crank_finish(x_out, v_out, start.mass, blocks, fin)
 
-    # The entry points from Python take their records in plain form
-    # (constrained_particles.records.plain: typed in C, about half the cost of a named tuple's
-    # typing per array) and rebuild them here from borrowed arrays (records.borrowed: the
-    # caller keeps its arguments alive for the whole call, so the records cost no reference
-    # counting).
+    # The entry points from Python take the pack's blocks by reference (Packed.refs) and their
+    # own records in plain form (constrained_particles.records.plain: typed in C, about half
+    # the cost of a named tuple's typing per array), rebuilt here from borrowed arrays
+    # (records.borrowed: the caller keeps its arguments alive for the whole call, so the
+    # records cost no reference counting).
     @njit
     def _finish_record(t):  # pragma: no cover - compiled
         """The :class:`Finish` whose plain form is ``t``."""
@@ -586,8 +579,8 @@ if ENABLED:
     @njit(nogil=True)
     def _measures_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success):
         # pragma: no cover - compiled
-        task, blocks, rest = borrowed((task, blocks, rest))
-        _measures(x, v, mass, Goal(*task), measured_record(blocks), walls, Rest(*rest), stepped,
+        task, rest = borrowed((task, rest))
+        _measures(x, v, mass, Goal(*task), blocks, walls, Rest(*rest), stepped,
                   blocked, out, success)
 
     @njit(nogil=True)
@@ -609,21 +602,21 @@ if ENABLED:
 
     @njit(nogil=True)
     def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
-        blocks, finish = borrowed((blocks, finish))
-        return _crank_finish(x, v, mass, measured_record(blocks), _finish_record(finish))
+        finish = borrowed(finish)
+        return _crank_finish(x, v, mass, blocks, _finish_record(finish))
 
     @njit(nogil=True)
     def _measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out,
                                 success, view, obs):  # pragma: no cover - compiled
-        task, blocks, rest = borrowed((task, blocks, rest))
-        _measures_observe(x, v, mass, Goal(*task), measured_record(blocks), walls, Rest(*rest),
+        task, rest = borrowed((task, rest))
+        _measures_observe(x, v, mass, Goal(*task), blocks, walls, Rest(*rest),
                           stepped, blocked, out, success, View(*view), obs)
 
     @njit(nogil=True)
     def _crank_measures_observe_entry(crank, x, v, mass, task, blocks, walls, rest, stepped,
                                       out, success, view, obs):  # pragma: no cover - compiled
-        crank, task, blocks, rest = borrowed((crank, task, blocks, rest))
-        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), measured_record(blocks),
+        crank, task, rest = borrowed((crank, task, rest))
+        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), blocks,
                                 walls, Rest(*rest), stepped, out, success, View(*view), obs)
 
     @njit(nogil=True)

@@ -658,7 +658,7 @@ class ParticleTask(SteppedCopies):
             p, goal, (x, v, mass) = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            args = (x, v, mass, tuple(goal), p.plain_measured, walls, tuple(self._rest()),
+            args = (x, v, mass, tuple(goal), p.refs.blocks, walls, tuple(self._rest()),
                     self._mask(stepped), self._mask(blocked), out, success)
             if obs is None:
                 _measure.measures(*args)

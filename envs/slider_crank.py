@@ -188,7 +188,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
             tuple(self._crank_record(values[5], values[6], flags[1])), x, v, mass, tuple(goal),
-            p.plain_measured, False, tuple(self._rest()), self._mask(stepped), values[:5],
+            p.refs.blocks, False, tuple(self._rest()), self._mask(stepped), values[:5],
             flags[0], tuple(self._view()), obs)
         return m, obs
 
@@ -245,7 +245,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         count = _measure.crank_finish(
-            x, v, mass, p.plain_measured, self._finish_record(goal, values, flags, obs, before,
+            x, v, mass, p.refs.blocks, self._finish_record(goal, values, flags, obs, before,
                                                             steps, max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
 
@@ -278,7 +278,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         if (ready is None or track is None or before.dtype != np.float64
                 or before.shape != (N,) or ready[0].n != N * self.n):
             return None
-        p, state, settings, blocks = ready
+        p, state, settings = ready
+        refs = p.refs
         need, rows, frow = self._pushed[1:]
         if self._scratch is None or self._scratch[2].shape != lam.shape:
             self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
@@ -291,7 +292,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                                      max_steps)
         status, count = _measure.crank_step(
             tuple(push), *fused.integrator_args(self.integrator), tuple(state), self._scratch[2],
-            x_out, v_out, tuple(settings), blocks, p.plain_rows, p.plain_work, p.plain_live,
+            x_out, v_out, tuple(settings), refs.blocks, refs.rows, refs.work, p.plain_live,
             finish)
         reward, terminated, truncated, ended = values[7], flags[2], flags[3], flags[4]
         if status == _measure.NONFINITE:
