@@ -68,7 +68,7 @@ from .records import (
     Settings,
     State,
     borrowed,
-    live_record,
+    live_lists,
 )
 from .solver import DIRECT_MAX
 
@@ -175,7 +175,7 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     status, failed = fused_steps(code, runge_kutta, rattle, 0, h, h / pieces,
                                  pieces * int(steps), tuple(start), x_out, v_out,
                                  tuple(settings), refs.blocks, refs.rows, refs.work,
-                                 p.plain_live)
+                                 p.live_ref)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -353,6 +353,7 @@ if kernels.ENABLED:
         euler, 3 symplectic_euler). Numba compiles a version per pattern of None and drops the
         other branches from it, so a run compiles only the integrator families it steps
         with."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         x0, v0 = state.x, state.v
         n = x0.shape[0]
         m = state.lam.shape[0]
@@ -388,7 +389,7 @@ if kernels.ENABLED:
                 if flat:
                     _euler_flat(method == 0, h, x, v, a1, xs, vs)
                 for i in range(0 if flat else _count(live, LIVE_PARTICLES, n)):
-                    q = i if live is None else live.particles[i]
+                    q = i if live is None else lp[i]
                     hq = hp[q] if per_particle else h
                     for d in range(2):
                         if method == 0:
@@ -409,7 +410,7 @@ if kernels.ENABLED:
                     if stage > 0:  # its state: y + h sum_j A[stage, j] k_j (nonzero terms)
                         out_v = kv[stage - 1]
                         for i in range(_count(live, LIVE_PARTICLES, n)):
-                            q = i if live is None else live.particles[i]
+                            q = i if live is None else lp[i]
                             hq = hp[q] if per_particle else h
                             for d in range(2):
                                 px, pv = x[q, d], v[q, d]
@@ -427,7 +428,7 @@ if kernels.ENABLED:
                         return FALLBACK, step
                 # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
                 for i in range(_count(live, LIVE_PARTICLES, n)):
-                    q = i if live is None else live.particles[i]
+                    q = i if live is None else lp[i]
                     scale = (hp[q] if per_particle else h) / tab_d
                     for d in range(2):
                         tx, tv, first = 0.0, 0.0, True
@@ -448,7 +449,7 @@ if kernels.ENABLED:
                     return DIVERGED, step
             else:
                 for i in range(_count(live, LIVE_PARTICLES, n)):  # (waiting particles are
-                    q = i if live is None else live.particles[i]  # unchanged since they passed)
+                    q = i if live is None else lp[i]  # unchanged since they passed)
                     for d in range(2):
                         if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                             return DIVERGED, step
@@ -476,7 +477,8 @@ if kernels.ENABLED:
         records come as the pack holds them: ``blocks``, ``rows`` and the workspace ``ws``
         by reference (:attr:`~.packing.Packed.refs`), the others in
         :func:`~.records.plain` form, rebuilt here: ``State(*state)`` (its ``lam`` is the
-        warm start, updated in place), ``Settings(*settings)`` and ``live_record(live)``.
+        warm start, updated in place) and ``Settings(*settings)``; ``live`` (None, or the
+        pack's :attr:`~.packing.Packed.live_ref`) by reference too.
         With ``live`` (the workspace of :func:`_gate`; None: every
         particle takes every step), particle q takes ``counts[q]`` steps instead (``steps``
         is ignored): first the steps only some particles take (a particle with fewer waits,
@@ -491,11 +493,10 @@ if kernels.ENABLED:
         built here: a record is a temporary of this function.) ``live`` itself is never
         reassigned and is what the None tests read: Numba then drops the branch that a None
         ``live`` rules out, so a run without pieces compiles no masked step."""
-        b_hp, b_counts, b_state, b_out, b_live = borrowed((hp, counts, state, (x_out, v_out),
-                                                           live))
+        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
         start, xo, vo = State(*b_state), b_out[0], b_out[1]
         cfg, packed, rws, work = Settings(*settings), blocks, rows, ws
-        lv = live_record(b_live)
+        lv = live
         n = start.x.shape[0]
         m = start.lam.shape[0]
         per_particle = b_hp.shape[0] > 0

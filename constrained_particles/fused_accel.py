@@ -32,6 +32,7 @@ from .records import (
     ROD,
     SPRING,
     WALL,
+    live_lists,
 )
 from .solver import DIRECT_MAX
 
@@ -331,23 +332,24 @@ if kernels.ENABLED:
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
         all live), elements on particles that are not live are skipped, and so are those
         particles' rows of F (nothing reads them)."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         if live is None:
             F[:, :] = 0.0
         else:
             for i in range(live.sizes[LIVE_PARTICLES]):
-                q = live.particles[i]
+                q = lp[i]
                 F[q, 0] = 0.0
                 F[q, 1] = 0.0
         grav = blocks.gravity
         for ee in range(_count(live, LIVE_ELEMENTS + GRAVITY, grav.particles.shape[0])):
-            e = ee if live is None else live.elements.gravity[ee]
+            e = ee if live is None else el.gravity[ee]
             # (checked indices read as unsigned: no wraparound needed)
             q, k = np.uint64(grav.particles[e]), np.uint64(grav.block[e])
             F[q, 0] += mass[q] * grav.g[k, 0]
             F[q, 1] += mass[q] * grav.g[k, 1]
         const = blocks.constant
         for ee in range(_count(live, LIVE_ELEMENTS + CONSTANT, const.particles.shape[0])):
-            e = ee if live is None else live.elements.constant[ee]
+            e = ee if live is None else el.constant[ee]
             q = const.particles[e]
             F[q, 0] += const.force[e, 0]
             F[q, 1] += const.force[e, 1]
@@ -356,12 +358,12 @@ if kernels.ENABLED:
             _springs(x, v, F, spring)
         else:
             for ee in range(live.sizes[LIVE_ELEMENTS + SPRING]):
-                e = live.elements.spring[ee]
+                e = el.spring[ee]
                 add_spring(x, v, F, np.uint64(spring.i[e]), np.uint64(spring.j[e]),
                            spring.ks[e], spring.kd[e], spring.rest[e])
         ang = blocks.angular
         for ee in range(_count(live, LIVE_ELEMENTS + ANGULAR, ang.a.shape[0])):
-            e = ee if live is None else live.elements.angular[ee]
+            e = ee if live is None else el.angular[ee]
             a, b, c = ang.a[e], ang.b[e], ang.c[e]
             fax, fay, fbx, fby, fcx, fcy = angular_element(
                 x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
@@ -375,14 +377,14 @@ if kernels.ENABLED:
             F[c, 1] += fcy
         drag = blocks.drag
         for ee in range(_count(live, LIVE_ELEMENTS + DRAG, drag.particles.shape[0])):
-            e = ee if live is None else live.elements.drag[ee]
+            e = ee if live is None else el.drag[ee]
             q = drag.particles[e]
             F[q, 0] -= drag.kd[e] * v[q, 0]
             F[q, 1] -= drag.kd[e] * v[q, 1]
         wall = blocks.wall
         wn, wpar = wall.normal, wall.params
         for ee in range(_count(live, LIVE_ELEMENTS + WALL, wall.particles.shape[0])):
-            e = ee if live is None else live.elements.wall[ee]
+            e = ee if live is None else el.wall[ee]
             q, k = wall.particles[e], wall.block[e]
             fx, fy = wall_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], wn[k, 0], wn[k, 1],
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
@@ -390,7 +392,7 @@ if kernels.ENABLED:
             F[q, 1] += fy
         mouse = blocks.mouse
         for ee in range(_count(live, LIVE_ELEMENTS + MOUSE, mouse.particle.shape[0])):
-            e = ee if live is None else live.elements.mouse[ee]
+            e = ee if live is None else el.mouse[ee]
             if mouse.active[e]:
                 q = mouse.particle[e]
                 fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], mouse.anchor[e, 0],
@@ -402,10 +404,11 @@ if kernels.ENABLED:
     def _rows(x, v, blocks, C, Cdot, Jv, Jdv, live):  # pragma: no cover - compiled
         """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
         that are not ``live`` are skipped; None: all live)."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         circ = blocks.circle
         cc = circ.center
         for ee in range(_count(live, LIVE_ELEMENTS + CIRCLE, circ.particles.shape[0])):
-            e = ee if live is None else live.elements.circle[ee]
+            e = ee if live is None else el.circle[ee]
             q, r = circ.particles[e], circ.row[e]
             dx, dy = x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1]
             C[r], Cdot[r] = circle_row(dx, dy, v[q, 0], v[q, 1], circ.radius[e])
@@ -413,7 +416,7 @@ if kernels.ENABLED:
             Jdv[r, 0], Jdv[r, 1] = v[q, 0], v[q, 1]
         rod = blocks.rod
         for ee in range(_count(live, LIVE_ELEMENTS + ROD, rod.a.shape[0])):
-            e = ee if live is None else live.elements.rod[ee]
+            e = ee if live is None else el.rod[ee]
             a, b, r = rod.a[e], rod.b[e], rod.row[e]
             dx, dy = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1]
             dvx, dvy = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1]
@@ -423,7 +426,7 @@ if kernels.ENABLED:
         line = blocks.line
         ln, lpt = line.normal, line.point
         for ee in range(_count(live, LIVE_ELEMENTS + LINE, line.particles.shape[0])):
-            e = ee if live is None else live.elements.line[ee]
+            e = ee if live is None else el.line[ee]
             q, r = line.particles[e], line.row[e]
             C[r], Cdot[r] = line_row(x[q, 0], x[q, 1], v[q, 0], v[q, 1], ln[e, 0], ln[e, 1],
                                      lpt[e, 0], lpt[e, 1])
@@ -431,7 +434,7 @@ if kernels.ENABLED:
             Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
         fixed = blocks.fixed
         for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
-            e = ee if live is None else live.elements.fixed[ee]
+            e = ee if live is None else el.fixed[ee]
             q, r = fixed.particles[e], fixed.row[e]
             for axis in range(2):
                 C[r + axis] = x[q, axis] - fixed.point[e, axis]
@@ -443,18 +446,19 @@ if kernels.ENABLED:
     def _distance_error(x, blocks, live):  # pragma: no cover - compiled
         """Largest geometric constraint residual (m): how far any particle is off its wire,
         any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         worst = 0.0
         circ = blocks.circle
         cc = circ.center
         for ee in range(_count(live, LIVE_ELEMENTS + CIRCLE, circ.particles.shape[0])):
-            e = ee if live is None else live.elements.circle[ee]
+            e = ee if live is None else el.circle[ee]
             q = circ.particles[e]
             d = length_error(x[q, 0] - cc[e, 0], x[q, 1] - cc[e, 1], circ.radius[e])
             if not d <= worst:
                 worst = d
         rod = blocks.rod
         for ee in range(_count(live, LIVE_ELEMENTS + ROD, rod.a.shape[0])):
-            e = ee if live is None else live.elements.rod[ee]
+            e = ee if live is None else el.rod[ee]
             a, b = rod.a[e], rod.b[e]
             d = length_error(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], rod.length[e])
             if not d <= worst:
@@ -462,14 +466,14 @@ if kernels.ENABLED:
         line = blocks.line
         ln, lpt = line.normal, line.point
         for ee in range(_count(live, LIVE_ELEMENTS + LINE, line.particles.shape[0])):
-            e = ee if live is None else live.elements.line[ee]
+            e = ee if live is None else el.line[ee]
             q = line.particles[e]
             d = line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1], lpt[e, 0], lpt[e, 1])
             if not d <= worst:
                 worst = d
         fixed = blocks.fixed
         for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
-            e = ee if live is None else live.elements.fixed[ee]
+            e = ee if live is None else el.fixed[ee]
             q = fixed.particles[e]
             for axis in range(2):
                 d = abs(x[q, axis] - fixed.point[e, axis])
@@ -483,11 +487,12 @@ if kernels.ENABLED:
         component (with ``live``, only those of live particles: see :func:`_gate`); False if
         any solve is singular, ill-posed or does not converge (the caller then uses the
         reference solver)."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         cols, nnz, comp_rows, comp_ptr = rows.cols, rows.nnz, rows.comp_rows, rows.comp_ptr
         w2, Jv, work, A, tmp = ws.w2, ws.Jv, ws.work, ws.A, ws.tmp
         ncomp = comp_ptr.shape[0] - 1
         for kk in range(_count(live, LIVE_COMPONENTS, ncomp)):
-            k = kk if live is None else live.components[kk]
+            k = kk if live is None else lc[kk]
             start, stop = comp_ptr[k], comp_ptr[k + 1]
             s = stop - start
             if s <= DIRECT_MAX:
@@ -609,6 +614,7 @@ if kernels.ENABLED:
         """``qddot = W (Q + J^T lam)`` (m/s^2) at ``(x, v)`` into ``out`` (with ``live``, of
         the live particles only: see :func:`_gate`), the multipliers into ``state.lam`` (warm
         start in); False if the solve failed."""
+        lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         mass, inv_mass, lam = state.mass, state.inv_mass, state.lam
         _forces(x, v, mass, out, blocks, live)
         C, Cdot, Jv, Jdv, b, w2 = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.b, ws.w2
@@ -618,7 +624,7 @@ if kernels.ENABLED:
             _rows(x, v, blocks, C, Cdot, Jv, Jdv, live)
             ks, kd = settings.ks, settings.kd
             for rr in range(_count(live, LIVE_ROWS, m)):  # b = -Jdot qdot - J W Q
-                r = rr if live is None else live.rows[rr]  # - ks C - kd Cdot
+                r = rr if live is None else lr[rr]  # - ks C - kd Cdot
                 acc = 0.0
                 for k in range(nnz[r]):
                     c = cols[r, k]
@@ -628,7 +634,7 @@ if kernels.ENABLED:
             if not _solve_components(rows, ws, b, lam, settings.tol, live):
                 return False
             for rr in range(_count(live, LIVE_ROWS, m)):  # Q += J^T lam
-                r = rr if live is None else live.rows[rr]
+                r = rr if live is None else lr[rr]
                 for k in range(nnz[r]):
                     c = cols[r, k]
                     out[c // 2, c % 2] += Jv[r, k] * lam[r]
@@ -636,7 +642,7 @@ if kernels.ENABLED:
             _scale_flat(out, inv_mass)
             return True
         for i in range(_count(live, LIVE_PARTICLES, x.shape[0])):
-            q = i if live is None else live.particles[i]
+            q = i if live is None else lp[i]
             out[q, 0] *= inv_mass[q]
             out[q, 1] *= inv_mass[q]
         return True

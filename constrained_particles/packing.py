@@ -49,6 +49,7 @@ from .records import (
     SpringArrays,
     WallArrays,
     blocks_ref,
+    live_ref,
     plain,
     rows_ref,
     workspace,
@@ -297,7 +298,7 @@ class Packed:
         self.backing = workspace(n, self.m, DIRECT_MAX)
         self.work = workspace_view(self.backing)
         self._live: Live | None = None  # (made on first use: see live)
-        self._plain_live: tuple | None = None
+        self._live_ref: Any = None
         self._refs: PackRefs | None = None  # (made on first use: see refs)
 
     def _build_rows(self, system: ParticleSystem) -> None:
@@ -399,15 +400,16 @@ class Packed:
                               np.zeros(LIVE_ELEMENTS + len(ELEMENT_TYPES) + 1, np.int64),
                               Elements(*(np.zeros(len(b[0]), np.int64) for b in self.blocks)),
                               ptr, ranged, comp_of, np.zeros(ncomp, bool))
-            self._plain_live = plain(self._live)
         return self._live
 
     @property
-    def plain_live(self) -> tuple:
-        """:attr:`live` as it crosses into compiled code (:func:`~.records.plain`)."""
-        if self._plain_live is None:
-            self.live  # noqa: B018 (made with it)
-        return self._plain_live
+    def live_ref(self) -> Any:
+        """:attr:`live` as compiled code takes it: held by reference
+        (:class:`~.records.RecordRef`; made on first use)."""
+        if self._live_ref is None:
+            self.live  # noqa: B018 (its arrays)
+            self._live_ref = live_ref(plain(self._live))
+        return self._live_ref
 
     def _live_index(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What ``_gate`` needs to list the live rows, components and elements from the live

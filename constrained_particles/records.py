@@ -13,10 +13,10 @@ builds them once per topology (:class:`~.packing.Packed`).
 every array in it, and so does every compiled function that passes a record on. Numba types a
 reference in well under a microsecond, where the same fields as a tuple of some fifty arrays
 cost several microseconds a call, and the compiled code that moves one pointer is smaller (and
-faster to compile) than code moving fifty array structures. The per-call records (the state,
-the settings, a split step's live set) cross as plain tuples (:func:`plain`) and each entry
-point rebuilds them (``State(*state)``, :func:`live_record`): Numba types a plain tuple of
-arrays in C but a named tuple in Python.
+faster to compile) than code moving fifty array structures. A split step's live set
+(:class:`Live`) crosses the same way (:func:`live_ref`). The per-call records (the state, the
+settings) cross as plain tuples (:func:`plain`) and each entry point rebuilds them
+(``State(*state)``): Numba types a plain tuple of arrays in C but a named tuple in Python.
 
 Units are SI: positions in m, velocities in m/s, masses in kg, forces in N. Index arrays are
 int64 particle indices (global, into the system's state) and are immutable once packed.
@@ -294,7 +294,11 @@ rows_ref: Any = None
 #: compiled: a :class:`RecordRef` to the :class:`Workspace` over the backing arrays of
 #: :func:`workspace`
 workspace_ref: Any = None
-live_record: Any = None  #: compiled: a :class:`Live` (None: None) from its :func:`plain` form
+#: compiled: a :class:`RecordRef` to the :class:`Live` whose :func:`plain` form is given
+live_ref: Any = None
+#: compiled: a live set's ``(particles, rows, components, elements)`` (four Nones for None),
+#: read once by a kernel before its loops
+live_lists: Any = None
 #: compiled: a value with its arrays' reference counts detached (see ``_borrowed``)
 borrowed: Any = None
 #: the Python handle of a record held by reference (compiled path only; see the module
@@ -419,7 +423,26 @@ if kernels.ENABLED:
                         ranged, comp_of, seen)
         return impl
 
+    def _live_lists(live: Any) -> Any:
+        """``(live.particles, live.rows, live.components, live.elements)``, or four Nones
+        for a None ``live`` (compiled only). A kernel reads them once, before its loops: a
+        field of a record held by reference is loaded (and its reference counted) at every
+        read."""
+        raise NotImplementedError("compiled code only")
+
+    @overload(_live_lists, inline="always")
+    def _typed_live_lists(live):  # (no annotations: Numba compares them with impl's)
+        if isinstance(live, types.NoneType):
+            return lambda live: (None, None, None, None)
+        return lambda live: (live.particles, live.rows, live.components, live.elements)
+
+    live_lists = _live_lists
     blocks_ref = _blocks_ref
     rows_ref = _rows_ref
     workspace_ref = _workspace_ref
-    live_record = _live_of
+
+    @njit
+    def _live_ref(t):  # pragma: no cover - compiled
+        return _by_reference(_live_of(t))
+
+    live_ref = _live_ref

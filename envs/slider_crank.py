@@ -292,7 +292,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                                      max_steps)
         status, count = _measure.crank_step(
             tuple(push), *fused.integrator_args(self.integrator), tuple(state), self._scratch[2],
-            x_out, v_out, tuple(settings), refs.blocks, refs.rows, refs.work, p.plain_live,
+            x_out, v_out, tuple(settings), refs.blocks, refs.rows, refs.work, p.live_ref,
             finish)
         reward, terminated, truncated, ended = values[7], flags[2], flags[3], flags[4]
         if status == _measure.NONFINITE:
