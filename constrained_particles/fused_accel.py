@@ -89,9 +89,9 @@ if kernels.ENABLED:
         O(1) per array (and per mouse spring) on a plain call: the index, row, column and run
         arrays were checked when the pack was built (``Packed._consistent``) and are immutable,
         so only what an in-place edit can change is checked here, once per call, before any
-        array is read through an index. The mouse springs' ``active`` flags reach the kernel as
-        a copy made by :func:`~.fused.prepare`: another thread cannot switch one on after this
-        check."""
+        array is read through an index. The mouse springs' particles and ``active`` flags the
+        kernel reads are the pack's own copies (``Packed.take_mouse``, under the system's step
+        lock): another thread cannot switch one on, or move it, after this check."""
         grav, wall, drag = blocks.gravity, blocks.wall, blocks.drag
         if (grav.block.shape[0] != grav.particles.shape[0]
                 or blocks.constant.force.shape[0] != blocks.constant.particles.shape[0]

@@ -373,10 +373,10 @@ class Packed:
 
     def take_mouse(self) -> bool:
         """Copy the mouse springs' particles and ``active`` flags into the ones the compiled
-        code reads (:attr:`PackRefs.mouse_particle`, ``mouse_active``), before each call:
-        another thread can then not switch a spring on, or move it to another particle,
-        after the call has checked them. False (nothing copied) if an array's shape changed
-        in place."""
+        code reads (:attr:`PackRefs.mouse_particle`, ``mouse_active``), before each call and
+        with the system's step lock held (``ParticleSystem.stepping``): another thread can
+        then not switch a spring on, or move it to another particle, after the call has
+        checked them. False (nothing copied) if an array's shape changed in place."""
         refs, mouse = self.refs, self.blocks.mouse
         if not len(refs.mouse_active):
             return True

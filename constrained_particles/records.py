@@ -403,25 +403,12 @@ if kernels.ENABLED:
         return _by_reference(_workspace_named(per_particle, per_entry, per_row,
                                               per_coordinate, dense))
 
-    def _live_of(t: Any) -> Any:
-        """The :class:`Live` whose :func:`plain` form is ``t``, or None for None (compiled
-        only: see :func:`_typed_live`)."""
-        raise NotImplementedError("compiled code only")
-
-    @overload(_live_of)
-    def _typed_live(t):  # (no annotations: Numba compares the signature with impl's)
-        """:func:`_live_of` for the type of ``t``: None stays None (the result is then of
-        type None, so each kernel it reaches drops its branch for the masked step; an
-        ``if t is None`` inside one compiled function would make the result Optional, and
-        every kernel compile both branches), a plain tuple becomes a :class:`Live`."""
-        if isinstance(t, types.NoneType):
-            return lambda t: None
-
-        def impl(t):  # pragma: no cover - compiled
-            mask, particles, rows, components, sizes, elements, ptr, ranged, comp_of, seen = t
-            return Live(mask, particles, rows, components, sizes, Elements(*elements), ptr,
-                        ranged, comp_of, seen)
-        return impl
+    @njit(inline="always")
+    def _live_record(t):  # pragma: no cover - compiled
+        """The :class:`Live` whose :func:`plain` form is ``t`` (fields in record order)."""
+        mask, particles, rows, components, sizes, elements, ptr, ranged, comp_of, seen = t
+        return Live(mask, particles, rows, components, sizes, Elements(*elements), ptr, ranged,
+                    comp_of, seen)
 
     def _live_lists(live: Any) -> Any:
         """``(live.particles, live.rows, live.components, live.elements)``, or four Nones
@@ -443,6 +430,6 @@ if kernels.ENABLED:
 
     @njit
     def _live_ref(t):  # pragma: no cover - compiled
-        return _by_reference(_live_of(t))
+        return _by_reference(_live_record(t))
 
     live_ref = _live_ref

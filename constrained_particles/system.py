@@ -6,6 +6,8 @@ import copy
 import math
 import numbers
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -361,6 +363,18 @@ class ParticleSystem:
         lock = self._step_lock()
         try:
             self._step(dt, integrate, method, int(steps), project)
+        finally:
+            lock.release()
+
+    @contextmanager
+    def stepping(self) -> Iterator[None]:
+        """Hold this system's step lock for a block that steps it by other means (an
+        environment's own compiled step, say): RuntimeError at once, as for :meth:`step`, if
+        another thread is stepping the system. The fused kernels of one system share its
+        pack's buffers, so a call into them from outside :meth:`step` belongs in this block."""
+        lock = self._step_lock()
+        try:
+            yield
         finally:
             lock.release()
 

@@ -270,6 +270,13 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and self._rest_owned()
                 and _owned(self.action, np.float64, (N, 1))):
             return None
+        with s.stepping():  # (one step call at a time: the pack's buffers are shared)
+            return self._crank_call(actions, steps, max_steps)
+
+    def _crank_call(self, actions: np.ndarray, steps: np.ndarray, max_steps: int
+                    ) -> tuple | None:
+        """:meth:`_step_all` once its O(1) checks passed, the system's step lock held."""
+        N, s, act = self.num_envs, self.system, self.actuator
         s.check_arrays()
         lam = s.constraint_solver.lam
         ready = fused.prepare(s, lam, s.residual_limit)

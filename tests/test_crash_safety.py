@@ -389,6 +389,45 @@ def test_two_threads_stepping_one_system_get_a_clear_error() -> None:
     np.testing.assert_array_equal(system.v, reference.v)
 
 
+
+def test_an_env_step_while_its_system_is_being_stepped_gets_a_clear_error() -> None:
+    """SliderCrank's native vector env steps every copy in one compiled call that shares the
+    system's pack buffers with ``ParticleSystem.step``, so it takes the system's step lock
+    too: while another caller holds it (``system.stepping()``), a step raises the same
+    RuntimeError and the state stays as it was; once released, the env steps."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the ids)
+
+    env = gym.make_vec("SliderCrank-v0", num_envs=4, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    system = env.unwrapped.task.system
+    action = np.full(env.action_space.shape, 0.5, np.float32)
+    env.step(action)
+    x, v, t = system.x.copy(), system.v.copy(), system.t
+    holder_ready, release = threading.Event(), threading.Event()
+
+    def holder() -> None:
+        with system.stepping():
+            holder_ready.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=holder)
+    thread.start()
+    try:
+        holder_ready.wait(10)
+        with pytest.raises(RuntimeError, match="another thread"):
+            env.step(action)
+        np.testing.assert_array_equal(system.x, x)
+        np.testing.assert_array_equal(system.v, v)
+        assert system.t == t
+    finally:
+        release.set()
+        thread.join()
+    env.step(action)
+    assert system.t > t
+    env.close()
+
 if __name__ == "__main__":
     if sys.argv[1] == "list":
         c = int(sys.argv[2])
