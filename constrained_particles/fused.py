@@ -495,8 +495,7 @@ if kernels.ENABLED:
         ``live`` rules out, so a run without pieces compiles no masked step."""
         b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
         start, xo, vo = State(*b_state), b_out[0], b_out[1]
-        cfg, packed, rws, work = Settings(*settings), blocks, rows, ws
-        lv = live
+        cfg = Settings(*settings)
         n = start.x.shape[0]
         m = start.lam.shape[0]
         per_particle = b_hp.shape[0] > 0
@@ -507,16 +506,16 @@ if kernels.ENABLED:
         if per_particle and (rattle is not None or b_hp.shape[0] != n):
             return FALLBACK, 0
         if live is not None and (not per_particle or b_counts.shape[0] != n
-                                 or not _live_fits(lv, packed, n, m,
-                                                   rws.comp_ptr.shape[0] - 1)):
+                                 or not _live_fits(live, blocks, n, m,
+                                                   rows.comp_ptr.shape[0] - 1)):
             return FALLBACK, 0
         if live is None and b_counts.shape[0] != 0:
             return FALLBACK, 0
-        if not _check_inputs(packed, rws, n, m, start.lam, b_counts):
+        if not _check_inputs(blocks, rows, n, m, start.lam, b_counts):
             return FALLBACK, 0
-        if not _work_fits(work, n, m):
+        if not _work_fits(ws, n, m):
             return FALLBACK, 0
-        w2, tmp, inv_mass = work.w2, work.tmp, start.inv_mass
+        w2, tmp, inv_mass = ws.w2, ws.tmp, start.inv_mass
         for q in range(n):
             w2[2 * q] = inv_mass[q]
             w2[2 * q + 1] = inv_mass[q]
@@ -524,22 +523,22 @@ if kernels.ENABLED:
             tmp[2 * q + 1] = 0.0
         if live is None:
             return _steps(method, runge_kutta, rattle, steps, h, b_hp, b_counts, start, xo, vo,
-                          cfg, packed, rws, work, None)
+                          cfg, blocks, rows, ws, None)
         if n == 0:
             return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
             return _steps(method, runge_kutta, rattle, total, h, b_hp, b_counts, start, xo, vo,
-                          cfg, packed, rws, work, None)
+                          cfg, blocks, rows, ws, None)
         # the steps only some particles take come first, while their data are likely still in
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
         status, done = _steps(method, runge_kutta, rattle, total - first, h, b_hp,
-                              b_counts - first, start, work.x_mid, work.v_mid, cfg, packed, rws,
-                              work, lv)
+                              b_counts - first, start, ws.x_mid, ws.v_mid, cfg, blocks, rows,
+                              ws, live)
         if status != OK:
             return status, done
-        middle = State(work.x_mid, work.v_mid, start.mass, start.inv_mass, start.lam)
+        middle = State(ws.x_mid, ws.v_mid, start.mass, start.inv_mass, start.lam)
         status, more = _steps(method, runge_kutta, rattle, first, h, b_hp, b_counts, middle, xo,
-                              vo, cfg, packed, rws, work, None)
+                              vo, cfg, blocks, rows, ws, None)
         return status, done + more
