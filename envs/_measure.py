@@ -523,7 +523,8 @@ if ENABLED:
         ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
         ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
         rattle``, ``settings``, the pack's ``blocks``, ``rows`` and workspace ``ws`` by
-        reference and, for split copies, ``live``, all in the form it takes); then
+        reference and each particle's step count through ``live``, all in the form it
+        takes); then
         :func:`_crank_finish` on the new state. Returns ``(status, copies ended)``; a status
         other than ``fused.OK`` leaves the state and the warm start ``state.lam`` as they were
         (``lam_saved`` holds it meanwhile; the caller takes the general path, which writes the
@@ -543,21 +544,19 @@ if ENABLED:
         _crank_push(x.reshape((N, n, 2)), pr.action, pr.max_force,
                     pr.force.reshape((N, 1, 2)))
         rows_of = pr.rows
-        largest = _group_pieces(v, pr.force, pr.frow, inv_mass, n, pr.horizon, pr.dt,
-                                pr.travel, pr.max_pieces, pr.need, rows_of)
+        _group_pieces(v, pr.force, pr.frow, inv_mass, n, pr.horizon, pr.dt,
+                      pr.travel, pr.max_pieces, pr.need, rows_of)
         for i in range(lam.shape[0]):
             lam_saved[i] = lam[i]
         hp, counts, dt, substeps = pr.hp, pr.counts, pr.dt, pr.substeps
-        if largest == 1:
-            status, _ = fused_steps(method, runge_kutta, rattle, substeps, dt, hp[:0],
-                                     counts[:0], state, x_out, v_out, settings, blocks, rows,
-                                     ws, None)
-        else:
-            for q in range(rows_of.shape[0]):
-                hp[q] = dt / rows_of[q]
-                counts[q] = rows_of[q] * substeps
-            status, _ = fused_steps(method, runge_kutta, rattle, substeps * 0, dt, hp, counts,
-                                     state, x_out, v_out, settings, blocks, rows, ws, live)
+        # one call, with per-particle steps even when no copy splits (all counts equal: the
+        # fused step then takes them unmasked, the same arithmetic, as dt / 1 == dt): only this
+        # version of the fused step is compiled for the crank, not a second one without them
+        for q in range(rows_of.shape[0]):
+            hp[q] = dt / rows_of[q]
+            counts[q] = rows_of[q] * substeps
+        status, _ = fused_steps(method, runge_kutta, rattle, substeps * 0, dt, hp, counts,
+                                 state, x_out, v_out, settings, blocks, rows, ws, live)
         if status != _OK:
             for i in range(lam.shape[0]):
                 lam[i] = lam_saved[i]
