@@ -146,7 +146,9 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                 a, b = i[s], j[s]
                 if a < 0 or a >= n or b < 0 or b >= n:
                     raise IndexError("DampedSpring: particle index out of range")
-                add_spring(x, v, F, a, b, ks[s], kd[s], rest[s])
+                # (unsigned, as the fused kernels pass them: checked >= 0 above, and one
+                # compiled version of add_spring serves both)
+                add_spring(x, v, F, np.uint64(a), np.uint64(b), ks[s], kd[s], rest[s])
 
         def spring_forces(x: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray,
                           ks: np.ndarray, kd: np.ndarray, rest: np.ndarray,
