@@ -43,6 +43,10 @@ class Goal(NamedTuple):
     tolerance: float  #: goal tolerance (m)
     rest_speed: float  #: rest speed (m/s)
     hold_steps: int  #: consecutive settled steps for success
+    #: NaN: the distance to the goal is along x (the tracked mean x to ``goal``); else the
+    #: goal is the point ``(goal, height)`` (m) and the distance is from the tracked particles'
+    #: mean point to it
+    height: float
 
 
 class Rest(NamedTuple):
@@ -195,11 +199,14 @@ if ENABLED:
         averages below ``task.rest_speed``, not ``blocked`` and touching no wall.
 
         ``task.track`` holds the particles (within a copy) whose mean x, ``track_scale``
-        times their sum, is driven to ``task.goal``. ``walls``: compute the walls' contact
-        force and let a step touching a wall restart the count; ``blocked`` copies restart it
-        too.
+        times their sum, is driven to ``task.goal`` (or, with a ``task.height`` that is not
+        NaN, whose mean point is driven to ``(goal, height)``). ``walls``: compute the walls'
+        contact force and let a step touching a wall restart the count; ``blocked`` copies
+        restart it too.
         """
         n, goal, track, track_scale = task.n, task.goal, task.track, task.track_scale
+        height = task.height
+        planar = not math.isnan(height)
         N = goal.shape[0]
         distance, speed, energy, residual, wall_force = out[0], out[1], out[2], out[3], out[4]
         for i in range(N):
@@ -212,9 +219,14 @@ if ENABLED:
             speed[i] = math.sqrt(s2 * (1.0 / n))
             energy[i] = 0.5 * e2
             t = 0.0
+            ty = 0.0
             for j in range(track.shape[0]):
                 t += x[i * n + track[j], 0]
-            distance[i] = abs(t * track_scale - goal[i])
+                ty += x[i * n + track[j], 1]
+            if planar:
+                distance[i] = math.hypot(t * track_scale - goal[i], ty * track_scale - height)
+            else:
+                distance[i] = abs(t * track_scale - goal[i])
             residual[i] = 0.0
             wall_force[i] = 0.0
         circ, rod, line, fixed = blocks.circle, blocks.rod, blocks.line, blocks.fixed

@@ -235,6 +235,19 @@ class ParticleTask(SteppedCopies):
             raise NotImplementedError
         return x[:, idx, 0].sum(axis=1) * (1.0 / len(idx))
 
+    def goal_distance(self, x: np.ndarray) -> np.ndarray:
+        """Distance (m) to the goal per copy, from positions (num_envs, n, 2): along x, from
+        :meth:`tracked` to ``goal``; or, for a task with :attr:`planar_goal`, from the mean point
+        of :attr:`tracked_particles` to the point ``(goal, goal_height)``."""
+        if not self.planar_goal:
+            return np.abs(self.tracked(x) - self.goal)
+        idx = self.tracked_particles
+        if idx is None:
+            raise NotImplementedError
+        scale = 1.0 / len(idx)
+        return np.hypot(x[:, idx, 0].sum(axis=1) * scale - self.goal,
+                        x[:, idx, 1].sum(axis=1) * scale - self.goal_height)
+
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """Reward per copy from the measures of :meth:`measure`."""
         raise NotImplementedError
@@ -592,7 +605,8 @@ class ParticleTask(SteppedCopies):
     def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal:
         """The success test as the compiled measures read it (``track``: :meth:`_tracking`)."""
         return _measure.Goal(self.n, self.goal, track[0], track[1], float(self.goal_tolerance),
-                             float(self.rest_speed), int(self.hold_steps))
+                             float(self.rest_speed), int(self.hold_steps),
+                             float(self.goal_height) if self.planar_goal else math.nan)
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -672,7 +686,7 @@ class ParticleTask(SteppedCopies):
             err = c.distance_error(s.x)
             if err.size:
                 np.maximum(residual, err.reshape(N, -1).max(axis=1), out=residual)
-        distance = np.abs(self.tracked(self.positions()) - self.goal)
+        distance = self.goal_distance(self.positions())
         speed = np.sqrt(v2.sum(axis=1) * (1.0 / n))
         wall_force = np.zeros(N)
         if walls:
@@ -730,8 +744,12 @@ class ParticleTask(SteppedCopies):
                   f"{distance:.3f} m   held {self.hold[i]}/{self.hold_steps}")
         return one, [marker], status
 
-    #: Height (m) at which the goal marker is drawn (subclasses set it).
+    #: Height (m) at which the goal marker is drawn (subclasses set it); the goal point's y
+    #: for a task with :attr:`planar_goal`.
     goal_height: float = 0.0
+    #: False: the goal is the x coordinate ``goal`` and the distance is along x (see
+    #: :meth:`goal_distance`); True: the goal is the point ``(goal, goal_height)``.
+    planar_goal: ClassVar[bool] = False
 
 
 def _measured(out: np.ndarray, success: np.ndarray) -> dict[str, np.ndarray]:

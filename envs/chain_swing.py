@@ -66,6 +66,7 @@ class ChainSwing(ParticleTask):
     """
 
     force_dim = 1
+    planar_goal = True  # (the distance is the tip's, to the point (goal, goal_height))
 
     def __init__(self, num_envs: int = 1, *, action_mode: str = "force",
                  target: str = "lateral", links: int = 4, link: float = 0.15,
@@ -110,7 +111,8 @@ class ChainSwing(ParticleTask):
         self.goal_height = -self.length if lateral else self.length
         reach = self.length + 0.2
         self.view = (-self.travel - 0.3, -reach, self.travel + 0.3, reach)
-        #: The tracked coordinate is the tip's x (m).
+        #: The tracked particle is the tip, driven to the point (goal, goal_height): the
+        #: measures' ``distance`` is the tip's distance to it (m; ``planar_goal``).
         self.tracked_particles = np.array([self.links])
         #: The per-step distance cost at the farthest (m): the tip is within ``length`` of the
         #: carrier, the carrier and the target within ``travel`` of x = 0.
@@ -182,14 +184,7 @@ class ChainSwing(ParticleTask):
 
     def tip_distance(self, x: np.ndarray) -> np.ndarray:
         """Distance (m) from the tip to the target point ``(goal, goal_height)``, per copy."""
-        tip = x[:, -1]
-        return np.hypot(tip[:, 0] - self.goal, tip[:, 1] - self.goal_height)
-
-    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The common measures, with ``distance`` the tip's distance to the target point (m)."""
-        m = super().measure(None)
-        m["distance"] = self.tip_distance(self.positions())
-        return track_success(self, m, stepped)
+        return self.goal_distance(x)  # (the tip is the tracked particle)
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """``-distance - 0.1 speed + 10 * is_success``."""
