@@ -516,11 +516,19 @@ if kernels.ENABLED:
         if not _work_fits(ws, n, m):
             return FALLBACK, 0
         w2, tmp, inv_mass = ws.w2, ws.tmp, start.inv_mass
-        for q in range(n):
-            w2[2 * q] = inv_mass[q]
-            w2[2 * q + 1] = inv_mass[q]
-            tmp[2 * q] = 0.0
-            tmp[2 * q + 1] = 0.0
+        if rattle is None:  # w2 and tmp are read only at the constraint rows' coordinates:
+            cols, nnz = rows.cols, rows.nnz  # O(rows) instead of O(particles) per call
+            for r in range(m):
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    w2[c] = inv_mass[c // 2]
+                    tmp[c] = 0.0
+        else:  # RATTLE's corrections run over every coordinate
+            for q in range(n):
+                w2[2 * q] = inv_mass[q]
+                w2[2 * q + 1] = inv_mass[q]
+                tmp[2 * q] = 0.0
+                tmp[2 * q + 1] = 0.0
         if live is None:
             return _steps(method, runge_kutta, rattle, steps, h, b_hp, b_counts, start, xo, vo,
                           cfg, blocks, rows, ws, None)

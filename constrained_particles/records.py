@@ -203,8 +203,10 @@ class Workspace(NamedTuple):
     Cdot: np.ndarray  #: (m,)
     b: np.ndarray  #: (m,) right-hand side
     dl: np.ndarray  #: (m,) multiplier corrections (RATTLE)
-    w2: np.ndarray  #: (2 n,) inverse mass per coordinate
-    tmp: np.ndarray  #: (2 n,) zeroed per-coordinate buffer
+    #: (2 n,) inverse mass per coordinate (set by each fused call at the constraint rows'
+    #: coordinates, the only ones read, or at every coordinate for RATTLE)
+    w2: np.ndarray
+    tmp: np.ndarray  #: (2 n,) per-coordinate buffer, zero where read at the start of a call
     A: np.ndarray  #: (DIRECT_MAX, DIRECT_MAX) one dense component block
     work: np.ndarray  #: (DIRECT_MAX,) its solve's vector
 
