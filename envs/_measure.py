@@ -6,8 +6,9 @@ in one call each, with no Python between:
 
 - :func:`measures`: per copy, the RMS particle speed (m/s), kinetic energy (J), the largest
   geometric constraint residual (m, see ``Constraint.distance_error``), the distance (m) from
-  the tracked x coordinate (the mean x of some particles) to the goal, optionally the walls'
-  total contact force (N), and the update of the count of consecutive steps at the goal;
+  the tracked x coordinate (the mean x of some particles) or point to the goal, optionally the
+  walls' total contact force (N), and the update of the count of consecutive steps at the goal
+  (the rest test);
 - :func:`observe`: the float32 observation (normalized positions, velocities, goal), clipped.
 
 They read the system's blocks through :func:`constrained_particles.fused.pack`, so they see
@@ -47,6 +48,11 @@ class Goal(NamedTuple):
     #: goal is the point ``(goal, height)`` (m) and the distance is from the tracked particles'
     #: mean point to it
     height: float
+    #: the first ``count`` particles of a copy (all ``n`` but in a task with extra particles,
+    #: such as ClothPin's anchors) make its speed (their RMS speed) and its rest test
+    count: int
+    #: with ``walls``, a copy touching a wall is not at rest (its hold count restarts)
+    wall_rest: bool
 
 
 class Rest(NamedTuple):
@@ -150,8 +156,6 @@ def packed(system: Any) -> Any:
 
 
 measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is False)
-#: the compiled rest test and hold count (None when ``ENABLED`` is False)
-advance_hold: Any = None
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
 #: ClothPin's compiled observation (None when ``ENABLED`` is False)
 pin_observe: Any = None
@@ -205,7 +209,7 @@ if ENABLED:
         restart it too.
         """
         n, goal, track, track_scale = task.n, task.goal, task.track, task.track_scale
-        height = task.height
+        height, count = task.height, task.count
         planar = not math.isnan(height)
         N = goal.shape[0]
         distance, speed, energy, residual, wall_force = out[0], out[1], out[2], out[3], out[4]
@@ -214,9 +218,10 @@ if ENABLED:
             e2 = 0.0
             for k in range(i * n, (i + 1) * n):
                 w = v[k, 0] * v[k, 0] + v[k, 1] * v[k, 1]
-                s2 += w
+                if k - i * n < count:
+                    s2 += w
                 e2 += mass[k] * w
-            speed[i] = math.sqrt(s2 * (1.0 / n))
+            speed[i] = math.sqrt(s2 * (1.0 / count))
             energy[i] = 0.5 * e2
             t = 0.0
             ty = 0.0
@@ -266,19 +271,19 @@ if ENABLED:
                     for k in range(i * n, (i + 1) * n):
                         f += abs(fx[k])
                     wall_force[i] = f
-        _advance_hold(v, n, n, distance, blocked, wall_force, rest, stepped, task.tolerance,
-                      task.rest_speed, task.hold_steps, success)
+        _advance_hold(v, n, count, distance, blocked, wall_force, walls and task.wall_rest,
+                      rest, stepped, task.tolerance, task.rest_speed, task.hold_steps, success)
 
     @njit
-    def _advance_hold(v, n, count, distance, blocked, wall_force, rest, stepped, tolerance,
-                      rest_speed, hold_steps, success):  # pragma: no cover - compiled
+    def _advance_hold(v, n, count, distance, blocked, wall_force, wall_rest, rest, stepped,
+                      tolerance, rest_speed, hold_steps, success):  # pragma: no cover
         """The rest test (``ParticleTask.advance_rest`` and the hold count): each ``stepped``
         copy's moving average velocities move ``alpha`` of the way to ``v`` (``rest = (hold,
         mean_v, alpha)``); the copy is settled, and its count advances (else restarts at 0),
         if ``distance`` (m) is below ``tolerance``, the RMS of the averages of its first
-        ``count`` particles below ``rest_speed`` (m/s), it is not ``blocked`` and its
-        ``wall_force`` (N) is not positive. Writes ``success = hold >= hold_steps`` for every
-        copy."""
+        ``count`` particles below ``rest_speed`` (m/s), it is not ``blocked`` and (with
+        ``wall_rest``) its ``wall_force`` (N) is not positive. Writes ``success = hold >=
+        hold_steps`` for every copy."""
         hold, mean_v, alpha = rest.hold, rest.mean_v, rest.alpha
         for i in range(distance.shape[0]):
             if stepped[i]:
@@ -291,7 +296,7 @@ if ENABLED:
                     if k - i * n < count:
                         d2 += mx * mx + my * my
                 if (distance[i] < tolerance and math.sqrt(d2 * (1.0 / count)) < rest_speed
-                        and not blocked[i] and not wall_force[i] > 0.0):
+                        and not blocked[i] and not (wall_rest and wall_force[i] > 0.0)):
                     hold[i] += 1
                 else:
                     hold[i] = 0
@@ -595,13 +600,6 @@ if ENABLED:
                   blocked, out, success)
 
     @njit(nogil=True)
-    def _advance_hold_entry(v, n, count, distance, blocked, wall_force, rest, stepped,
-                            tolerance, rest_speed, hold_steps, success):
-        # pragma: no cover - compiled
-        _advance_hold(v, n, count, distance, blocked, wall_force, Rest(*rest), stepped,
-                      tolerance, rest_speed, hold_steps, success)
-
-    @njit(nogil=True)
     def _observe_entry(x, v, n, goal, view, obs):  # pragma: no cover - compiled
         _observe(x, v, n, goal, View(*view), obs)
 
@@ -635,7 +633,6 @@ if ENABLED:
         _crank(x, n, goal, Crank(*crank))
 
     measures = _measures_entry
-    advance_hold = _advance_hold_entry
     observe = _observe_entry
     pin_observe = _pin_observe_entry
     crank_step = _crank_step

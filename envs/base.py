@@ -606,7 +606,8 @@ class ParticleTask(SteppedCopies):
         """The success test as the compiled measures read it (``track``: :meth:`_tracking`)."""
         return _measure.Goal(self.n, self.goal, track[0], track[1], float(self.goal_tolerance),
                              float(self.rest_speed), int(self.hold_steps),
-                             float(self.goal_height) if self.planar_goal else math.nan)
+                             float(self.goal_height) if self.planar_goal else math.nan,
+                             int(self.rest_count), bool(self.wall_rest))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
@@ -659,10 +660,11 @@ class ParticleTask(SteppedCopies):
         the sum over particles of ``|F_x|``; zeros unless ``walls``).
 
         The hold count of a ``stepped`` copy advances if it is within ``goal_tolerance`` of
-        the goal, slower than ``rest_speed``, not ``blocked`` and (with ``walls``) touching no
-        wall; otherwise it restarts at 0. Computed in one compiled pass
-        (:func:`envs._measure.measures`) when the system's blocks allow it, else by the numpy
-        reference below. With ``obs``, the compiled pass also writes :meth:`observe`'s
+        the goal, slower than ``rest_speed`` (the RMS of the moving average velocities of its
+        first :attr:`rest_count` particles), not ``blocked`` and (with ``walls``, in a task
+        with :attr:`wall_rest`) touching no wall; otherwise it restarts at 0. Computed in one
+        compiled pass (:func:`envs._measure.measures`) when the system's blocks allow it, else
+        by the numpy reference below. With ``obs``, the compiled pass also writes :meth:`observe`'s
         observation into it (:func:`envs._measure.measures_observe`); the reference does not.
         """
         N, n = self.num_envs, self.n
@@ -687,7 +689,8 @@ class ParticleTask(SteppedCopies):
             if err.size:
                 np.maximum(residual, err.reshape(N, -1).max(axis=1), out=residual)
         distance = self.goal_distance(self.positions())
-        speed = np.sqrt(v2.sum(axis=1) * (1.0 / n))
+        k = self.rest_count
+        speed = np.sqrt(v2[:, :k].sum(axis=1) * (1.0 / k))
         wall_force = np.zeros(N)
         if walls:
             found = [w for w in s.forces if isinstance(w, Wall)]
@@ -697,9 +700,10 @@ class ParticleTask(SteppedCopies):
                     wall.accumulate(s.x, s.v, s.mass, F)
                 wall_force = np.abs(F[:, 0]).reshape(N, n).sum(axis=1)
         if stepped is not None:
-            settled = (distance < self.goal_tolerance) & (self.advance_rest(stepped)
+            settled = (distance < self.goal_tolerance) & (self.advance_rest(stepped, k)
                                                           < self.rest_speed)
-            settled &= ~(wall_force > 0)  # resting against a wall is not rest
+            if self.wall_rest:
+                settled &= ~(wall_force > 0)  # resting against a wall is not rest
             if blocked is not None:
                 settled &= ~blocked
             self.hold[stepped] = np.where(settled[stepped], self.hold[stepped] + 1, 0)
@@ -750,6 +754,16 @@ class ParticleTask(SteppedCopies):
     #: False: the goal is the x coordinate ``goal`` and the distance is along x (see
     #: :meth:`goal_distance`); True: the goal is the point ``(goal, goal_height)``.
     planar_goal: ClassVar[bool] = False
+    #: With the walls' contact measured, a copy touching a wall is not at rest (its hold count
+    #: restarts); False: the contact is measured but the rest test ignores it.
+    wall_rest: ClassVar[bool] = True
+
+    @property
+    def rest_count(self) -> int:
+        """The first particles of a copy whose RMS speed is its ``speed`` measure and whose
+        moving average velocities make its rest test: all ``n``, unless the task has particles
+        of its own that do not count (ClothPin's spring anchors)."""
+        return self.n
 
 
 def _measured(out: np.ndarray, success: np.ndarray) -> dict[str, np.ndarray]:

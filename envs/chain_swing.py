@@ -19,41 +19,14 @@ from constrained_particles import (
     scenes,
 )
 
-from . import _measure
 from .base import ParticleTask
-from .checks import _owned, check_goal_range, check_positive, uniform_away
+from .checks import check_goal_range, check_positive, uniform_away
 from .cloth_slide import SUCCESS_BONUS
 from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 #: Valid values of the ``target`` argument.
 TARGETS = ("lateral", "swingup")
-
-
-def track_success(task: ParticleTask, m: dict[str, np.ndarray], stepped: np.ndarray | None
-                  ) -> dict[str, np.ndarray]:
-    """Advance ``task.hold`` for the ``stepped`` copies from measures ``m`` whose ``distance``
-    (m) a task redefined, and set ``m["is_success"]`` to match (the rule of
-    :meth:`ParticleTask.measure`; the rest speed over the cloth alone for a task with
-    ``cloth_n``)."""
-    count = getattr(task, "cloth_n", None)
-    if stepped is not None:
-        N, distance = task.num_envs, m["distance"]
-        state = task._compiled_state()
-        if (state is not None and task._rest_owned() and _owned(distance, np.float64, (N,))
-                and (count is None or 0 < count <= task.n)):
-            # the same rule in one compiled pass (envs._measure.advance_hold)
-            m["is_success"] = success = np.empty(N, bool)
-            _measure.advance_hold(state[1], task.n, task.n if count is None else count,
-                                  distance, task._mask(None), np.zeros(N), tuple(task._rest()),
-                                  task._mask(stepped), task.goal_tolerance, task.rest_speed,
-                                  task.hold_steps, success)
-            return m
-        rest = task.advance_rest(stepped, count)
-        settled = (distance < task.goal_tolerance) & (rest < task.rest_speed)
-        task.hold[stepped] = np.where(settled[stepped], task.hold[stepped] + 1, 0)
-    m["is_success"] = task.hold >= task.hold_steps
-    return m
 
 
 class ChainSwing(ParticleTask):

@@ -13,7 +13,6 @@ from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, sce
 
 from . import _measure
 from .base import OBS_LIMIT, ParticleTask
-from .chain_swing import track_success
 from .checks import _owned, check_positive, check_range
 from .cloth_slide import _hanging_equilibrium
 from .rewards import ShapedTask
@@ -39,6 +38,13 @@ class ClothPin(ShapedTask, ParticleTask):
     """
 
     force_dim = 0
+    wall_rest = False  # (the wall's contact is measured and penalised, but not part of rest)
+
+    @property
+    def rest_count(self) -> int:
+        """The cloth's particles (the anchors after them do not count in ``speed`` and the
+        rest test)."""
+        return self.cloth_n
 
     def __init__(self, num_envs: int = 1, *, action_mode: str = "draw",
                  cloth_size: tuple[int, int] = (6, 6), spacing: float = 0.1,
@@ -416,13 +422,11 @@ class ClothPin(ShapedTask, ParticleTask):
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
-        m, wall_force = self._measures(None, walls=True)
+        m, wall_force = self._measures(stepped, walls=True)
         m["wall_force"] = wall_force
-        v = self.velocities()[:, :self.cloth_n]
-        m["speed"] = np.sqrt(np.einsum("ikd,ikd->i", v, v) * (1.0 / self.cloth_n))
         m["springs"] = self.placed.copy()
         m["placed"] = self.placed_now.copy()
-        return track_success(self, m, stepped)
+        return m
 
     def potential(self, m: dict[str, Any]) -> Any:
         """Cost to go ``Phi = d + s``: distance to the goal (m) plus the cloth's RMS particle

@@ -287,32 +287,46 @@ def test_docstring_examples(module):
 
 
 @pytest.mark.parametrize("env_id", ["ChainSwing-v0", "ClothPin-v0"])
-def test_the_compiled_rest_test_matches_its_numpy_reference(env_id):
-    """``track_success`` in one compiled pass (envs._measure.advance_hold) against the numpy
-    reference (``advance_rest`` and the hold rule), from the same state, over partial and full
-    masks of stepped copies, with copies near and far from the goal, moving and nearly still."""
+def test_the_compiled_rest_test_matches_its_numpy_reference(monkeypatch, env_id):
+    """The measures with their rest test (the common compiled pass: ChainSwing's distance to a
+    point, ClothPin's speed and rest over the cloth alone, its wall contact measured but not
+    part of rest) against the numpy reference (``envs._measure.ENABLED`` off), from the same
+    state, over partial and full masks of stepped copies, with copies placed exactly at their
+    goal and far from it, moving and nearly still: the same hold counts and success flags, the
+    same moving averages and measures to roundoff."""
     from envs import _measure
-    from envs.chain_swing import track_success
 
     if not _measure.ENABLED:
         pytest.skip("the compiled bookkeeping is off (CPARTICLES_NUMBA=0): no pass to compare")
     vec = gym.make_vec(env_id, num_envs=6, vectorization_mode="vector_entry_point")
     vec.reset(seed=4)
     task = vec.unwrapped.task
+    s, n, idx = task.system, task.n, task.tracked_particles
     rng = np.random.default_rng(0)
-    scale = np.repeat([1e-4, 1e-3, 0.2, 1e-4, 0.05, 1e-5], task.n)[:, None]
+    scale = np.repeat([1e-4, 1e-3, 0.2, 1e-4, 0.05, 1e-5], n)[:, None]
+    for i in (0, 2, 4, 5):  # these copies at their goal (distance zero up to roundoff)
+        rows = i * n + idx
+        if task.planar_goal:  # move the tracked particles' mean point onto the goal point
+            s.x[rows] += np.array([task.goal[i], task.goal_height]) - s.x[rows].mean(axis=0)
+        else:
+            task.goal[i] = s.x[rows, 0].mean()
     for step in range(40):
-        task.system.v[:] = rng.normal(size=task.system.v.shape) * scale
-        distance = np.array([0.0, 0.01, 0.0, 5.0, 0.0, 0.0])
+        s.v[:] = rng.normal(size=s.v.shape) * scale
         stepped = rng.random(6) < 0.7 if step % 3 else np.ones(6, bool)
         hold, mean_v = task.hold.copy(), task.mean_v.copy()
-        compiled = track_success(task, {"distance": distance.copy()}, stepped)
+        compiled = task.measure(stepped)
         got = task.hold.copy(), task.mean_v.copy()
         task.hold[:], task.mean_v[:] = hold, mean_v
-        task._compiled_state = lambda: None  # (the instance's: the reference path)
-        reference = track_success(task, {"distance": distance.copy()}, stepped)
-        del task._compiled_state
+        with monkeypatch.context() as m:
+            m.setattr(_measure, "ENABLED", False)
+            reference = task.measure(stepped)
         np.testing.assert_array_equal(got[0], task.hold)
         np.testing.assert_allclose(got[1], task.mean_v, rtol=0, atol=1e-15)
-        np.testing.assert_array_equal(compiled["is_success"], reference["is_success"])
+        assert list(compiled) == list(reference)
+        for key in compiled:
+            if compiled[key].dtype == bool or compiled[key].dtype.kind in "iu":
+                np.testing.assert_array_equal(compiled[key], reference[key], err_msg=key)
+            else:
+                np.testing.assert_allclose(compiled[key], reference[key], rtol=0, atol=1e-12,
+                                           err_msg=key)
     assert task.hold.max() > 0 and task.hold.min() == 0  # both outcomes were exercised
