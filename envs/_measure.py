@@ -200,13 +200,15 @@ if ENABLED:
         ``rest`` (:class:`Rest`): a stepped copy's averages move ``alpha`` of the way to the
         velocities (``mean_v + (v - mean_v) alpha``); it is settled, and its count advances
         (else restarts at 0), if within ``task.tolerance`` of the goal with the RMS of the
-        averages below ``task.rest_speed``, not ``blocked`` and touching no wall.
+        averages of its first ``task.count`` particles below ``task.rest_speed`` (the speed
+        measure is over the same particles), not ``blocked`` and, with ``walls`` and
+        ``task.wall_rest``, touching no wall.
 
         ``task.track`` holds the particles (within a copy) whose mean x, ``track_scale``
         times their sum, is driven to ``task.goal`` (or, with a ``task.height`` that is not
         NaN, whose mean point is driven to ``(goal, height)``). ``walls``: compute the walls'
-        contact force and let a step touching a wall restart the count; ``blocked`` copies
-        restart it too.
+        contact force (and, with ``task.wall_rest``, let a step touching a wall restart the
+        count); ``blocked`` copies restart it too.
         """
         n, goal, track, track_scale = task.n, task.goal, task.track, task.track_scale
         height, count = task.height, task.count
@@ -540,8 +542,8 @@ if ENABLED:
         ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
         ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
         rattle``, ``settings``, the pack's ``blocks``, ``rows`` and workspace ``ws`` by
-        reference and each particle's step count through ``live``, all in the form it
-        takes); then
+        reference, each particle's step count in ``push.counts`` and the live set ``live``,
+        all in the form it takes); then
         :func:`_crank_finish` on the new state. Returns ``(status, copies ended)``; a status
         other than ``fused.OK`` leaves the state and the warm start ``state.lam`` as they were
         (``lam_saved`` holds it meanwhile; the caller takes the general path, which writes the

@@ -235,17 +235,19 @@ class ParticleTask(SteppedCopies):
             raise NotImplementedError
         return x[:, idx, 0].sum(axis=1) * (1.0 / len(idx))
 
-    def goal_distance(self, x: np.ndarray) -> np.ndarray:
-        """Distance (m) to the goal per copy, from positions (num_envs, n, 2): along x, from
-        :meth:`tracked` to ``goal``; or, for a task with :attr:`planar_goal`, from the mean point
-        of :attr:`tracked_particles` to the point ``(goal, goal_height)``."""
+    def goal_distance(self, x: np.ndarray, goal: np.ndarray | None = None) -> np.ndarray:
+        """Distance (m) to the goal per copy, from positions (copies, n, 2) and those copies'
+        goals (default: every copy's ``goal``): along x, from :meth:`tracked` to the goal; or,
+        for a task with :attr:`planar_goal`, from the mean point of :attr:`tracked_particles` to
+        the point ``(goal, goal_height)``."""
+        goal = self.goal if goal is None else goal
         if not self.planar_goal:
-            return np.abs(self.tracked(x) - self.goal)
+            return np.abs(self.tracked(x) - goal)
         idx = self.tracked_particles
         if idx is None:
             raise NotImplementedError
         scale = 1.0 / len(idx)
-        return np.hypot(x[:, idx, 0].sum(axis=1) * scale - self.goal,
+        return np.hypot(x[:, idx, 0].sum(axis=1) * scale - goal,
                         x[:, idx, 1].sum(axis=1) * scale - self.goal_height)
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
@@ -595,12 +597,24 @@ class ParticleTask(SteppedCopies):
         track = self._tracking() if _measure.ENABLED else None
         state = self._compiled_state()
         if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
-                or not self._rest_owned()):
+                or not self._rest_owned() or not self._goal_fits()):
             return None
         p = _measure.packed(self.system)
         if p is None or p.n != self.num_envs * self.n:
             return None
         return p, self._goal_record(track), state
+
+    def _goal_fits(self) -> bool:
+        """True if the compiled measures compute this task's goal distance and rest test: its
+        own :meth:`goal_distance` (a subclass's redefinition runs in numpy), a
+        :attr:`rest_count` in [1, n] and, for a :attr:`planar_goal`, a finite number as
+        ``goal_height``."""
+        count, height = self.rest_count, self.goal_height
+        return (type(self).goal_distance is ParticleTask.goal_distance
+                and type(count) is int and 0 < count <= self.n
+                and (not self.planar_goal
+                     or (isinstance(height, (int, float)) and not isinstance(height, bool)
+                         and math.isfinite(height))))
 
     def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal:
         """The success test as the compiled measures read it (``track``: :meth:`_tracking`)."""
@@ -610,7 +624,8 @@ class ParticleTask(SteppedCopies):
                              int(self.rest_count), bool(self.wall_rest))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Per-copy measures: ``distance`` to the goal (m), ``speed`` (RMS particle speed, m/s),
+        """Per-copy measures: ``distance`` to the goal (m, :meth:`goal_distance`), ``speed``
+        (RMS speed of the first :attr:`rest_count` particles, m/s),
         ``kinetic_energy`` (J), ``constraint_residual`` (the largest distance, m, by which a
         constraint is violated: see ``Constraint.distance_error``) and ``is_success``.
 
@@ -622,7 +637,8 @@ class ParticleTask(SteppedCopies):
     @property
     def tracked_particles(self) -> np.ndarray | None:
         """The particles (indices within one copy) whose mean x is the coordinate driven to
-        the goal (see :meth:`tracked`), as an immutable int64 array. Subclasses set it, or
+        the goal (see :meth:`tracked`; their mean point, for a :attr:`planar_goal`), as an
+        immutable int64 array. Subclasses set it, or
         override :meth:`tracked` and leave it None (the measures then take the numpy reference
         path); a subclass that does both must compute that same mean (the compiled measures
         use this attribute, the reference :meth:`tracked`). Assigning validates the indices
@@ -743,7 +759,7 @@ class ParticleTask(SteppedCopies):
         """Copy ``i`` as a drawable single system, its goal marker and a status line."""
         one = self.load_single(i)
         marker = Shape("marker", "goal", np.array([[self.goal[i], self.goal_height]]))
-        distance = abs(float(self.tracked(one.x[None])[0]) - self.goal[i])
+        distance = float(self.goal_distance(one.x[None], self.goal[i:i + 1])[0])
         status = (f"{type(self).__name__} ({self.action_mode})   distance to goal "
                   f"{distance:.3f} m   held {self.hold[i]}/{self.hold_steps}")
         return one, [marker], status

@@ -156,7 +156,8 @@ class ChainSwing(ParticleTask):
         return x, v, goal
 
     def tip_distance(self, x: np.ndarray) -> np.ndarray:
-        """Distance (m) from the tip to the target point ``(goal, goal_height)``, per copy."""
+        """Distance (m) from the tip to the target point ``(goal, goal_height)``, per copy, from
+        every copy's positions (num_envs, n, 2)."""
         return self.goal_distance(x)  # (the tip is the tracked particle)
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
@@ -172,7 +173,7 @@ class ChainSwing(ParticleTask):
         """The copy, its target point and a status line with the tip's distance."""
         one, extra, _ = super().drawing(i)
         status = (f"ChainSwing {self.target} ({self.action_mode})   tip to target "
-                  f"{float(self.tip_distance(one.x[None])[0]):.3f} m   "
+                  f"{float(self.goal_distance(one.x[None], self.goal[i:i + 1])[0]):.3f} m   "
                   f"held {self.hold[i]}/{self.hold_steps}")
         return one, extra, status
 

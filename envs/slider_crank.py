@@ -264,7 +264,8 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and actions.shape == (N, 1) and actions.flags.c_contiguous
                 and self.integrator != "rattle" and not s.project_each_step
                 and s._fusable(self.integrator) and self._pushed is not None
-                and act.particles is self._pushed[0] and _owned(act.force, np.float64, (N, 2))
+                and act.particles is self._pushed[0] and self._pushed[2].shape == (s.n,)
+                and _owned(act.force, np.float64, (N, 2))
                 and _owned(steps, np.int64, (N,))
                 and _owned(self.goal, np.float64, (N,))
                 and self._rest_owned()

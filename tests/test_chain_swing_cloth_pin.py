@@ -286,6 +286,61 @@ def test_docstring_examples(module):
     assert result.failed == 0 and result.attempted > 0
 
 
+def test_goals_the_compiled_measures_cannot_take_go_to_the_numpy_reference():
+    """A planar goal_height that is not a finite number, a rest_count outside [1, n] or a
+    redefined goal_distance: the compiled measures step aside (the numpy reference measures,
+    with its own errors or NaN), never reading past a copy."""
+    from envs import _measure
+
+    if not _measure.ENABLED:
+        pytest.skip("the compiled bookkeeping is off (CPARTICLES_NUMBA=0)")
+    assert envs.chain_swing.ChainSwing(2)._compiled_post() is not None
+    for bad in (np.nan, np.inf, np.array([0.1, 0.2]), "up"):
+        chain = envs.chain_swing.ChainSwing(2)
+        chain.goal_height = bad
+        assert chain._compiled_post() is None, bad
+    pin = envs.cloth_pin.ClothPin(2)
+    assert pin._compiled_post() is not None
+    for bad in (0, -3, pin.n + 1):
+        pin.cloth_n = bad
+        assert pin._compiled_post() is None, bad
+
+    class Nearer(envs.chain_swing.ChainSwing):
+        def goal_distance(self, x, goal=None):
+            return 0.5 * super().goal_distance(x, goal)
+
+    nearer = Nearer(2)
+    assert nearer._compiled_post() is None
+    m = nearer.measure(np.ones(2, bool))
+    full = envs.chain_swing.ChainSwing.goal_distance(nearer, nearer.positions())
+    np.testing.assert_allclose(m["distance"], 0.5 * full, rtol=0, atol=1e-15)
+
+
+def test_cloth_pin_rests_against_the_wall_in_both_paths(monkeypatch):
+    """ClothPin measures its wall contact but does not count it against rest (``wall_rest``
+    False, unlike ClothSlide): a copy at rest on its goal counts up whether or not it presses
+    into the wall, with the same counts on the compiled path and the numpy reference."""
+    from envs import _measure
+
+    for enabled in (True, False) if _measure.ENABLED else (False,):
+        with monkeypatch.context() as mp:
+            mp.setattr(_measure, "ENABLED", enabled)
+            task = envs.cloth_pin.ClothPin(2)
+            nc = task.cloth_n
+            for i in range(2):
+                x, v, _ = task.sample_start(np.random.default_rng(i))
+                v[:] = 0.0
+                if i == 1:  # copy 1's cloth 1 mm into the right wall
+                    x[:nc, 0] += task.wall_x + 1e-3 - x[:nc, 0].max()
+                task.write_start([i], [(x, v, float(task.tracked(x[None])[0]))])
+            stepped = np.ones(2, bool)
+            for k in range(1, 4):
+                m = task.measure(stepped)
+                assert task.hold.tolist() == [k, k], enabled
+                assert m["wall_force"][1] > 0 and m["wall_force"][1] > m["wall_force"][0]
+                assert m["distance"].max() < 1e-12 and m["speed"].max() == 0
+
+
 @pytest.mark.parametrize("env_id", ["ChainSwing-v0", "ClothPin-v0"])
 def test_the_compiled_rest_test_matches_its_numpy_reference(monkeypatch, env_id):
     """The measures with their rest test (the common compiled pass: ChainSwing's distance to a
