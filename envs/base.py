@@ -240,15 +240,13 @@ class ParticleTask(SteppedCopies):
         goals (default: every copy's ``goal``): along x, from :meth:`tracked` to the goal; or,
         for a task with :attr:`planar_goal`, from the mean point of :attr:`tracked_particles` to
         the point ``(goal, goal_height)``."""
-        goal = self.goal if goal is None else goal
+        along = self.tracked(x) - (self.goal if goal is None else goal)
         if not self.planar_goal:
-            return np.abs(self.tracked(x) - goal)
+            return np.abs(along)
         idx = self.tracked_particles
-        if idx is None:
+        if idx is None:  # (a planar goal needs the tracked particles' y as well)
             raise NotImplementedError
-        scale = 1.0 / len(idx)
-        return np.hypot(x[:, idx, 0].sum(axis=1) * scale - goal,
-                        x[:, idx, 1].sum(axis=1) * scale - self.goal_height)
+        return np.hypot(along, x[:, idx, 1].sum(axis=1) * (1.0 / len(idx)) - self.goal_height)
 
     def reward(self, m: dict[str, np.ndarray]) -> np.ndarray:
         """Reward per copy from the measures of :meth:`measure`."""
