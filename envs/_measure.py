@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from constrained_particles import kernels
+from constrained_particles.fused import pack
 
 ENABLED = kernels.ENABLED  #: True when the compiled bookkeeping is in use
 
@@ -140,14 +141,43 @@ class Push(NamedTuple):
     dt: float  #: physics step (s)
 
 
+class Pin(NamedTuple):
+    """ClothPin's spring slots as its observation reads them (``ClothPin.observe``)."""
+
+    slots: int  #: spring slots per copy (element ``i * slots + s`` is copy i's slot s)
+    placed: np.ndarray  #: (N,) int64 springs placed per copy (slots below it are shown)
+    i: np.ndarray  #: (N slots,) int64 each spring's first end (a particle of the system)
+    j: np.ndarray  #: (N slots,) int64 its second end
+    ks: np.ndarray  #: (N slots,) spring constants (N/m)
+    rest: np.ndarray  #: (N slots,) rest lengths (m)
+    ks_lo: float  #: the stiffness action's range of spring constants (N/m)
+    ks_hi: float
+    log_ratio: float  #: ``np.log(ks_hi / ks_lo)``
+
+
+class Drawing(NamedTuple):
+    """What ClothPin's drawing check reads (``ClothPin.place``, ``ClothPin.resolve``)."""
+
+    n: int  #: particles per copy: the cloth's, then the anchors
+    cloth_n: int  #: the cloth's particles
+    slots: int  #: the spring budget per copy
+    cx: float  #: ``to_world(u) = c + h u`` (m)
+    cy: float
+    hx: float
+    hy: float
+    snap2: float  #: ``snap_radius ** 2`` (m^2)
+    xmin: float  #: the anchor region (m)
+    ymin: float
+    xmax: float
+    ymax: float
+
+
 def packed(system: Any) -> Any:
     """The system's compiled description (``fused.Packed``), or None when the compiled
     bookkeeping is off or does not cover the system (then the numpy reference runs)."""
     if not ENABLED:
         return None
-    from constrained_particles import fused
-
-    p = fused.pack(system)
+    p = pack(system)
     if not p.valid:
         return None
     # several blocks of one type: bring the joined parameters the measures read up to date
@@ -159,6 +189,10 @@ measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is F
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
 #: ClothPin's compiled observation (None when ``ENABLED`` is False)
 pin_observe: Any = None
+#: :func:`measures` then ClothPin's observation, in one call (None when ``ENABLED`` is False)
+pin_measures_observe: Any = None
+#: ClothPin's drawing check (None when ``ENABLED`` is False)
+pin_draws: Any = None
 grab: Any = None  #: the compiled spring-action grab (None when ``ENABLED`` is False)
 clip_actions: Any = None  #: the compiled action check and clip (None when ``ENABLED`` is False)
 crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
@@ -333,27 +367,49 @@ if ENABLED:
         _observe_particles(x, v, n, n, goal, view.cx, view.cy, view.ix, view.iy,
                            np.float32(-view.limit), np.float32(view.limit), obs)
 
-    @njit(nogil=True)
-    def _pin_observe(x, v, n, count, goal, view, slots, placed, si, sj, stiffness, rest, obs):
-        # pragma: no cover - compiled
-        """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
-        slots) float32 (``view``: :class:`View`): the first ``count`` particles' ``(x - c) /
-        h`` and ``v / h`` of each copy of ``n``, the goal's ``(goal - c_x) / h_x``, then per
-        spring slot of the copy (element ``i * slots + s`` of the spring arrays) ``(1, ends
-        (x - c) / h, stiffness, rest / h_x)`` if ``s < placed[i]``, else zeros; each value
-        computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and clipped to
-        ``[-limit, limit]``. ``stiffness`` holds each spring's observed stiffness
-        (``ClothPin._stiffness_seen``). Returns False, writing nothing, if a spring end is
-        not a particle index."""
-        total = x.shape[0]
+    @njit
+    def _pin_ends_fit(pin, total):  # pragma: no cover - compiled
+        """True if every spring end of ``pin`` is a particle index in ``[0, total)``."""
+        si, sj = pin.i, pin.j
+        if si.shape[0] != sj.shape[0]:
+            return False
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
                 return False
+        return True
+
+    @njit
+    def _pin_stiffness(ks, pin):  # pragma: no cover - compiled
+        """The observed stiffness of spring constant ``ks`` (N/m): ``ClothPin._stiffness_seen``
+        (``ks`` clipped into the range, then ``2 log(ks / lo) / log(hi / lo) - 1`` clipped to
+        [-1, 1]; NaN stays NaN, as with ``np.minimum`` and ``np.maximum``)."""
+        if ks < pin.ks_lo:
+            ks = pin.ks_lo
+        if ks > pin.ks_hi:
+            ks = pin.ks_hi
+        a = 2.0 * math.log(ks / pin.ks_lo) / pin.log_ratio - 1.0
+        if a < -1.0:
+            a = -1.0
+        if a > 1.0:
+            a = 1.0
+        return a
+
+    @njit
+    def _pin_observe(x, v, n, count, goal, view, pin, obs):  # pragma: no cover - compiled
+        """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
+        slots) float32 (``view``: :class:`View`, ``pin``: :class:`Pin`): the first ``count``
+        particles' ``(x - c) / h`` and ``v / h`` of each copy of ``n``, the goal's ``(goal -
+        c_x) / h_x``, then per spring slot ``s`` of copy ``i`` (element ``i * slots + s``)
+        ``(1, ends (x - c) / h, observed stiffness, rest / h_x)`` if ``s < placed[i]``, else
+        zeros; each value computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and
+        clipped to ``[-limit, limit]``. The caller checked the spring ends
+        (:func:`_pin_ends_fit`)."""
         hi = np.float32(view.limit)
         lo = np.float32(-view.limit)
         cx, cy, ix, iy = view.cx, view.cy, view.ix, view.iy
         _observe_particles(x, v, n, count, goal, cx, cy, ix, iy, lo, hi, obs)
         base = 4 * count + 1
+        slots, placed, si, sj = pin.slots, pin.placed, pin.i, pin.j
         for i in range(goal.shape[0]):
             for s in range(slots):
                 o = base + 7 * s
@@ -365,12 +421,66 @@ if ENABLED:
                     obs[i, o + 2] = _unit((x[a, 1] - cy) * iy, lo, hi)
                     obs[i, o + 3] = _unit((x[b, 0] - cx) * ix, lo, hi)
                     obs[i, o + 4] = _unit((x[b, 1] - cy) * iy, lo, hi)
-                    obs[i, o + 5] = _unit(stiffness[e], lo, hi)
-                    obs[i, o + 6] = _unit(rest[e] * ix, lo, hi)
+                    obs[i, o + 5] = _unit(_pin_stiffness(pin.ks[e], pin), lo, hi)
+                    obs[i, o + 6] = _unit(pin.rest[e] * ix, lo, hi)
                 else:
                     for q in range(7):
                         obs[i, o + q] = 0.0
-        return True
+
+    @njit
+    def _nearest(x, base, d, anchors, px, py):  # pragma: no cover - compiled
+        """``ClothPin.resolve`` of the point ``(px, py)`` (m) in the copy whose particles start
+        at ``base``: ``(nearest usable, its squared distance, nearest cloth particle)``, each
+        the first of equals as ``np.argmin`` takes it (a NaN distance is the minimum)."""
+        best, bd, best_nan = -1, np.inf, False
+        cloth, cd, cloth_nan = -1, np.inf, False
+        for q in range(d.n):
+            dx = x[base + q, 0] - px
+            dy = x[base + q, 1] - py
+            d2 = dx * dx + dy * dy
+            if q < d.cloth_n and not cloth_nan:
+                if d2 != d2:
+                    cloth, cloth_nan = q, True
+                elif cloth < 0 or d2 < cd:
+                    cloth, cd = q, d2
+            if not (q < d.cloth_n or q - d.cloth_n < anchors):
+                d2 = np.inf  # (an anchor not placed yet)
+            if not best_nan:
+                if d2 != d2:
+                    best, bd, best_nan = q, d2, True
+                elif best < 0 or d2 < bd:
+                    best, bd = q, d2
+        return best, bd, cloth
+
+    @njit(nogil=True)
+    def _pin_draws(x, actions, idle, placed, anchors_used, draw, ends, ok):
+        # pragma: no cover - compiled
+        """ClothPin's drawings checked, every copy in one pass (``draw``: a :class:`Drawing`
+        in plain form): copy ``i`` draws (``actions[i, 5] > 0``, not ``idle[i]``) with room in
+        its budget; its two ends (``to_world`` of ``actions[i, 0:2]`` and ``[2:4]``) resolve
+        as ``ClothPin.resolve`` does (the particle within a copy, -2 for a new anchor) into
+        ``ends[i]``; ``ok[i]`` if exactly one end is on the cloth and at most one is new."""
+        d = Drawing(*draw)
+        for i in range(actions.shape[0]):
+            ok[i] = False
+            ends[i, 0] = ends[i, 1] = -1
+            if not actions[i, 5] > 0 or idle[i] or placed[i] >= d.slots:
+                continue
+            on_cloth, new = 0, 0
+            for k in range(2):
+                px = d.cx + d.hx * actions[i, 2 * k]
+                py = d.cy + d.hy * actions[i, 2 * k + 1]
+                best, bd, cloth = _nearest(x, i * d.n, d, anchors_used[i], px, py)
+                if bd <= d.snap2:
+                    end = best
+                elif d.xmin <= px <= d.xmax and d.ymin <= py <= d.ymax:
+                    end = -2
+                else:
+                    end = cloth
+                ends[i, k] = end
+                on_cloth += 0 <= end < d.cloth_n
+                new += end == -2
+            ok[i] = on_cloth == 1 and new <= 1
 
     @njit
     def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
@@ -606,10 +716,28 @@ if ENABLED:
         _observe(x, v, n, goal, View(*view), obs)
 
     @njit(nogil=True)
-    def _pin_observe_entry(x, v, n, count, goal, view, slots, placed, si, sj, stiffness, rest,
-                           obs):  # pragma: no cover - compiled
-        return _pin_observe(x, v, n, count, goal, View(*view), slots, placed, si, sj, stiffness,
-                            rest, obs)
+    def _pin_observe_entry(x, v, n, count, goal, view, pin, obs):  # pragma: no cover - compiled
+        """:func:`_pin_observe` (False, writing nothing, if a spring end is not a particle)."""
+        pin = Pin(*pin)
+        if not _pin_ends_fit(pin, x.shape[0]):
+            return False
+        _pin_observe(x, v, n, count, goal, View(*view), pin, obs)
+        return True
+
+    @njit(nogil=True)
+    def _pin_measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked,
+                                    out, success, view, pin, obs):
+        # pragma: no cover - compiled
+        """:func:`_measures`, then :func:`_pin_observe`: ClothPin's bookkeeping after a step
+        in one call (False, writing nothing, if a spring end is not a particle)."""
+        task, rest, pin = borrowed((task, rest, pin))
+        pin = Pin(*pin)
+        if not _pin_ends_fit(pin, x.shape[0]):
+            return False
+        goal = Goal(*task)
+        _measures(x, v, mass, goal, blocks, walls, Rest(*rest), stepped, blocked, out, success)
+        _pin_observe(x, v, goal.n, goal.count, goal.goal, View(*view), pin, obs)
+        return True
 
     @njit(nogil=True)
     def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
@@ -637,6 +765,8 @@ if ENABLED:
     measures = _measures_entry
     observe = _observe_entry
     pin_observe = _pin_observe_entry
+    pin_measures_observe = _pin_measures_observe_entry
+    pin_draws = _pin_draws
     crank_step = _crank_step
     crank_finish = _crank_finish_entry
     measures_observe = _measures_observe_entry

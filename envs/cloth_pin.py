@@ -12,7 +12,7 @@ from gymnasium import spaces
 from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
 
 from . import _measure
-from .base import OBS_LIMIT, ParticleTask
+from .base import OBS_LIMIT, ParticleTask, _measured
 from .checks import _owned, check_positive, check_range
 from .cloth_slide import _hanging_equilibrium
 from .rewards import ShapedTask
@@ -128,6 +128,7 @@ class ClothPin(ShapedTask, ParticleTask):
         self.placed = np.zeros(N, dtype=np.int64)
         self.anchors_used = np.zeros(N, dtype=np.int64)
         self.placed_now = np.zeros(N, dtype=bool)
+        self._log_ratio: tuple[Any, float] | None = None  # (ks_range, log(hi / lo)), see _pin
         self.movable = np.tile(~self.single.fixed, N)
         self.weight = self.cloth_n * self.particle_mass * scenes.G
         obs_dim = 4 * self.cloth_n + 1 + SLOT_SIZE * B
@@ -160,6 +161,14 @@ class ClothPin(ShapedTask, ParticleTask):
     def force_handles(self, scene: ParticleSystem) -> np.ndarray:
         """The top row: the report's push acts there."""
         return np.arange(self.nx)
+
+    def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`force_vectors` written straight into the actuator's rows (the same values)."""
+        if out.shape != (self.num_envs * self.nx, 2):
+            super()._write_forces(action, out)  # (which raises on the wrong shape)
+            return
+        out[:, 0] = self.push
+        out[:, 1] = 0.0
 
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The push: ``push`` newtons in +x on every top-row particle, whatever the action."""
@@ -243,7 +252,13 @@ class ClothPin(ShapedTask, ParticleTask):
         if not ok.any():
             return out
         out[room[ok]] = True
-        envs, ends, new, action = envs[ok], ends[ok], new[ok], action[ok]
+        self._attach(envs[ok], ends[ok], action[ok])
+        return out
+
+    def _attach(self, envs: np.ndarray, ends: np.ndarray, action: np.ndarray) -> None:
+        """Place one spring per copy in ``envs`` whose drawing is valid: ``ends`` (len(envs),
+        2) as :meth:`resolve` gives them (-2: a new anchor), ``action`` their clipped actions."""
+        new = ends == -2
         # a new anchor becomes the copy's next unused anchor particle, at the drawn point
         anchor = self.cloth_n + self.anchors_used[envs]
         drawn = np.where(new[:, :1], action[:, 0:2], action[:, 2:4])
@@ -260,7 +275,6 @@ class ClothPin(ShapedTask, ParticleTask):
         sp.ks[k] = self.stiffness(action[:, 4])
         sp.kd[k] = self.spring_kd
         self.placed[envs] += 1
-        return out
 
     def _rewire(self, slots: np.ndarray, i: np.ndarray, j: np.ndarray) -> None:
         """Point spring ``slots`` at particles ``i``, ``j``. A block's index arrays are read-only:
@@ -287,15 +301,55 @@ class ClothPin(ShapedTask, ParticleTask):
     # ------------------------------------------------------------------ base hooks
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Place the springs that copies draw (``draw > 0``), then switch the push on (off for
-        ``idle`` copies, whose action is ignored)."""
-        envs = np.arange(self.num_envs)
-        drawing = actions[:, 5] > 0
-        if idle is not None:
-            drawing &= ~idle
-        self.placed_now[:] = False
-        if drawing.any():
-            self.placed_now[drawing] = self.place(envs[drawing], actions[drawing])
+        ``idle`` copies, whose action is ignored). The drawings are checked in one compiled
+        pass (:func:`envs._measure.pin_draws`) where the arrays allow it, else by
+        :meth:`place`; the same springs either way."""
+        if not np.count_nonzero(actions[:, 5] > 0):  # (the usual step: nobody draws)
+            self.placed_now[:] = False
+            super().apply(actions, idle)
+            return
+        drawn = self._drawn(actions, idle)
+        if drawn is not None:
+            ends, ok = drawn
+            self.placed_now[:] = ok
+            if np.count_nonzero(ok):
+                envs = np.flatnonzero(ok)
+                self._attach(envs, ends[envs], actions[envs])
+        else:
+            envs = np.arange(self.num_envs)
+            drawing = actions[:, 5] > 0
+            if idle is not None:
+                drawing &= ~idle
+            self.placed_now[:] = False
+            if drawing.any():
+                self.placed_now[drawing] = self.place(envs[drawing], actions[drawing])
         super().apply(actions, idle)
+
+    def _drawn(self, actions: np.ndarray, idle: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(ends, ok)`` of every copy's drawing from the compiled check (see :meth:`apply`),
+        or None where the numpy reference must run (compiled bookkeeping off, or arrays not
+        of the shapes and types it reads)."""
+        N, n, nc = self.num_envs, self.n, self.cloth_n
+        state = self._compiled_state()
+        if not (state is not None and type(n) is int and type(nc) is int and 0 < nc <= n
+                and type(self.max_springs) is int and _owned(actions, np.float64, (N, 6))
+                and _owned(self.placed, np.int64, (N,))
+                and _owned(self.anchors_used, np.int64, (N,))
+                and _owned(self.placed_now, np.bool_, (N,))):
+            return None
+        if idle is None:
+            idle = self._mask(None)
+        elif not _owned(idle, np.bool_, (N,)):
+            return None
+        ends, ok = np.empty((N, 2), np.int64), np.empty(N, bool)
+        c, h = self.center, self.half
+        xmin, ymin, xmax, ymax = self.anchor_region
+        _measure.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
+                           (n, nc, self.max_springs, float(c[0]), float(c[1]), float(h[0]),
+                            float(h[1]), float(self.snap_radius**2), float(xmin), float(ymin),
+                            float(xmax), float(ymax)), ends, ok)
+        return ends, ok
 
     def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray) -> None:
         """Write starting states and clear the copies' springs."""
@@ -379,21 +433,57 @@ class ClothPin(ShapedTask, ParticleTask):
         positions and velocities, the goal, and one row per spring slot (see the env docs).
         In one compiled pass (:func:`envs._measure.pin_observe`) where the arrays allow it,
         else by the numpy reference :meth:`observe_reference`."""
+        state, pin = self._compiled_state(), self._pin()
+        if state is not None and pin is not None and _owned(self.goal, np.float64,
+                                                            (self.num_envs,)):
+            obs = self._obs()
+            if _measure.pin_observe(state[0], state[1], self.n, self.cloth_n, self.goal,
+                                    tuple(self._view()), pin, obs):
+                return obs
+        return self.observe_reference()
+
+    def measure_observe(self, stepped: np.ndarray | None = None
+                        ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """:meth:`measure`, then :meth:`observe`: in one compiled call
+        (:func:`envs._measure.pin_measures_observe`) unless a subclass redefines either or
+        the arrays do not allow it; the same values either way."""
+        cls = type(self)
+        post = (self._compiled_post() if cls.measure is ClothPin.measure
+                and cls.observe is ClothPin.observe else None)
+        pin = self._pin() if post is not None else None
+        if pin is None:
+            return self.measure(stepped), self.observe()
+        p, goal, (x, v, mass) = post
+        out, success, obs = np.empty((5, self.num_envs)), np.empty(self.num_envs, bool), self._obs()
+        if not _measure.pin_measures_observe(
+                x, v, mass, tuple(goal), p.refs.blocks, True, tuple(self._rest()),
+                self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
+                obs):
+            return self.measure(stepped), self.observe()
+        return self._pin_measures(_measured(out, success), out[4]), obs
+
+    def _obs(self) -> np.ndarray:
+        """A fresh observation array (num_envs, 4 nc + 1 + 7 max_springs) float32."""
+        return np.empty((self.num_envs, 4 * self.cloth_n + 1 + SLOT_SIZE * self.max_springs),
+                        np.float32)
+
+    def _pin(self) -> tuple | None:
+        """The spring slots as the compiled observation reads them (:class:`envs._measure.Pin`
+        in plain form), or None where the numpy reference must run: sizes that are not ints
+        with ``0 < cloth_n <= n``, or arrays not of the shapes and types it reads."""
         N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs  # (read once)
-        state = self._compiled_state()
         sp = self.springs
-        si, sj, ks, rest, goal, placed = sp.i, sp.j, sp.ks, sp.rest, self.goal, self.placed
-        if (state is not None and type(n) is int and type(nc) is int and type(B) is int
-                and 0 < nc <= n and len(state[0]) == N * n and _owned(goal, np.float64, (N,))
+        si, sj, ks, rest, placed = sp.i, sp.j, sp.ks, sp.rest, self.placed
+        if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n
                 and _owned(placed, np.int64, (N,)) and _owned(si, np.int64, (N * B,))
                 and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
                 and _owned(rest, np.float64, (N * B,))):
-            obs = np.empty((N, 4 * nc + 1 + SLOT_SIZE * B), np.float32)
-            if _measure.pin_observe(state[0], state[1], n, nc, goal, tuple(self._view()), B,
-                                    placed,
-                                    si, sj, self._stiffness_seen(ks), rest, obs):
-                return obs
-        return self.observe_reference()
+            return None
+        lo, hi = self.ks_range
+        ratio = self._log_ratio
+        if ratio is None or ratio[0] is not self.ks_range:  # (made again when it is replaced)
+            ratio = self._log_ratio = (self.ks_range, float(np.log(hi / lo)))
+        return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1]
 
     def observe_reference(self) -> np.ndarray:
         """:meth:`observe` in numpy (the reference of the compiled pass): each entry computed
@@ -425,7 +515,11 @@ class ClothPin(ShapedTask, ParticleTask):
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
-        m, wall_force = self._measures(stepped, walls=True)
+        return self._pin_measures(*self._measures(stepped, walls=True))
+
+    def _pin_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
+                      ) -> dict[str, np.ndarray]:
+        """The common measures ``m`` with ClothPin's own added (see :meth:`measure`)."""
         m["wall_force"] = wall_force
         m["springs"] = self.placed.copy()
         m["placed"] = self.placed_now.copy()

@@ -87,9 +87,8 @@ def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
 
 
 def _pin_args(task):
-    sp = task.springs
-    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, task._view(),
-            task.max_springs, task.placed, sp.i, sp.j, task._stiffness_seen(sp.ks), sp.rest)
+    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, tuple(task._view()),
+            task._pin())
 
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
@@ -115,11 +114,77 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
     task = env.unwrapped.task
     args = list(_pin_args(task))
     obs = np.full((2, task.single_observation_space.shape[0]), 7.0, np.float32)
-    for k, bad in ((8, -1), (9, len(task.system.x))):  # spring_i, spring_j
-        broken = list(args)
-        broken[k] = args[k].copy()
-        broken[k][-1] = bad
-        assert not _measure.pin_observe(*broken, obs)
+    for k, bad in ((2, -1), (3, len(task.system.x))):  # the springs' i, j in the Pin record
+        pin = list(args[-1])
+        pin[k] = pin[k].copy()
+        pin[k][-1] = bad
+        assert not _measure.pin_observe(*args[:-1], tuple(pin), obs)
         assert np.all(obs == 7.0)  # nothing written
     assert _measure.pin_observe(*args, obs)
     assert obs.tobytes() == task.observe_reference().tobytes()
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
+def test_cloth_pin_compiled_drawings_and_bookkeeping_match_the_numpy_reference(monkeypatch):
+    """Two identical vector envs take the same drawings, one through the compiled drawing check
+    and bookkeeping, one through the numpy reference (``resolve``, ``place``, ``measure``,
+    ``observe_reference``): the springs, anchors, measures and observations agree exactly."""
+    N = 6
+    fast, ref = (gym.make_vec("ClothPin-v0", num_envs=N, vectorization_mode="vector_entry_point")
+                 .unwrapped.task for _ in range(2))
+    for task in (fast, ref):
+        task.reset_envs(list(range(N)), [np.random.default_rng(i) for i in range(N)])
+    def into_the_wall(task):  # copy 0's cloth pressed 5 mm into the wall
+        cloth = np.arange(task.cloth_n)
+        task.system.x[cloth, 0] += task.wall_x + 0.005 - task.system.x[cloth, 0].max()
+
+    for task in (fast, ref):
+        into_the_wall(task)
+    rng = np.random.default_rng(2)
+    lo_x, lo_y, hi_x, hi_y = fast.anchor_region
+    seen = {"placed": 0, "refused": 0, "new": 0, "wall": 0}
+    for _ in range(80):
+        x = fast.positions()
+        cloth = x[np.arange(N), rng.integers(0, fast.cloth_n, N)]
+        region = np.stack([rng.uniform(lo_x, hi_x, N), rng.uniform(lo_y, hi_y, N)], axis=1)
+        ends = [cloth + rng.normal(0, 0.05, (N, 2)), region]
+        if rng.random() < 0.5:
+            ends.reverse()
+        a = np.concatenate([fast.to_normalized(ends[0]), fast.to_normalized(ends[1]),
+                            rng.uniform(-1, 1, (N, 2))], axis=1)
+        wild = rng.random(N) < 0.3  # some drawings anywhere (mostly refused)
+        a[wild, :4] = rng.uniform(-1, 1, (int(wild.sum()), 4))
+        a = np.clip(a, -1, 1)
+        idle = rng.random(N) < 0.2
+        used = fast.anchors_used.copy()
+        fast.apply(a.copy(), idle)
+        with monkeypatch.context() as m:
+            m.setattr(_measure, "ENABLED", False)
+            ref.apply(a.copy(), idle)
+        for name in ("placed_now", "placed", "anchors_used"):
+            assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
+        for name in ("i", "j", "rest", "ks", "kd"):
+            assert np.array_equal(getattr(fast.springs, name), getattr(ref.springs, name)), name
+        assert fast.system.x.tobytes() == ref.system.x.tobytes()
+        seen["placed"] += int(fast.placed_now.sum())
+        seen["refused"] += int(((a[:, 5] > 0) & ~idle & ~fast.placed_now).sum())
+        seen["new"] += int((fast.anchors_used > used).sum())
+        for task in (fast, ref):
+            task.simulate()
+        stepped = rng.random(N) < 0.8
+        m_fast, obs_fast = fast.measure_observe(stepped)
+        with monkeypatch.context() as m:
+            m.setattr(_measure, "ENABLED", False)
+            m_ref, obs_ref = ref.measure_observe(stepped)
+        assert obs_fast.dtype == obs_ref.dtype == np.float32
+        assert obs_fast.tobytes() == obs_ref.tobytes()
+        assert list(m_fast) == list(m_ref)
+        for k in m_fast:
+            np.testing.assert_allclose(m_fast[k], m_ref[k], rtol=0, atol=1e-12, err_msg=k)
+        assert np.array_equal(fast.hold, ref.hold)
+        seen["wall"] += int(np.count_nonzero(m_fast["wall_force"]))
+        if fast.placed.min() == fast.max_springs:
+            for task in (fast, ref):
+                task.reset_envs(list(range(N)), [np.random.default_rng(i) for i in range(N)])
+                into_the_wall(task)
+    assert min(seen.values()) >= 5, seen
