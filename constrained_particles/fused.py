@@ -95,9 +95,14 @@ def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
     code, so that a run compiles only the families it steps with. (The tableaus stay
     compile-time constants: passed as arrays instead, rk4 and midpoint measured slower in one
     run, though a repeat was within this machine's noise.)"""
-    code = METHOD_CODES[method]
-    return (code, True if code in (METHOD_CODES["midpoint"], METHOD_CODES["rk4"]) else None,
-            True if code == METHOD_CODES["rattle"] else None)
+    return _INTEGRATOR_ARGS[method]
+
+
+#: :func:`integrator_args` of every method, made once
+_INTEGRATOR_ARGS = {
+    name: (code, True if name in ("midpoint", "rk4") else None,
+           True if name == "rattle" else None)
+    for name, code in METHOD_CODES.items()}
 
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,

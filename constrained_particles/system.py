@@ -443,8 +443,8 @@ class ParticleSystem:
             except Exception:
                 solver.lam = lam
                 raise
-            t = state[4]
-            for _ in range(steps):
+            t = state[4] + h
+            for _ in range(steps - 1):  # (t advances step by step, as on the reference path)
                 t = t + h
             self.x, self.v, self.t = x, v, t
             return True

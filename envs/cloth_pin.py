@@ -162,14 +162,6 @@ class ClothPin(ShapedTask, ParticleTask):
         """The top row: the report's push acts there."""
         return np.arange(self.nx)
 
-    def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
-        """:meth:`force_vectors` written straight into the actuator's rows (the same values)."""
-        if out.shape != (self.num_envs * self.nx, 2):
-            super()._write_forces(action, out)  # (which raises on the wrong shape)
-            return
-        out[:, 0] = self.push
-        out[:, 1] = 0.0
-
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The push: ``push`` newtons in +x on every top-row particle, whatever the action."""
         f = np.zeros((len(action), self.nx, 2))
