@@ -153,6 +153,7 @@ class Pin(NamedTuple):
     ks_lo: float  #: the stiffness action's range of spring constants (N/m)
     ks_hi: float
     log_ratio: float  #: ``np.log(ks_hi / ks_lo)``
+    count: int  #: the particles observed per copy (the cloth's, first in each copy)
 
 
 class Drawing(NamedTuple):
@@ -395,18 +396,19 @@ if ENABLED:
         return a
 
     @njit
-    def _pin_observe(x, v, n, count, goal, view, pin, obs):  # pragma: no cover - compiled
+    def _pin_observe(x, v, n, goal, view, pin, obs):  # pragma: no cover - compiled
         """ClothPin's observation (``ClothPin.observe``) into ``obs`` (N, 4 count + 1 + 7
-        slots) float32 (``view``: :class:`View`, ``pin``: :class:`Pin`): the first ``count``
-        particles' ``(x - c) / h`` and ``v / h`` of each copy of ``n``, the goal's ``(goal -
-        c_x) / h_x``, then per spring slot ``s`` of copy ``i`` (element ``i * slots + s``)
-        ``(1, ends (x - c) / h, observed stiffness, rest / h_x)`` if ``s < placed[i]``, else
-        zeros; each value computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and
+        slots) float32 (``view``: :class:`View`, ``pin``: :class:`Pin`): the first
+        ``pin.count`` particles' ``(x - c) / h`` and ``v / h`` of each copy of ``n``, the
+        goal's ``(goal - c_x) / h_x``, then per spring slot ``s`` of copy ``i`` (element
+        ``i * slots + s``) ``(1, ends (x - c) / h, observed stiffness, rest / h_x)`` if
+        ``s < placed[i]``, else zeros; each value computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and
         clipped to ``[-limit, limit]``. The caller checked the spring ends
-        (:func:`_pin_ends_fit`)."""
+        (:func:`_pin_ends_fit`) and ``0 < pin.count <= n``."""
         hi = np.float32(view.limit)
         lo = np.float32(-view.limit)
         cx, cy, ix, iy = view.cx, view.cy, view.ix, view.iy
+        count = pin.count
         _observe_particles(x, v, n, count, goal, cx, cy, ix, iy, lo, hi, obs)
         base = 4 * count + 1
         slots, placed, si, sj = pin.slots, pin.placed, pin.i, pin.j
@@ -716,12 +718,13 @@ if ENABLED:
         _observe(x, v, n, goal, View(*view), obs)
 
     @njit(nogil=True)
-    def _pin_observe_entry(x, v, n, count, goal, view, pin, obs):  # pragma: no cover - compiled
-        """:func:`_pin_observe` (False, writing nothing, if a spring end is not a particle)."""
-        pin = Pin(*pin)
-        if not _pin_ends_fit(pin, x.shape[0]):
+    def _pin_observe_entry(x, v, n, goal, view, pin, obs):  # pragma: no cover - compiled
+        """:func:`_pin_observe` (False, writing nothing, if a spring end is not a particle or
+        the observed count is not in [1, n])."""
+        slots = Pin(*pin)
+        if not (0 < slots.count <= n and _pin_ends_fit(slots, x.shape[0])):
             return False
-        _pin_observe(x, v, n, count, goal, View(*view), pin, obs)
+        _pin_observe(x, v, n, goal, View(*view), slots, obs)
         return True
 
     @njit(nogil=True)
@@ -730,13 +733,13 @@ if ENABLED:
         # pragma: no cover - compiled
         """:func:`_measures`, then :func:`_pin_observe`: ClothPin's bookkeeping after a step
         in one call (False, writing nothing, if a spring end is not a particle)."""
-        task, rest, pin = borrowed((task, rest, pin))
-        pin = Pin(*pin)
-        if not _pin_ends_fit(pin, x.shape[0]):
+        b_task, b_rest, b_pin = borrowed((task, rest, pin))
+        slots, goal = Pin(*b_pin), Goal(*b_task)
+        if not (0 < slots.count <= goal.n and _pin_ends_fit(slots, x.shape[0])):
             return False
-        goal = Goal(*task)
-        _measures(x, v, mass, goal, blocks, walls, Rest(*rest), stepped, blocked, out, success)
-        _pin_observe(x, v, goal.n, goal.count, goal.goal, View(*view), pin, obs)
+        _measures(x, v, mass, goal, blocks, walls, Rest(*b_rest), stepped, blocked, out,
+                  success)
+        _pin_observe(x, v, goal.n, goal.goal, View(*view), slots, obs)
         return True
 
     @njit(nogil=True)

@@ -322,13 +322,12 @@ class ClothPin(ShapedTask, ParticleTask):
         """``(ends, ok)`` of every copy's drawing from the compiled check (see :meth:`apply`),
         or None where the numpy reference must run (compiled bookkeeping off, or arrays not
         of the shapes and types it reads)."""
-        N, n, nc = self.num_envs, self.n, self.cloth_n
+        N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs  # (read once)
         state = self._compiled_state()
-        if not (state is not None and type(n) is int and type(nc) is int and 0 < nc <= n
-                and type(self.max_springs) is int and _owned(actions, np.float64, (N, 6))
-                and _owned(self.placed, np.int64, (N,))
-                and _owned(self.anchors_used, np.int64, (N,))
-                and _owned(self.placed_now, np.bool_, (N,))):
+        if not (state is not None and type(n) is int and type(nc) is int and type(B) is int
+                and 0 < nc <= n and len(state[0]) == N * n
+                and _owned(actions, np.float64, (N, 6)) and _owned(self.placed, np.int64, (N,))
+                and _owned(self.anchors_used, np.int64, (N,))):
             return None
         if idle is None:
             idle = self._mask(None)
@@ -338,9 +337,9 @@ class ClothPin(ShapedTask, ParticleTask):
         c, h = self.center, self.half
         xmin, ymin, xmax, ymax = self.anchor_region
         _measure.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
-                           (n, nc, self.max_springs, float(c[0]), float(c[1]), float(h[0]),
-                            float(h[1]), float(self.snap_radius**2), float(xmin), float(ymin),
-                            float(xmax), float(ymax)), ends, ok)
+                           (n, nc, B, float(c[0]), float(c[1]), float(h[0]), float(h[1]),
+                            float(self.snap_radius**2), float(xmin), float(ymin), float(xmax),
+                            float(ymax)), ends, ok)
         return ends, ok
 
     def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray) -> None:
@@ -425,12 +424,13 @@ class ClothPin(ShapedTask, ParticleTask):
         positions and velocities, the goal, and one row per spring slot (see the env docs).
         In one compiled pass (:func:`envs._measure.pin_observe`) where the arrays allow it,
         else by the numpy reference :meth:`observe_reference`."""
-        state, pin = self._compiled_state(), self._pin()
-        if state is not None and pin is not None and _owned(self.goal, np.float64,
-                                                            (self.num_envs,)):
-            obs = self._obs()
-            if _measure.pin_observe(state[0], state[1], self.n, self.cloth_n, self.goal,
-                                    tuple(self._view()), pin, obs):
+        N, n, nc, goal = self.num_envs, self.n, self.cloth_n, self.goal  # (read once)
+        state = self._compiled_state()
+        pin = (self._pin(N, n, nc) if state is not None and _owned(goal, np.float64, (N,))
+               else None)
+        if pin is not None and len(state[0]) == N * n:
+            obs = self._obs(N, nc, pin[0])
+            if _measure.pin_observe(state[0], state[1], n, goal, tuple(self._view()), pin, obs):
                 return obs
         return self.observe_reference()
 
@@ -442,11 +442,14 @@ class ClothPin(ShapedTask, ParticleTask):
         cls = type(self)
         post = (self._compiled_post() if cls.measure is ClothPin.measure
                 and cls.observe is ClothPin.observe else None)
-        pin = self._pin() if post is not None else None
-        if pin is None:
+        if post is None:
             return self.measure(stepped), self.observe()
         p, goal, (x, v, mass) = post
-        out, success, obs = np.empty((5, self.num_envs)), np.empty(self.num_envs, bool), self._obs()
+        N, nc = len(goal.goal), self.cloth_n
+        pin = self._pin(N, goal.n, nc)
+        if pin is None:
+            return self.measure(stepped), self.observe()
+        out, success, obs = np.empty((5, N)), np.empty(N, bool), self._obs(N, nc, pin[0])
         if not _measure.pin_measures_observe(
                 x, v, mass, tuple(goal), p.refs.blocks, True, tuple(self._rest()),
                 self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
@@ -454,28 +457,30 @@ class ClothPin(ShapedTask, ParticleTask):
             return self.measure(stepped), self.observe()
         return self._pin_measures(_measured(out, success), out[4]), obs
 
-    def _obs(self) -> np.ndarray:
-        """A fresh observation array (num_envs, 4 nc + 1 + 7 max_springs) float32."""
-        return np.empty((self.num_envs, 4 * self.cloth_n + 1 + SLOT_SIZE * self.max_springs),
-                        np.float32)
+    @staticmethod
+    def _obs(N: int, nc: int, slots: int) -> np.ndarray:
+        """A fresh observation array (N, 4 nc + 1 + 7 slots) float32."""
+        return np.empty((N, 4 * nc + 1 + SLOT_SIZE * slots), np.float32)
 
-    def _pin(self) -> tuple | None:
-        """The spring slots as the compiled observation reads them (:class:`envs._measure.Pin`
-        in plain form), or None where the numpy reference must run: sizes that are not ints
-        with ``0 < cloth_n <= n``, or arrays not of the shapes and types it reads."""
-        N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs  # (read once)
-        sp = self.springs
-        si, sj, ks, rest, placed = sp.i, sp.j, sp.ks, sp.rest, self.placed
+    def _pin(self, N: int, n: Any, nc: Any) -> tuple | None:
+        """The spring slots of ``N`` copies of ``n`` particles, ``nc`` of them the cloth's (the
+        observed ones), as the compiled observation reads them (:class:`envs._measure.Pin` in
+        plain form), or
+        None where the numpy reference must run: sizes that are not ints with ``0 < nc <=
+        n``, or arrays not of the shapes and types it reads."""
+        B, sp, placed = self.max_springs, self.springs, self.placed  # (read once)
+        si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
         if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n
                 and _owned(placed, np.int64, (N,)) and _owned(si, np.int64, (N * B,))
                 and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
                 and _owned(rest, np.float64, (N * B,))):
             return None
-        lo, hi = self.ks_range
+        ks_range = self.ks_range
+        lo, hi = ks_range
         ratio = self._log_ratio
-        if ratio is None or ratio[0] is not self.ks_range:  # (made again when it is replaced)
-            ratio = self._log_ratio = (self.ks_range, float(np.log(hi / lo)))
-        return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1]
+        if ratio is None or ratio[0] is not ks_range:  # (made again when it is replaced)
+            ratio = self._log_ratio = (ks_range, float(np.log(hi / lo)))
+        return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1], nc
 
     def observe_reference(self) -> np.ndarray:
         """:meth:`observe` in numpy (the reference of the compiled pass): each entry computed

@@ -87,8 +87,8 @@ def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
 
 
 def _pin_args(task):
-    return (task.system.x, task.system.v, task.n, task.cloth_n, task.goal, tuple(task._view()),
-            task._pin())
+    return (task.system.x, task.system.v, task.n, task.goal, tuple(task._view()),
+            task._pin(task.num_envs, task.n, task.cloth_n))
 
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
@@ -114,10 +114,14 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
     task = env.unwrapped.task
     args = list(_pin_args(task))
     obs = np.full((2, task.single_observation_space.shape[0]), 7.0, np.float32)
-    for k, bad in ((2, -1), (3, len(task.system.x))):  # the springs' i, j in the Pin record
+    # the springs' i, j in the Pin record, and its observed count (the last field)
+    for k, bad in ((2, -1), (3, len(task.system.x)), (-1, 0), (-1, task.n + 1)):
         pin = list(args[-1])
-        pin[k] = pin[k].copy()
-        pin[k][-1] = bad
+        if k < 0:
+            pin[k] = bad
+        else:
+            pin[k] = pin[k].copy()
+            pin[k][-1] = bad
         assert not _measure.pin_observe(*args[:-1], tuple(pin), obs)
         assert np.all(obs == 7.0)  # nothing written
     assert _measure.pin_observe(*args, obs)
