@@ -402,8 +402,8 @@ if ENABLED:
         ``pin.count`` particles' ``(x - c) / h`` and ``v / h`` of each copy of ``n``, the
         goal's ``(goal - c_x) / h_x``, then per spring slot ``s`` of copy ``i`` (element
         ``i * slots + s``) ``(1, ends (x - c) / h, observed stiffness, rest / h_x)`` if
-        ``s < placed[i]``, else zeros; each value computed in float64 (``ix, iy`` = 1 / h), rounded to float32 and
-        clipped to ``[-limit, limit]``. The caller checked the spring ends
+        ``s < placed[i]``, else zeros; each value computed in float64 (``ix, iy`` = 1 / h),
+        rounded to float32 and clipped to ``[-limit, limit]``. The caller checked the spring ends
         (:func:`_pin_ends_fit`) and ``0 < pin.count <= n``."""
         hi = np.float32(view.limit)
         lo = np.float32(-view.limit)

@@ -540,7 +540,8 @@ class ParticleTask(SteppedCopies):
                 and type(self).observe is ParticleTask.observe
                 and self._compiled_post() is not None):
             obs = np.empty((self.num_envs, 4 * self.n + 1), np.float32)
-            return self._measures(stepped, obs=obs)[0], obs
+            return self.add_measures(*self._measures(stepped, walls=self.measure_walls,
+                                                     obs=obs)), obs
         return self.measure(stepped), self.observe()
 
     def _mask(self, mask: np.ndarray | None) -> np.ndarray:
@@ -629,8 +630,23 @@ class ParticleTask(SteppedCopies):
 
         ``stepped`` masks the copies that just took an env step: their count of consecutive
         steps at the goal and at rest advances (or restarts at 0).
+
+        A task adds measures of its own in :meth:`add_measures` (rather than redefining this
+        method, which would take the measures and the observation out of their common
+        compiled call); with :attr:`measure_walls` the walls' contact force is measured too.
         """
-        return self._measures(stepped)[0]
+        return self.add_measures(*self._measures(stepped, walls=self.measure_walls))
+
+    #: Whether :meth:`measure` computes the walls' total contact force per copy (N) for
+    #: :meth:`add_measures` (zeros otherwise).
+    measure_walls: ClassVar[bool] = False
+
+    def add_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
+                     ) -> dict[str, np.ndarray]:
+        """The task's own measures added to the common ones ``m`` (in place; returns ``m``),
+        ``wall_force`` being the walls' contact force per copy (N; see
+        :attr:`measure_walls`). None here."""
+        return m
 
     @property
     def tracked_particles(self) -> np.ndarray | None:

@@ -440,7 +440,7 @@ class ClothPin(ShapedTask, ParticleTask):
         (:func:`envs._measure.pin_measures_observe`) unless a subclass redefines either or
         the arrays do not allow it; the same values either way."""
         cls = type(self)
-        post = (self._compiled_post() if cls.measure is ClothPin.measure
+        post = (self._compiled_post() if cls.measure is ParticleTask.measure
                 and cls.observe is ClothPin.observe else None)
         if post is None:
             return self.measure(stepped), self.observe()
@@ -455,7 +455,7 @@ class ClothPin(ShapedTask, ParticleTask):
                 self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
                 obs):
             return self.measure(stepped), self.observe()
-        return self._pin_measures(_measured(out, success), out[4]), obs
+        return self.add_measures(_measured(out, success), out[4]), obs
 
     @staticmethod
     def _obs(N: int, nc: int, slots: int) -> np.ndarray:
@@ -509,14 +509,12 @@ class ClothPin(ShapedTask, ParticleTask):
         lo, hi = self.ks_range
         return self.stiffness_action(np.minimum(np.maximum(ks, lo), hi))
 
-    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    measure_walls = True
+
+    def add_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
+                     ) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far and ``placed`` (a spring was placed on the last step)."""
-        return self._pin_measures(*self._measures(stepped, walls=True))
-
-    def _pin_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
-                      ) -> dict[str, np.ndarray]:
-        """The common measures ``m`` with ClothPin's own added (see :meth:`measure`)."""
         m["wall_force"] = wall_force
         m["springs"] = self.placed.copy()
         m["placed"] = self.placed_now.copy()

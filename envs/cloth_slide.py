@@ -123,13 +123,15 @@ class ClothSlide(ShapedTask, ParticleTask):
         gives every copy the same bits whatever the number of copies."""
         return x[:, :, 0].sum(axis=1) * (1.0 / x.shape[1])
 
-    def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    measure_walls = True
+
+    def add_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
+                     ) -> dict[str, np.ndarray]:
         """The common measures plus ``wall_force``: both walls' total contact force (N; the
         success test also needs it to be 0: resting against a wall is not rest, so a step
         touching it restarts the success count), and
         ``squeeze``: the squeeze component ``(f_left - f_right) / 2`` (N) of the last force-mode
         action (positive pushes the corners together; 0 in spring mode)."""
-        m, wall_force = self._measures(stepped, walls=True)
         m["wall_force"] = wall_force
         m["squeeze"] = (0.5 * self.max_force * (self.action[:, 0] - self.action[:, 1])
                         if self.action_mode == "force" else np.zeros(self.num_envs))

@@ -81,6 +81,11 @@ def test_compiled_bookkeeping_equals_numpy_reference(monkeypatch, env_id, mode):
         stepped = rng.uniform(size=N) < 0.8
         fast, ref = both(monkeypatch, task, lambda s=stepped: task.measure(s))
         assert_measures_equal(fast, ref)
+        # the measures and the observation in one call, as the envs take them after a step
+        (fast, fast_obs), (ref, ref_obs) = both(monkeypatch, task,
+                                                lambda s=stepped: task.measure_observe(s))
+        assert_measures_equal(fast, ref)
+        assert fast_obs.tobytes() == ref_obs.tobytes()
         fast, ref = both(monkeypatch, task, task.observe)
         assert fast.dtype == np.float32 and fast.tobytes() == ref.tobytes()
         worst = [task.single.distance_errors(task.system.x[task.copy_slice(i)]).max()
