@@ -536,12 +536,12 @@ class ParticleTask(SteppedCopies):
         """:meth:`measure` (``stepped`` as there), then :meth:`observe`: what the envs need
         after every step. In one compiled call (:func:`envs._measure.measures_observe`) when
         a subclass redefines neither and the blocks allow it; the same values either way."""
-        if (type(self).measure is ParticleTask.measure
-                and type(self).observe is ParticleTask.observe
-                and self._compiled_post() is not None):
-            obs = np.empty((self.num_envs, 4 * self.n + 1), np.float32)
+        post = (self._compiled_post() if type(self).measure is ParticleTask.measure
+                and type(self).observe is ParticleTask.observe else None)
+        if post is not None:
+            obs = np.empty((len(post[1].goal), 4 * post[1].n + 1), np.float32)
             return self.add_measures(*self._measures(stepped, walls=self.measure_walls,
-                                                     obs=obs)), obs
+                                                     obs=obs, post=post)), obs
         return self.measure(stepped), self.observe()
 
     def _mask(self, mask: np.ndarray | None) -> np.ndarray:
@@ -684,7 +684,7 @@ class ParticleTask(SteppedCopies):
         return self._track
 
     def _measures(self, stepped: np.ndarray | None = None, blocked: np.ndarray | None = None,
-                  walls: bool = False, obs: np.ndarray | None = None
+                  walls: bool = False, obs: np.ndarray | None = None, post: tuple | None = None
                   ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """The measures of :meth:`measure` and the walls' total contact force per copy (N,
         the sum over particles of ``|F_x|``; zeros unless ``walls``).
@@ -696,10 +696,12 @@ class ParticleTask(SteppedCopies):
         compiled pass (:func:`envs._measure.measures`) when the system's blocks allow it, else
         by the numpy reference below. With ``obs``, the compiled pass also writes :meth:`observe`'s
         observation into it (:func:`envs._measure.measures_observe`); the reference does not.
+        ``post``: :meth:`_compiled_post` if the caller has it (else made here).
         """
         N, n = self.num_envs, self.n
         s = self.system
-        post = self._compiled_post()
+        if post is None:
+            post = self._compiled_post()
         if post is not None:
             p, goal, (x, v, mass) = post
             out = np.empty((5, N))
