@@ -120,14 +120,20 @@ def spring_runs(i: np.ndarray, j: np.ndarray, minimum: int = RUN_MIN) -> np.ndar
     differ (``i != j``), as a read-only (runs, 2) int64 array. A cloth's rows, columns and
     diagonals are such runs; the compiled spring loop reads and writes them contiguously."""
     k = len(i)
-    if k < minimum:
+    if k == 0 or k < minimum:
         return _ro(np.zeros((0, 2), np.int64))
-    step = (np.diff(i) != 1) | (np.diff(j) != 1)
-    starts = np.flatnonzero(np.r_[True, step])
-    ends = np.r_[starts[1:], k]
+    start = np.empty(k, bool)  # (without np.r_, whose overhead was most of a small pack's)
+    start[0] = True
+    np.logical_or(np.diff(i) != 1, np.diff(j) != 1, out=start[1:])
+    starts = np.flatnonzero(start)
+    ends = np.empty_like(starts)
+    ends[:-1] = starts[1:]
+    ends[-1] = k
     keep = (ends - starts >= minimum) & (i[starts] != j[starts])
-    return _ro(np.ascontiguousarray(np.stack([starts[keep], ends[keep]], axis=1),
-                                    dtype=np.int64))
+    runs = np.empty((int(np.count_nonzero(keep)), 2), np.int64)
+    runs[:, 0] = starts[keep]
+    runs[:, 1] = ends[keep]
+    return _ro(runs)
 
 
 class PackRefs(NamedTuple):
