@@ -465,9 +465,8 @@ class ClothPin(ShapedTask, ParticleTask):
     def _pin(self, N: int, n: Any, nc: Any) -> tuple | None:
         """The spring slots of ``N`` copies of ``n`` particles, ``nc`` of them the cloth's (the
         observed ones), as the compiled observation reads them (:class:`envs._measure.Pin` in
-        plain form), or
-        None where the numpy reference must run: sizes that are not ints with ``0 < nc <=
-        n``, or arrays not of the shapes and types it reads."""
+        plain form); None where the numpy reference must run: sizes that are not ints with
+        ``0 < nc <= n``, or arrays not of the shapes and types it reads."""
         B, sp, placed = self.max_springs, self.springs, self.placed  # (read once)
         si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
         if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n
