@@ -369,11 +369,20 @@ if ENABLED:
                            np.float32(-view.limit), np.float32(view.limit), obs)
 
     @njit
-    def _pin_ends_fit(pin, total):  # pragma: no cover - compiled
-        """True if every spring end of ``pin`` is a particle index in ``[0, total)``."""
+    def _pin_fits(x, n, goal, pin, obs):  # pragma: no cover - compiled
+        """True if :func:`_pin_observe` may read and write these arrays without bounds checks:
+        ``N = len(goal)`` copies of ``n`` particles in ``x``, ``0 < pin.count <= n``, the slot
+        arrays of ``N * slots`` springs (``placed`` of ``N``), every spring end a particle of
+        ``x``, and ``obs`` of shape (N, 4 count + 1 + 7 slots)."""
+        N, slots, count = goal.shape[0], pin.slots, pin.count
         si, sj = pin.i, pin.j
-        if si.shape[0] != sj.shape[0]:
+        if not (0 < count <= n and slots >= 0 and x.shape[0] >= N * n
+                and pin.placed.shape[0] == N and si.shape[0] == N * slots
+                and sj.shape[0] == N * slots and pin.ks.shape[0] == N * slots
+                and pin.rest.shape[0] == N * slots
+                and obs.shape[0] == N and obs.shape[1] == 4 * count + 1 + 7 * slots):
             return False
+        total = x.shape[0]
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= total or sj[e] < 0 or sj[e] >= total:
                 return False
@@ -403,8 +412,8 @@ if ENABLED:
         goal's ``(goal - c_x) / h_x``, then per spring slot ``s`` of copy ``i`` (element
         ``i * slots + s``) ``(1, ends (x - c) / h, observed stiffness, rest / h_x)`` if
         ``s < placed[i]``, else zeros; each value computed in float64 (``ix, iy`` = 1 / h),
-        rounded to float32 and clipped to ``[-limit, limit]``. The caller checked the spring ends
-        (:func:`_pin_ends_fit`) and ``0 < pin.count <= n``."""
+        rounded to float32 and clipped to ``[-limit, limit]``. The caller checked the arrays
+        (:func:`_pin_fits`)."""
         hi = np.float32(view.limit)
         lo = np.float32(-view.limit)
         cx, cy, ix, iy = view.cx, view.cy, view.ix, view.iy
@@ -461,9 +470,17 @@ if ENABLED:
         in plain form): copy ``i`` draws (``actions[i, 5] > 0``, not ``idle[i]``) with room in
         its budget; its two ends (``to_world`` of ``actions[i, 0:2]`` and ``[2:4]``) resolve
         as ``ClothPin.resolve`` does (the particle within a copy, -2 for a new anchor) into
-        ``ends[i]``; ``ok[i]`` if exactly one end is on the cloth and at most one is new."""
+        ``ends[i]``; ``ok[i]`` if exactly one end is on the cloth and at most one is new.
+        Returns False, writing nothing, unless the arrays hold ``N = len(actions)`` copies of
+        ``d.n`` particles (``0 < d.cloth_n <= d.n``) and one entry per copy each."""
         d = Drawing(*draw)
-        for i in range(actions.shape[0]):
+        N = actions.shape[0]
+        if not (0 < d.cloth_n <= d.n and x.shape[0] >= N * d.n and actions.shape[1] >= 6
+                and idle.shape[0] == N and placed.shape[0] == N
+                and anchors_used.shape[0] == N and ok.shape[0] == N
+                and ends.shape[0] == N and ends.shape[1] == 2):
+            return False
+        for i in range(N):
             ok[i] = False
             ends[i, 0] = ends[i, 1] = -1
             if not actions[i, 5] > 0 or idle[i] or placed[i] >= d.slots:
@@ -483,6 +500,7 @@ if ENABLED:
                 on_cloth += 0 <= end < d.cloth_n
                 new += end == -2
             ok[i] = on_cloth == 1 and new <= 1
+        return True
 
     @njit
     def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
@@ -719,10 +737,9 @@ if ENABLED:
 
     @njit(nogil=True)
     def _pin_observe_entry(x, v, n, goal, view, pin, obs):  # pragma: no cover - compiled
-        """:func:`_pin_observe` (False, writing nothing, if a spring end is not a particle or
-        the observed count is not in [1, n])."""
+        """:func:`_pin_observe` (False, writing nothing, unless :func:`_pin_fits`)."""
         slots = Pin(*pin)
-        if not (0 < slots.count <= n and _pin_ends_fit(slots, x.shape[0])):
+        if not _pin_fits(x, n, goal, slots, obs):
             return False
         _pin_observe(x, v, n, goal, View(*view), slots, obs)
         return True
@@ -732,10 +749,10 @@ if ENABLED:
                                     out, success, view, pin, obs):
         # pragma: no cover - compiled
         """:func:`_measures`, then :func:`_pin_observe`: ClothPin's bookkeeping after a step
-        in one call (False, writing nothing, if a spring end is not a particle)."""
+        in one call (False, writing nothing, unless :func:`_pin_fits`)."""
         b_task, b_rest, b_pin = borrowed((task, rest, pin))
         slots, goal = Pin(*b_pin), Goal(*b_task)
-        if not (0 < slots.count <= goal.n and _pin_ends_fit(slots, x.shape[0])):
+        if not _pin_fits(x, goal.n, goal.goal, slots, obs):
             return False
         _measures(x, v, mass, goal, blocks, walls, Rest(*b_rest), stepped, blocked, out,
                   success)

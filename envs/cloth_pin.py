@@ -336,10 +336,11 @@ class ClothPin(ShapedTask, ParticleTask):
         ends, ok = np.empty((N, 2), np.int64), np.empty(N, bool)
         c, h = self.center, self.half
         xmin, ymin, xmax, ymax = self.anchor_region
-        _measure.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
-                           (n, nc, B, float(c[0]), float(c[1]), float(h[0]), float(h[1]),
-                            float(self.snap_radius**2), float(xmin), float(ymin), float(xmax),
-                            float(ymax)), ends, ok)
+        if not _measure.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
+                                  (n, nc, B, float(c[0]), float(c[1]), float(h[0]),
+                                   float(h[1]), float(self.snap_radius**2), float(xmin),
+                                   float(ymin), float(xmax), float(ymax)), ends, ok):
+            return None
         return ends, ok
 
     def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray) -> None:

@@ -124,8 +124,45 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
             pin[k][-1] = bad
         assert not _measure.pin_observe(*args[:-1], tuple(pin), obs)
         assert np.all(obs == 7.0)  # nothing written
+    # arrays of the wrong sizes: one copy's placed count only, a slot array short by one,
+    # an observation one column short, and fewer particles than the copies hold
+    pin = list(args[-1])
+    for k, short in ((1, pin[1][:1]), (4, pin[4][:-1]), (5, pin[5][:-1])):
+        broken = list(pin)
+        broken[k] = np.ascontiguousarray(short)
+        assert not _measure.pin_observe(*args[:-1], tuple(broken), obs)
+    narrow = np.full((2, obs.shape[1] - 1), 7.0, np.float32)
+    assert not _measure.pin_observe(*args, narrow) and np.all(narrow == 7.0)
+    few = np.ascontiguousarray(args[0][:-1])
+    assert not _measure.pin_observe(few, *args[1:], obs)
+    assert np.all(obs == 7.0)
     assert _measure.pin_observe(*args, obs)
     assert obs.tobytes() == task.observe_reference().tobytes()
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
+def test_cloth_pin_compiled_drawing_check_refuses_arrays_of_the_wrong_sizes():
+    env = gym.make_vec("ClothPin-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    x, N = task.system.x, 2
+    actions = np.ones((N, 6))
+    draw = (task.n, task.cloth_n, task.max_springs, 0.0, 0.0, 1.0, 1.0, 0.01,
+            *task.anchor_region)
+
+    def run(x=x, actions=actions, placed=task.placed, draw=draw):
+        ends, ok = np.full((N, 2), 7, np.int64), np.ones(N, bool)
+        return _measure.pin_draws(x, actions, np.zeros(N, bool), placed, task.anchors_used,
+                                  draw, ends, ok), ends, ok
+
+    done, ends, ok = run()
+    assert done and not np.all(ends == 7)
+    for bad in ({"x": np.ascontiguousarray(x[:-1])}, {"actions": np.ones((N, 5))},
+                {"placed": task.placed[:1].copy()},
+                {"draw": (task.n, task.n + 1, *draw[2:])},  # more cloth than particles
+                {"draw": (task.n + 1, *draw[1:])}):  # more particles per copy than x holds
+        done, ends, ok = run(**bad)
+        assert not done and np.all(ends == 7) and ok.all()  # nothing written
 
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
