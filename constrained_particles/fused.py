@@ -106,7 +106,7 @@ _INTEGRATOR_ARGS = {
 
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
-            state: tuple[Any, Any, Any, Any] | None = None
+            state: tuple[Any, Any, Any, Any] | None = None, checked: bool = False
             ) -> tuple[Packed, State, Settings] | None:
     """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose
     :attr:`~.packing.Packed.refs` it takes), the :class:`~.records.State` to step (``x, v,
@@ -116,36 +116,40 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
     of range, a parameter array whose shape changed in place, or state arrays (and ``lam``)
     not C-ordered float64 of the packed sizes. The kernel's memory safety rests on these
     checks (O(1) per array: the arrays the kernel indexes with were checked when the pack was
-    built, and cannot change; the mouse springs' particles and flags are copied here)."""
+    built, and cannot change; the mouse springs' particles and flags are copied here).
+    ``checked``: the caller's ``state`` passed ``ParticleSystem.check_arrays`` (float64
+    arrays, ``x`` and ``v`` of one (n, 2) shape, ``mass`` and ``inv_mass`` of (n,)), so only
+    what that leaves open is checked here."""
     p = pack(system)
-    if not p.valid:  # unsupported blocks, or an index out of range
-        return None
-    if not p.shapes_hold():
-        return None
+    if not (p.valid and p.shapes_hold()):  # unsupported blocks, an index out of range, or
+        return None  # a parameter array reshaped in place
     if p._refresh:
         p.refresh()
     if state is None:
         state = system.x, system.v, system.mass, system.inv_mass
     x, v, mass, inv_mass = state
     nd, f64 = np.ndarray, np.float64
-    if not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
-            and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
-            and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
-            and v.flags.c_contiguous and mass.flags.c_contiguous
-            and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
-            and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
-            and mass.shape == inv_mass.shape == (p.n,)):
+    if checked:  # (float64 arrays of matching shapes: only contiguity and sizes are left)
+        if not (type(lam) is nd and lam.dtype == f64 and lam.flags.c_contiguous
+                and x.flags.c_contiguous and v.flags.c_contiguous and mass.flags.c_contiguous
+                and inv_mass.flags.c_contiguous and len(x) == p.n and lam.shape == (p.m,)):
+            return None
+    elif not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
+              and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64
+              and inv_mass.dtype == f64 and lam.dtype == f64 and x.flags.c_contiguous
+              and v.flags.c_contiguous and mass.flags.c_contiguous
+              and inv_mass.flags.c_contiguous and lam.flags.c_contiguous
+              and x.shape == v.shape == (p.n, 2) and lam.shape == (p.m,)
+              and mass.shape == inv_mass.shape == (p.n,)):
         return None
     if not p.take_mouse():
         return None
-    settings = Settings(float(system.ks), float(system.kd), float(system.tol),
-                        float(system.divergence_limit), float(residual_limit))
-    return p, State(x, v, mass, inv_mass, lam), settings
+    return p, State(x, v, mass, inv_mass, lam), p.settings(system, residual_limit)
 
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
         residual_limit: float, pieces: np.ndarray | None = None,
-        state: tuple[Any, Any, Any, Any] | None = None
+        state: tuple[Any, Any, Any, Any] | None = None, checked: bool = False
         ) -> tuple[int, np.ndarray, np.ndarray, int]:
     """Run ``steps`` fused steps of ``method`` from the system's state.
 
@@ -159,9 +163,10 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     ``divergence_limit`` or off the constraints by more than ``residual_limit`` m) or
     :data:`FALLBACK` (use the reference path). ``lam`` (the warm start) is updated in place.
     ``state`` is ``(x, v, mass, inv_mass)`` as the caller read them (default: read here), so
-    that an attribute replaced meanwhile by another thread is never read.
+    that an attribute replaced meanwhile by another thread is never read; ``checked`` as for
+    :func:`prepare`.
     """
-    ready = prepare(system, lam, residual_limit, state)
+    ready = prepare(system, lam, residual_limit, state, checked)
     if ready is None:
         return FALLBACK, None, None, 0
     p, start, settings = ready

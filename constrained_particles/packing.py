@@ -46,6 +46,7 @@ from .records import (
     MouseArrays,
     RodArrays,
     Rows,
+    Settings,
     SpringArrays,
     WallArrays,
     blocks_ref,
@@ -306,6 +307,7 @@ class Packed:
         self._live: Live | None = None  # (made on first use: see live)
         self._live_ref: Any = None
         self._refs: PackRefs | None = None  # (made on first use: see refs)
+        self._settings: tuple[tuple[Any, ...], Settings] | None = None  # (see settings)
 
     def _build_rows(self, system: ParticleSystem) -> None:
         """Per-row particle columns and the connected components of the row graph."""
@@ -376,6 +378,25 @@ class Packed:
             self._refs = PackRefs(blocks_ref(plain(blocks)), rows_ref(plain(self.rows)),
                                   workspace_ref(*self.backing), particle, active)
         return self._refs
+
+    def settings(self, system: ParticleSystem, residual_limit: float) -> Settings:
+        """The :class:`~.records.Settings` of ``system`` for a call that judges residuals
+        against ``residual_limit`` (m). Five floats are remembered by identity, and made again
+        only when one of them is another object than at the last call (an attribute
+        reassigned): a call then reads each attribute once and converts nothing."""
+        ks, kd, tol, limit = system.ks, system.kd, system.tol, system.divergence_limit
+        last = self._settings
+        if last is not None:
+            key = last[0]
+            if (ks is key[0] and kd is key[1] and tol is key[2] and limit is key[3]
+                    and residual_limit is key[4]):
+                return last[1]
+        made = Settings(float(ks), float(kd), float(tol), float(limit), float(residual_limit))
+        f = float  # (only immutable values are remembered: a 0-d array could change in place)
+        if (type(ks) is f and type(kd) is f and type(tol) is f and type(limit) is f
+                and type(residual_limit) is f):
+            self._settings = (ks, kd, tol, limit, residual_limit), made
+        return made
 
     def take_mouse(self) -> bool:
         """Copy the mouse springs' particles and ``active`` flags into the ones the compiled

@@ -32,6 +32,7 @@ IMPLICIT_SOLVERS = ("auto", "cg", "direct")
 
 #: Shortest accepted time step (s): below it ``t + dt`` and ``1 / dt`` stop being meaningful.
 MIN_DT = 1e-9
+_F64 = np.dtype(np.float64)  #: NumPy's float64 dtype (one object: compared by identity)
 
 
 def _flag(name: str, value: Any) -> bool:
@@ -392,10 +393,11 @@ class ParticleSystem:
     def _step(self, h: float, integrate: Any, method: str, steps: int, project: bool) -> None:
         """The body of :meth:`step` (arguments checked, the step lock held)."""
         x, v, mass, inv_mass, t = state = self.x, self.v, self.mass, self.inv_mass, self.t
-        self._check_state(*state)
+        usual = self._check_state(*state)
         solver = self.constraint_solver
         project = bool(project and self.constraints)
-        if self._fused_step(h, method, steps, project, solver=solver, state=state):
+        if self._fused_step(h, method, steps, project, solver=solver, state=state,
+                            checked=usual):
             return
         lam = solver.lam.copy()
         try:
@@ -420,10 +422,12 @@ class ParticleSystem:
     def _fused_step(self, h: float, method: str, steps: int, project: bool,
                     pieces: np.ndarray | None = None,
                     solver: ConstraintSolver | None = None,
-                    state: tuple[Any, Any, Any, Any, Any] | None = None) -> bool:
+                    state: tuple[Any, Any, Any, Any, Any] | None = None,
+                    checked: bool = False) -> bool:
         """Take the steps on the fused kernel if it can (True); False, with nothing changed,
         if the reference path must. Raises SimulationDiverged, keeping the state. ``state``
-        is ``(x, v, mass, inv_mass, t)`` as the caller read them (default: read here)."""
+        is ``(x, v, mass, inv_mass, t)`` as the caller read them (default: read here);
+        ``checked``: :meth:`_check_state` found them the usual exact arrays."""
         if not self._fusable(method) or (project and steps > 1):
             return False
         if state is None:
@@ -433,7 +437,7 @@ class ParticleSystem:
         # with projection, the residual is judged after it (as on the reference path)
         status, x, v, failed = fused.run(self, h, method, steps, solver.lam,
                                          math.inf if project else self.residual_limit, pieces,
-                                         state[:4])
+                                         state[:4], checked)
         if status == fused.OK:
             try:
                 if project:
@@ -444,8 +448,9 @@ class ParticleSystem:
                 solver.lam = lam
                 raise
             t = state[4] + h
-            for _ in range(steps - 1):  # (t advances step by step, as on the reference path)
-                t = t + h
+            if steps > 1:
+                for _ in range(steps - 1):  # (t advances step by step, as on the reference
+                    t = t + h  # path)
             self.x, self.v, self.t = x, v, t
             return True
         solver.lam = lam
@@ -483,8 +488,9 @@ class ParticleSystem:
         lock = self._step_lock()
         try:
             state = self.x, self.v, self.mass, self.inv_mass, self.t
-            self._check_state(*state)
-            return self._fused_step(float(dt), method, int(steps), False, pieces, state=state)
+            usual = self._check_state(*state)
+            return self._fused_step(float(dt), method, int(steps), False, pieces, state=state,
+                                    checked=usual)
         finally:
             lock.release()
 
@@ -495,15 +501,17 @@ class ParticleSystem:
         self._check_state(self.x, self.v, self.mass, self.inv_mass, self.t)
 
     @staticmethod
-    def _check_state(x: Any, v: Any, mass: Any, inv_mass: Any, t: Any) -> None:
-        """:meth:`check_arrays` of state arrays read once by the caller."""
-        f64 = np.float64
+    def _check_state(x: Any, v: Any, mass: Any, inv_mass: Any, t: Any) -> bool:
+        """:meth:`check_arrays` of state arrays read once by the caller. True in the usual
+        case: exact ndarrays (no subclass), ``t`` a float."""
+        f64 = _F64  # (identity: NumPy's float64 dtype is one object; any other takes the
+        # careful checks below)
         if (type(x) is np.ndarray and type(v) is np.ndarray and type(mass) is np.ndarray
-                and type(inv_mass) is np.ndarray and x.dtype == f64 and v.dtype == f64
-                and mass.dtype == f64 and inv_mass.dtype == f64 and x.ndim == 2
+                and type(inv_mass) is np.ndarray and x.dtype is f64 and v.dtype is f64
+                and mass.dtype is f64 and inv_mass.dtype is f64 and x.ndim == 2
                 and x.shape[1] == 2 and v.shape == x.shape and mass.shape == inv_mass.shape
                 == x.shape[:1] and type(t) is float and math.isfinite(t)):
-            return  # the usual case, in a few operations
+            return True  # the usual case, in a few operations
         n = len(x) if isinstance(x, np.ndarray) and x.ndim else -1
         for name, arr, shape in (("x", x, (n, 2)), ("v", v, (n, 2)), ("mass", mass, (n,)),
                                  ("inv_mass", inv_mass, (n,))):
@@ -514,6 +522,7 @@ class ParticleSystem:
                                  f"{getattr(arr, 'dtype', '')} {np.shape(arr)}")
         if not (isinstance(t, numbers.Real) and np.isfinite(t)):
             raise ValueError(f"t must be a finite number of seconds, got {t!r}")
+        return False
 
     def distance_errors(self, x: np.ndarray | None = None) -> np.ndarray:
         """Every constraint row's geometric residual (m) at positions ``x`` (default: the
