@@ -122,25 +122,6 @@ class Finish(NamedTuple):
     episode: Episode
 
 
-class Push(NamedTuple):
-    """SliderCrank's force action and its step splitting (``kernels.group_pieces``)."""
-
-    raw: np.ndarray  #: (N, 1) the actions as given
-    action: np.ndarray  #: (N, 1) float64 out: clipped to [-1, 1]
-    max_force: float  #: N
-    force: np.ndarray  #: (N, 2) out: the actuator's force rows (N)
-    frow: np.ndarray  #: the actuator's row of each particle (-1: none)
-    horizon: float  #: the env step's duration (s)
-    travel: float  #: the largest travel per piece (m)
-    max_pieces: int
-    need: np.ndarray  #: (n,) scratch
-    rows: np.ndarray  #: (n,) int64 scratch: pieces per particle
-    hp: np.ndarray  #: (n,) scratch: each particle's piece (s)
-    counts: np.ndarray  #: (n,) int64 scratch: each particle's number of pieces
-    substeps: int  #: physics steps per env step
-    dt: float  #: physics step (s)
-
-
 class Pin(NamedTuple):
     """ClothPin's spring slots as its observation reads them (``ClothPin.observe``)."""
 
@@ -207,16 +188,11 @@ crank_measures_observe: Any = None
 #: :func:`crank_measures_observe`, SliderCrank's shaped reward and the episode counters of a
 #: step every copy took, in one call (None when ``ENABLED`` is False)
 crank_finish: Any = None
-#: SliderCrank's whole env step with force actions, every copy stepping (actions, forces, step
-#: splitting, the fused physics and :func:`crank_finish`) in one call (None when ``ENABLED``
-#: is False)
-crank_step: Any = None
-NONFINITE = 3  #: :func:`crank_step`'s status for an action that is not finite
 
 if ENABLED:
     from constrained_particles.jit import njit
     from constrained_particles.kernels import length_error, line_error, wall_element
-    from constrained_particles.records import State, borrowed
+    from constrained_particles.records import borrowed
 
     @njit
     def _worse(residual: np.ndarray, i: int, d: float) -> None:  # pragma: no cover - compiled
@@ -654,64 +630,6 @@ if ENABLED:
             count += ended[i]
         return count
 
-    # (their cached machine code holds fused_steps compiled in: the cache's source stamp covers
-    # constrained_particles' modules too, see constrained_particles.jit.source_stamp)
-    from constrained_particles.fused import OK as _OK
-    from constrained_particles.fused import fused_steps
-    from constrained_particles.kernels import group_pieces as _group_pieces
-
-    @njit(nogil=True)
-    def _crank_step(push, method, runge_kutta, rattle, state, lam_saved, x_out, v_out,
-                    settings, blocks, rows, ws, live, finish):  # pragma: no cover - compiled
-        """A SliderCrank env step with force actions in which every copy steps, as the
-        general path takes it, in one call (``push``: a :class:`Push` and ``finish``: a
-        :class:`Finish`, both in plain form): the ``push.raw`` actions checked (status
-        :data:`NONFINITE`, nothing written, if one is not finite) and clipped into
-        ``push.action``; the crank's push written into the actuator's ``push.force`` rows;
-        each copy's step splitting (``kernels.group_pieces`` through the row map
-        ``push.frow``); ``push.substeps`` fused steps of ``push.dt`` from ``state`` into
-        ``(x_out, v_out)`` (``fused.fused_steps`` with the integrator ``method, runge_kutta,
-        rattle``, ``settings``, the pack's ``blocks``, ``rows`` and workspace ``ws`` by
-        reference, each particle's step count in ``push.counts`` and the live set ``live``,
-        all in the form it takes); then
-        :func:`_crank_finish` on the new state. Returns ``(status, copies ended)``; a status
-        other than ``fused.OK`` leaves the state and the warm start ``state.lam`` as they were
-        (``lam_saved`` holds it meanwhile; the caller takes the general path, which writes the
-        same actions and forces again)."""
-        b_push, b_finish = borrowed((push, finish))  # (records of this call's own arguments)
-        pr, fin = Push(*b_push), _finish_record(b_finish)
-        start = State(*state)  # (state, settings and live stay in the plain form in which
-        # fused_steps takes them)
-        x, v, inv_mass, lam = start.x, start.v, start.inv_mass, start.lam
-        n, N = fin.task.n, fin.task.goal.shape[0]
-        raw = pr.raw
-        flat = raw.reshape(-1)
-        for k in range(flat.shape[0]):  # every entry checked before anything is written
-            if not math.isfinite(np.float64(flat[k])):
-                return NONFINITE, 0
-        _clip_actions(raw, pr.action)
-        _crank_push(x.reshape((N, n, 2)), pr.action, pr.max_force,
-                    pr.force.reshape((N, 1, 2)))
-        rows_of = pr.rows
-        _group_pieces(v, pr.force, pr.frow, inv_mass, n, pr.horizon, pr.dt,
-                      pr.travel, pr.max_pieces, pr.need, rows_of)
-        for i in range(lam.shape[0]):
-            lam_saved[i] = lam[i]
-        hp, counts, dt, substeps = pr.hp, pr.counts, pr.dt, pr.substeps
-        # one call, with per-particle steps even when no copy splits (all counts equal: the
-        # fused step then takes them unmasked, the same arithmetic, as dt / 1 == dt): only this
-        # version of the fused step is compiled for the crank, not a second one without them
-        for q in range(rows_of.shape[0]):
-            hp[q] = dt / rows_of[q]
-            counts[q] = rows_of[q] * substeps
-        status, _ = fused_steps(method, runge_kutta, rattle, substeps * 0, dt, hp, counts,
-                                 state, x_out, v_out, settings, blocks, rows, ws, live)
-        if status != _OK:
-            for i in range(lam.shape[0]):
-                lam[i] = lam_saved[i]
-            return status, 0
-        return status, _crank_finish(x_out, v_out, start.mass, blocks, fin)
-
     # The entry points from Python take the pack's blocks by reference (Packed.refs) and their
     # own records in plain form (constrained_particles.records.plain: typed in C, about half
     # the cost of a named tuple's typing per array), rebuilt here from borrowed arrays
@@ -787,7 +705,6 @@ if ENABLED:
     pin_observe = _pin_observe_entry
     pin_measures_observe = _pin_measures_observe_entry
     pin_draws = _pin_draws
-    crank_step = _crank_step
     crank_finish = _crank_finish_entry
     measures_observe = _measures_observe_entry
     crank_measures_observe = _crank_measures_observe_entry

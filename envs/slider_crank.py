@@ -7,14 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from constrained_particles import Drag, ParticleSystem, fused, scenes
+from constrained_particles import Drag, ParticleSystem, scenes
 
 from . import _measure
 from .base import ParticleTask, _measured
 from .checks import _owned, away, check_goal_range, check_positive, scaled
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 from .single import ParticleEnv
-from .stepping import MAX_PIECES
 from .vector import ParticleVectorEnv
 
 
@@ -58,9 +57,6 @@ class SliderCrank(ShapedTask, ParticleTask):
         #: ((copies, radius, rod), goals, their crank angles) last used by the compiled measure
         #: (see _measure.crank); rebuilt when the copies or the geometry change
         self._goal_angle: tuple[tuple, np.ndarray, np.ndarray] | None = None
-        #: Scratch of the compiled whole step: per-particle piece lengths and counts, and the
-        #: warm start kept for a step the general path must take again
-        self._scratch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, goal_tolerance=goal_tolerance,
@@ -248,68 +244,6 @@ class SliderCrank(ShapedTask, ParticleTask):
             x, v, mass, p.refs.blocks, self._finish_record(goal, values, flags, obs, before,
                                                             steps, max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
-
-    def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
-        """A whole env step with force actions in which every copy steps (no reset pending),
-        in one compiled call (:func:`envs._measure.crank_step`): what ``check_actions``,
-        ``apply``, ``simulate`` and :meth:`_finish_step` do one after another, with the same
-        results. Returns what :meth:`_finish_step` returns; raises ValueError, changing
-        nothing, for an action that is not finite; None (after at most writing the same
-        actions and forces the general path writes) where the general path must run: another
-        action mode, a subclass, actions not a C-ordered float array of shape (num_envs, 1),
-        arrays or blocks the fused kernel does not take, or a step that diverged."""
-        N, s, act = self.num_envs, self.system, self.actuator
-        if not (_measure.ENABLED and type(self) is SliderCrank and self.action_mode == "force"
-                and type(actions) is np.ndarray and actions.dtype.char in "fd"
-                and actions.shape == (N, 1) and actions.flags.c_contiguous
-                and self.integrator != "rattle" and not s.project_each_step
-                and s._fusable(self.integrator) and self._pushed is not None
-                and act.particles is self._pushed[0] and self._pushed[2].shape == (s.n,)
-                and _owned(act.force, np.float64, (N, 2))
-                and _owned(steps, np.int64, (N,))
-                and _owned(self.goal, np.float64, (N,))
-                and self._rest_owned()
-                and _owned(self.action, np.float64, (N, 1))):
-            return None
-        with s.stepping():  # (one step call at a time: the pack's buffers are shared)
-            return self._crank_call(actions, steps, max_steps)
-
-    def _crank_call(self, actions: np.ndarray, steps: np.ndarray, max_steps: int
-                    ) -> tuple | None:
-        """:meth:`_step_all` once its O(1) checks passed, the system's step lock held."""
-        N, s, act = self.num_envs, self.system, self.actuator
-        s.check_arrays()
-        lam = s.constraint_solver.lam
-        ready = fused.prepare(s, lam, s.residual_limit)
-        track = self._tracking()
-        before = self._phi()
-        if (ready is None or track is None or before.dtype != np.float64
-                or before.shape != (N,) or ready[0].n != N * self.n):
-            return None
-        p, state, settings = ready
-        refs = p.refs
-        need, rows, frow = self._pushed[1:]
-        if self._scratch is None or self._scratch[2].shape != lam.shape:
-            self._scratch = (np.empty(s.n), np.empty(s.n, np.int64), np.empty_like(lam))
-        x_out, v_out = np.empty_like(state.x), np.empty_like(state.v)
-        values, flags, obs, m = self._crank_outputs()
-        push = _measure.Push(actions, self.action, float(self.max_force), act.force, frow,
-                             float(self.substeps * self.dt), float(self.step_travel), MAX_PIECES,
-                             need, rows, *self._scratch[:2], int(self.substeps), float(self.dt))
-        finish = self._finish_record(self._goal_record(track), values, flags, obs, before, steps,
-                                     max_steps)
-        status, count = _measure.crank_step(
-            tuple(push), *fused.integrator_args(self.integrator), tuple(state), self._scratch[2],
-            x_out, v_out, tuple(settings), refs.blocks, refs.rows, refs.work, p.live_ref,
-            finish)
-        reward, terminated, truncated, ended = values[7], flags[2], flags[3], flags[4]
-        if status == _measure.NONFINITE:
-            raise ValueError(f"action must be finite, got {actions!r}")
-        if status != fused.OK:
-            return None
-        s.x, s.v = x_out, v_out
-        self.pass_time()  # (the clock as ParticleSystem.step advances it)
-        return obs, m, reward, terminated, truncated, ended, count
 
     def _goal_angles(self) -> tuple[np.ndarray, np.ndarray]:
         """The compiled crank measure's cache: the goals its angles were computed for (NaN:

@@ -257,9 +257,8 @@ def test_slider_crank_vector_copies_equal_single_envs_bit_for_bit(mode):
 
 @pytest.mark.parametrize("mode", ["force", "spring"])
 def test_compiled_steps_equal_the_general_path(mode):
-    """SliderCrank's compiled calm steps (force actions: the whole env step in one call; either
-    mode: the end of the step, measures to episode counters, in one call) give exactly what
-    the general path gives: observations, rewards, ends, infos with their masks, hold counts,
+    """SliderCrank's compiled end of a calm step (measures to episode counters, in one call,
+    either mode) gives exactly what the general path gives: observations, rewards, ends, infos with their masks, hold counts,
     clocks and the potentials kept for the next reward, over steps with successes,
     truncations and autoresets."""
     def make():
@@ -307,8 +306,8 @@ def test_compiled_steps_equal_the_general_path(mode):
 
 
 def test_compiled_step_refuses_nonfinite_actions_and_changes_nothing():
-    """An action that is not finite raises ValueError from the compiled whole step, with the
-    state, the actions and the actuator as they were."""
+    """An action that is not finite raises ValueError, with the state, the actions and the
+    actuator as they were."""
     env = gym.make_vec("SliderCrank-v0", num_envs=3, vectorization_mode="vector_entry_point")
     env.reset(seed=0)
     env.step(np.full((3, 1), 0.5, np.float32))
