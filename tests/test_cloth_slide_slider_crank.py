@@ -258,9 +258,9 @@ def test_slider_crank_vector_copies_equal_single_envs_bit_for_bit(mode):
 @pytest.mark.parametrize("mode", ["force", "spring"])
 def test_compiled_steps_equal_the_general_path(mode):
     """SliderCrank's compiled end of a calm step (measures to episode counters, in one call,
-    either mode) gives exactly what the general path gives: observations, rewards, ends, infos with their masks, hold counts,
-    clocks and the potentials kept for the next reward, over steps with successes,
-    truncations and autoresets."""
+    either mode) gives exactly what the general path gives: observations, rewards, ends,
+    infos with their masks, hold counts, clocks and the potentials kept for the next reward,
+    over steps with successes, truncations and autoresets."""
     def make():
         env = gym.make_vec("SliderCrank-v0", num_envs=6, vectorization_mode="vector_entry_point",
                            action_mode=mode, max_episode_steps=25, goal_tolerance=0.2,
