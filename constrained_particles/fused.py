@@ -87,22 +87,22 @@ RK4_A = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.
                   [0.0, 0.0, 1.0, 0.0]])
 RK4_W, RK4_D = np.array([1.0, 2.0, 2.0, 1.0]), 6.0
 
-def integrator_args(method: str) -> tuple[int, bool | None, bool | None]:
-    """The arguments ``(method, runge_kutta, rattle)`` by which the fused step is told the
-    integrator ``method`` (a name in :data:`METHOD_CODES`): its code; True for a Runge-Kutta
-    method (``midpoint``, ``rk4``), else None; True for RATTLE, else None. The kernel is
-    compiled once per pattern of None, each version holding only its integrator family's
-    code, so that a run compiles only the families it steps with. (The tableaus stay
-    compile-time constants: passed as arrays instead, rk4 and midpoint measured slower in one
-    run, though a repeat was within this machine's noise.)"""
+def integrator_args(method: str) -> tuple[int, bool | None]:
+    """The arguments ``(method, rattle)`` by which the fused step is told the integrator
+    ``method`` (a name in :data:`METHOD_CODES`): its code, and True for RATTLE, else None.
+    The kernel is compiled once per pattern of None: RATTLE, which has its own step, is
+    compiled only by a run that uses it. The explicit methods (euler, midpoint, rk4,
+    symplectic_euler) share one version and choose by code at run time: compiled per family,
+    SliderCrank's rk4 after ClothSlide's symplectic_euler compiled the step loop and its entry
+    a second time, 10.7 s of 21.6 (docs/compile_time.md). (The tableaus stay compile-time
+    constants: passed as arrays instead, rk4 and midpoint measured slower in one run, though
+    a repeat was within this machine's noise.)"""
     return _INTEGRATOR_ARGS[method]
 
 
 #: :func:`integrator_args` of every method, made once
-_INTEGRATOR_ARGS = {
-    name: (code, True if name in ("midpoint", "rk4") else None,
-           True if name == "rattle" else None)
-    for name, code in METHOD_CODES.items()}
+_INTEGRATOR_ARGS = {name: (code, True if name == "rattle" else None)
+                    for name, code in METHOD_CODES.items()}
 
 
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
@@ -171,21 +171,20 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
         return FALLBACK, None, None, 0
     p, start, settings = ready
     refs = p.refs
-    code, runge_kutta, rattle = integrator_args(method)
+    code, rattle = integrator_args(method)
     h = float(dt)
     x_out = np.empty_like(start.x)
     v_out = np.empty_like(start.v)
     if pieces is None:
-        status, failed = fused_steps(code, runge_kutta, rattle, int(steps), h, _F0, _NO_COUNTS,
-                                     tuple(start), x_out, v_out, tuple(settings), refs.blocks,
-                                     refs.rows, refs.work, None)
+        status, failed = fused_steps(code, rattle, int(steps), h, _F0, _NO_COUNTS,
+                                     tuple(start), x_out, v_out, tuple(settings), refs.engine,
+                                     None)
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
-    status, failed = fused_steps(code, runge_kutta, rattle, 0, h, h / pieces,
+    status, failed = fused_steps(code, rattle, 0, h, h / pieces,
                                  pieces * int(steps), tuple(start), x_out, v_out,
-                                 tuple(settings), refs.blocks, refs.rows, refs.work,
-                                 p.live_ref)
+                                 tuple(settings), refs.engine, p.live_ref)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -350,7 +349,7 @@ if kernels.ENABLED:
         return k
 
     @njit
-    def _steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out, settings,
+    def _steps(method, rattle, steps, h, hp, counts, state, x_out, v_out, settings,
                blocks, rows, ws, live):  # pragma: no cover - compiled
         """The step loop of :func:`fused_steps` (inputs checked, ``ws.w2`` and ``ws.tmp``
         prepared by it): ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle
@@ -358,11 +357,9 @@ if kernels.ENABLED:
         takes only ``counts[q]`` of them. Reads ``state.x, state.v`` and writes ``x_out,
         v_out`` only.
 
-        The integrator is RATTLE if ``rattle`` is not None, else the Runge-Kutta method
-        ``method`` (1 midpoint, 2 rk4) if ``runge_kutta`` is not None, else ``method`` (0
-        euler, 3 symplectic_euler). Numba compiles a version per pattern of None and drops the
-        other branches from it, so a run compiles only the integrator families it steps
-        with."""
+        The integrator is RATTLE if ``rattle`` is not None (Numba compiles a version per
+        pattern of None and drops the other branches from it), else ``method``: 0 euler, 3
+        symplectic_euler, or the explicit Runge-Kutta method 1 midpoint, 2 rk4."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         x0, v0 = state.x, state.v
         n = x0.shape[0]
@@ -392,7 +389,7 @@ if kernels.ENABLED:
             if rattle is not None:
                 if not _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws):
                     return FALLBACK, step
-            elif runge_kutta is None:  # euler / symplectic_euler
+            elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, a1, state, settings, blocks, rows, ws, live):
                     return FALLBACK, step
                 flat = live is None and not per_particle and n >= FLAT_MIN
@@ -479,13 +476,13 @@ if kernels.ENABLED:
 
 
     @njit(nogil=True)
-    def fused_steps(method, runge_kutta, rattle, steps, h, hp, counts, state, x_out, v_out,
-                    settings, blocks, rows, ws, live):  # pragma: no cover - compiled
+    def fused_steps(method, rattle, steps, h, hp, counts, state, x_out, v_out,
+                    settings, engine, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
         ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
-        ``method, runge_kutta, rattle`` give as :func:`integrator_args` makes them. The
-        records come as the pack holds them: ``blocks``, ``rows`` and the workspace ``ws``
-        by reference (:attr:`~.packing.Packed.refs`), the others in
+        ``method, rattle`` give as :func:`integrator_args` makes them. The
+        records come as the pack holds them: its ``blocks``, ``rows`` and workspace in one
+        :class:`~.records.Engine` by reference (:attr:`~.packing.Packed.refs`), the others in
         :func:`~.records.plain` form, rebuilt here: ``State(*state)`` (its ``lam`` is the
         warm start, updated in place) and ``Settings(*settings)``; ``live`` (None, or the
         pack's :attr:`~.packing.Packed.live_ref`) by reference too.
@@ -506,6 +503,7 @@ if kernels.ENABLED:
         b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
         start, xo, vo = State(*b_state), b_out[0], b_out[1]
         cfg = Settings(*settings)
+        blocks, rows, ws = engine.blocks, engine.rows, engine.work
         n = start.x.shape[0]
         m = start.lam.shape[0]
         per_particle = b_hp.shape[0] > 0
@@ -540,23 +538,23 @@ if kernels.ENABLED:
                 tmp[2 * q] = 0.0
                 tmp[2 * q + 1] = 0.0
         if live is None:
-            return _steps(method, runge_kutta, rattle, steps, h, b_hp, b_counts, start, xo, vo,
+            return _steps(method, rattle, steps, h, b_hp, b_counts, start, xo, vo,
                           cfg, blocks, rows, ws, None)
         if n == 0:
             return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return _steps(method, runge_kutta, rattle, total, h, b_hp, b_counts, start, xo, vo,
+            return _steps(method, rattle, total, h, b_hp, b_counts, start, xo, vo,
                           cfg, blocks, rows, ws, None)
         # the steps only some particles take come first, while their data are likely still in
         # cache from the last call (each particle takes its own steps in its own order, so
         # the order of the two passes changes no bit); then every particle's common steps
-        status, done = _steps(method, runge_kutta, rattle, total - first, h, b_hp,
+        status, done = _steps(method, rattle, total - first, h, b_hp,
                               b_counts - first, start, ws.x_mid, ws.v_mid, cfg, blocks, rows,
                               ws, live)
         if status != OK:
             return status, done
         middle = State(ws.x_mid, ws.v_mid, start.mass, start.inv_mass, start.lam)
-        status, more = _steps(method, runge_kutta, rattle, first, h, b_hp, b_counts, middle, xo,
+        status, more = _steps(method, rattle, first, h, b_hp, b_counts, middle, xo,
                               vo, cfg, blocks, rows, ws, None)
         return status, done + more

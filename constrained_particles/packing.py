@@ -50,6 +50,7 @@ from .records import (
     SpringArrays,
     WallArrays,
     blocks_ref,
+    engine_ref,
     live_ref,
     plain,
     rows_ref,
@@ -139,12 +140,14 @@ def spring_runs(i: np.ndarray, j: np.ndarray, minimum: int = RUN_MIN) -> np.ndar
 
 class PackRefs(NamedTuple):
     """A :class:`Packed` system's records as compiled code takes them: each held by reference
-    (:class:`~.records.RecordRef`), so that a call passes three pointers instead of some sixty
+    (:class:`~.records.RecordRef`), so that a call passes pointers instead of some sixty
     arrays."""
 
     blocks: Any  #: the :class:`~.records.Blocks`, with the mouse springs' arrays below
     rows: Any  #: the :class:`~.records.Rows`
     work: Any  #: the :class:`~.records.Workspace` over ``Packed.backing``
+    #: the three above as one :class:`~.records.Engine`, as the fused step takes them
+    engine: Any
     #: the mouse springs' particles and ``active`` flags as the compiled code reads them: the
     #: pack's own copies, refreshed before each call (:meth:`Packed.take_mouse`)
     mouse_particle: np.ndarray
@@ -375,8 +378,9 @@ class Packed:
             mouse = self.blocks.mouse
             particle, active = mouse.particle.copy(), mouse.active.copy()
             blocks = self.blocks._replace(mouse=mouse._replace(particle=particle, active=active))
-            self._refs = PackRefs(blocks_ref(plain(blocks)), rows_ref(plain(self.rows)),
-                                  workspace_ref(*self.backing), particle, active)
+            b, r, w = (blocks_ref(plain(blocks)), rows_ref(plain(self.rows)),
+                       workspace_ref(*self.backing))
+            self._refs = PackRefs(b, r, w, engine_ref(b, r, w), particle, active)
         return self._refs
 
     def settings(self, system: ParticleSystem, residual_limit: float) -> Settings:

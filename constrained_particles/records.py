@@ -161,6 +161,15 @@ class Rows(NamedTuple):
     comp_ptr: np.ndarray  #: (components + 1,) int64: component c is comp_rows[ptr[c]:ptr[c+1]]
 
 
+class Engine(NamedTuple):
+    """What the fused step reads of a packed system, each record held by reference
+    (:class:`RecordRef`): one pointer crosses into compiled code instead of three."""
+
+    blocks: Any  #: the :class:`Blocks`
+    rows: Any  #: the :class:`Rows`
+    work: Any  #: the :class:`Workspace`
+
+
 class State(NamedTuple):
     """The state a step starts from, with the solver's warm start."""
 
@@ -298,6 +307,9 @@ rows_ref: Any = None
 workspace_ref: Any = None
 #: compiled: a :class:`RecordRef` to the :class:`Live` whose :func:`plain` form is given
 live_ref: Any = None
+#: compiled: a :class:`RecordRef` to the :class:`Engine` of three records held by reference
+#: (``blocks, rows, work``)
+engine_ref: Any = None
 #: compiled: a live set's ``(particles, rows, components, elements)`` (four Nones for None),
 #: read once by a kernel before its loops
 live_lists: Any = None
@@ -435,3 +447,9 @@ if kernels.ENABLED:
         return _by_reference(_live_record(t))
 
     live_ref = _live_ref
+
+    @njit
+    def _engine_ref(blocks, rows, work):  # pragma: no cover - compiled
+        return _by_reference(Engine(blocks, rows, work))
+
+    engine_ref = _engine_ref
