@@ -601,43 +601,15 @@ if ENABLED:
         _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, crank.below, out,
                           success, view, obs)
 
-    @njit(nogil=True)
-    def _crank_finish(x, v, mass, blocks, finish):  # pragma: no cover - compiled
-        """The end of a SliderCrank env step that every copy took (``finish``:
-        :class:`Finish`): the measures and observation (:func:`_crank_measures_observe`), the
-        shaped reward (:func:`_shaped_reward`, no penalties) of the potential ``Phi =
-        crank_to_go + speed`` (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the
-        episode counters: ``steps`` advance, ``terminated = success``, ``truncated = steps >=
-        max_steps``, ``ended`` either. Returns how many copies ended."""
-        episode, reward = finish.episode, finish.reward
-        no_walls = episode.ended.shape[0] < 0  # (False as a run-time bool: a constant False
-        # would compile the measures once more, for its own literal type)
-        _crank_measures_observe(finish.crank, x, v, mass, finish.task, blocks, no_walls,
-                                finish.rest, finish.every, finish.out, finish.success,
-                                finish.frame, finish.obs)
-        phi = finish.crank.to_go + finish.out[1]  # SliderCrank.potential
-        success = finish.success
-        _shaped_reward(reward.before, phi, success, phi[:0], reward.scale, reward.time_cost,
-                       reward.bonus, reward.reward)
-        count = 0
-        steps, terminated, truncated, ended = (episode.steps, episode.terminated,
-                                               episode.truncated, episode.ended)
-        for i in range(steps.shape[0]):
-            steps[i] += 1
-            terminated[i] = success[i]
-            truncated[i] = steps[i] >= episode.max_steps
-            ended[i] = terminated[i] or truncated[i]
-            count += ended[i]
-        return count
-
     # The entry points from Python take the pack's blocks by reference (Packed.refs) and their
     # own records in plain form (constrained_particles.records.plain: typed in C, about half
     # the cost of a named tuple's typing per array), rebuilt here from borrowed arrays
     # (records.borrowed: the caller keeps its arguments alive for the whole call, so the
     # records cost no reference counting).
-    @njit
+    @njit(inline="always")
     def _finish_record(t):  # pragma: no cover - compiled
-        """The :class:`Finish` whose plain form is ``t``."""
+        """The :class:`Finish` whose plain form is ``t`` (inlined: compiled on its own, it
+        took a compile of its own, about a second)."""
         crank, task, rest, every, out, success, frame, obs, reward, episode = t
         return Finish(Crank(*crank), Goal(*task), Rest(*rest), every, out, success,
                       View(*frame), obs, Reward(*reward), Episode(*episode))
@@ -678,9 +650,37 @@ if ENABLED:
         return True
 
     @njit(nogil=True)
-    def _crank_finish_entry(x, v, mass, blocks, finish):  # pragma: no cover - compiled
-        finish = borrowed(finish)
-        return _crank_finish(x, v, mass, blocks, _finish_record(finish))
+    def _crank_finish_entry(x, v, mass, blocks, plain_finish):  # pragma: no cover - compiled
+        """The end of a SliderCrank env step that every copy took (``plain_finish``: a
+        :class:`Finish` in plain form; one entry, with no compiled level of its own below it
+        for the records or the reward, as each level is optimised again in its callers): the
+        measures and observation (:func:`_crank_measures_observe`), the
+        shaped reward (:func:`_shaped_reward`, no penalties) of the potential ``Phi =
+        crank_to_go + speed`` (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the
+        episode counters: ``steps`` advance, ``terminated = success``, ``truncated = steps >=
+        max_steps``, ``ended`` either. Returns how many copies ended."""
+        finish = _finish_record(borrowed(plain_finish))
+        episode, reward = finish.episode, finish.reward
+        no_walls = episode.ended.shape[0] < 0  # (False as a run-time bool: a constant False
+        # would compile the measures once more, for its own literal type)
+        _crank_measures_observe(finish.crank, x, v, mass, finish.task, blocks, no_walls,
+                                finish.rest, finish.every, finish.out, finish.success,
+                                finish.frame, finish.obs)
+        phi = finish.crank.to_go + finish.out[1]  # SliderCrank.potential
+        success = finish.success
+        _shaped_reward(reward.before, phi, success, phi[:0], reward.scale, reward.time_cost,
+                       reward.bonus, reward.reward)
+        count = 0
+        steps, terminated, truncated, ended = (episode.steps, episode.terminated,
+                                               episode.truncated, episode.ended)
+        for i in range(steps.shape[0]):
+            steps[i] += 1
+            terminated[i] = success[i]
+            truncated[i] = steps[i] >= episode.max_steps
+            ended[i] = terminated[i] or truncated[i]
+            count += ended[i]
+        return count
+
 
     @njit(nogil=True)
     def _measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out,
