@@ -94,7 +94,8 @@ def integrator_args(method: str) -> tuple[int, bool | None]:
     compiled only by a run that uses it. The explicit methods (euler, midpoint, rk4,
     symplectic_euler) share one version and choose by code at run time: compiled per family,
     SliderCrank's rk4 after ClothSlide's symplectic_euler compiled the step loop and its entry
-    a second time, 10.7 s of 21.6 (docs/compile_time.md). (The tableaus stay compile-time
+    a second time: its first demo took 21.3 s of CPU that way, 10.8 s without
+    (docs/compile_time.md). (The tableaus stay compile-time
     constants: passed as arrays instead, rk4 and midpoint measured slower in one run, though
     a repeat was within this machine's noise.)"""
     return _INTEGRATOR_ARGS[method]
@@ -117,9 +118,10 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
     not C-ordered float64 of the packed sizes. The kernel's memory safety rests on these
     checks (O(1) per array: the arrays the kernel indexes with were checked when the pack was
     built, and cannot change; the mouse springs' particles and flags are copied here).
-    ``checked``: the caller's ``state`` passed ``ParticleSystem.check_arrays`` (float64
-    arrays, ``x`` and ``v`` of one (n, 2) shape, ``mass`` and ``inv_mass`` of (n,)), so only
-    what that leaves open is checked here."""
+    ``checked``: ``ParticleSystem._check_state`` returned True on this very ``state`` (exact
+    float64 ndarrays, ``x`` and ``v`` of one (n, 2) shape, ``mass`` and ``inv_mass`` of
+    (n,)), so only what that leaves open is checked here: the kernel's memory safety then
+    rests on that check too."""
     p = pack(system)
     if not (p.valid and p.shapes_hold()):  # unsupported blocks, an index out of range, or
         return None  # a parameter array reshaped in place
@@ -132,7 +134,8 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
     if checked:  # (float64 arrays of matching shapes: only contiguity and sizes are left)
         if not (type(lam) is nd and lam.dtype == f64 and lam.flags.c_contiguous
                 and x.flags.c_contiguous and v.flags.c_contiguous and mass.flags.c_contiguous
-                and inv_mass.flags.c_contiguous and len(x) == p.n and lam.shape == (p.m,)):
+                and inv_mass.flags.c_contiguous and len(x) == p.n and len(mass) == p.n
+                and len(inv_mass) == p.n and lam.shape == (p.m,)):
             return None
     elif not (type(x) is nd and type(v) is nd and type(mass) is nd and type(inv_mass) is nd
               and type(lam) is nd and x.dtype == f64 and v.dtype == f64 and mass.dtype == f64

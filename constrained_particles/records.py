@@ -13,7 +13,9 @@ builds them once per topology (:class:`~.packing.Packed`).
 every array in it, and so does every compiled function that passes a record on. Numba types a
 reference in well under a microsecond, where the same fields as a tuple of some fifty arrays
 cost several microseconds a call, and the compiled code that moves one pointer is smaller (and
-faster to compile) than code moving fifty array structures. A split step's live set
+faster to compile) than code moving fifty array structures. The fused step takes the three
+as one :class:`Engine` by reference (:func:`engine_ref`): each reference a call passes costs
+Numba's dispatch most of a microsecond to type. A split step's live set
 (:class:`Live`) crosses the same way (:func:`live_ref`). The per-call records (the state, the
 settings) cross as plain tuples (:func:`plain`) and each entry point rebuilds them
 (``State(*state)``): Numba types a plain tuple of arrays in C but a named tuple in Python.

@@ -427,11 +427,13 @@ class ParticleSystem:
         """Take the steps on the fused kernel if it can (True); False, with nothing changed,
         if the reference path must. Raises SimulationDiverged, keeping the state. ``state``
         is ``(x, v, mass, inv_mass, t)`` as the caller read them (default: read here);
-        ``checked``: :meth:`_check_state` found them the usual exact arrays."""
+        ``checked``: :meth:`_check_state` returned True on that very ``state`` (ignored
+        without one: a state read here is checked in full by ``fused.prepare``)."""
         if not self._fusable(method) or (project and steps > 1):
             return False
         if state is None:
             state = self.x, self.v, self.mass, self.inv_mass, self.t
+            checked = False
         solver = self.constraint_solver if solver is None else solver
         lam = solver.lam.copy()
         # with projection, the residual is judged after it (as on the reference path)
@@ -448,9 +450,8 @@ class ParticleSystem:
                 solver.lam = lam
                 raise
             t = state[4] + h
-            if steps > 1:
-                for _ in range(steps - 1):  # (t advances step by step, as on the reference
-                    t = t + h  # path)
+            for _ in range(steps - 1):  # (t advances step by step, as on the reference path)
+                t = t + h
             self.x, self.v, self.t = x, v, t
             return True
         solver.lam = lam
@@ -503,12 +504,17 @@ class ParticleSystem:
     @staticmethod
     def _check_state(x: Any, v: Any, mass: Any, inv_mass: Any, t: Any) -> bool:
         """:meth:`check_arrays` of state arrays read once by the caller. True in the usual
-        case: exact ndarrays (no subclass), ``t`` a float."""
-        f64 = _F64  # (identity: NumPy's float64 dtype is one object; any other takes the
-        # careful checks below)
+        case: exact ndarrays (no subclass) of float64, ``x`` and ``v`` of one (n, 2) shape,
+        ``mass`` and ``inv_mass`` of (n,), ``t`` a finite float; then ``fused.prepare`` checks
+        only what this leaves open. False for any other valid state (``fused.prepare`` then
+        checks everything); ValueError for an invalid one."""
+        f64 = _F64  # (NumPy's float64 dtype is one object, tested first by identity; an
+        # equal one, such as an unpickled array's, by comparison)
         if (type(x) is np.ndarray and type(v) is np.ndarray and type(mass) is np.ndarray
-                and type(inv_mass) is np.ndarray and x.dtype is f64 and v.dtype is f64
-                and mass.dtype is f64 and inv_mass.dtype is f64 and x.ndim == 2
+                and type(inv_mass) is np.ndarray
+                and (x.dtype is f64 or x.dtype == f64) and (v.dtype is f64 or v.dtype == f64)
+                and (mass.dtype is f64 or mass.dtype == f64)
+                and (inv_mass.dtype is f64 or inv_mass.dtype == f64) and x.ndim == 2
                 and x.shape[1] == 2 and v.shape == x.shape and mass.shape == inv_mass.shape
                 == x.shape[:1] and type(t) is float and math.isfinite(t)):
             return True  # the usual case, in a few operations

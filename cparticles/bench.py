@@ -365,10 +365,7 @@ def work_factor(env_id: str, count: int, rng_seed: int = 0, steps: int = 400) ->
             decided.append(float(out[0].mean()))
         return out
 
-    task._decide = recorded
-    # the general step path, which asks _decide (a compiled whole step decides the same counts
-    # in the kernel: the two paths are the same bit for bit, tests/test_cloth_slide_slider_crank.py)
-    task._step_all = lambda actions, steps, max_steps: None
+    task._decide = recorded  # (every env step asks it, through the task's simulate)
     for _ in range(steps):
         vec.step(next(batches))
     vec.close()

@@ -608,8 +608,8 @@ if ENABLED:
     # records cost no reference counting).
     @njit(inline="always")
     def _finish_record(t):  # pragma: no cover - compiled
-        """The :class:`Finish` whose plain form is ``t`` (inlined: compiled on its own, it
-        took a compile of its own, about a second)."""
+        """The :class:`Finish` whose plain form is ``t`` (inlined: as a function of its own it
+        took a separate compile, about 1 s)."""
         crank, task, rest, every, out, success, frame, obs, reward, episode = t
         return Finish(Crank(*crank), Goal(*task), Rest(*rest), every, out, success,
                       View(*frame), obs, Reward(*reward), Episode(*episode))

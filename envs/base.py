@@ -557,13 +557,6 @@ class ParticleTask(SteppedCopies):
                              f"got {mask!r}")
         return mask
 
-    def _step_all(self, actions: Any, steps: np.ndarray, max_steps: int) -> tuple | None:
-        """A whole env step in which every copy steps (no reset pending) in one go, for a task
-        that has it compiled: raw ``actions`` checked as :meth:`check_actions` checks them,
-        then what :meth:`apply`, :meth:`simulate` and :meth:`_finish_step` do, returning what
-        the last returns. None here (and wherever it cannot): the general path runs."""
-        return None
-
     def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
         """After an env step that every copy took: the measures and observation (as
         :meth:`measure_observe` with every copy stepped), the reward and the episode counters

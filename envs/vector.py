@@ -260,11 +260,6 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         info dict made of them."""
         # (count_nonzero: any() in a fraction of the time)
         calm_start = not np.count_nonzero(self._autoreset)  # the usual step: no copy resets
-        if calm_start:  # the task's compiled whole step, where it has one (the same values)
-            done = self.task._step_all(actions, self.steps, self.max_episode_steps)
-            if done is not None:
-                obs, m, reward, terminated, truncated, self._autoreset, _ = done
-                return obs, reward, terminated, truncated, m, np.zeros(self.num_envs, bool)
         a = self.task.check_actions(actions)
         if calm_start:
             self.task.apply(a)

@@ -1,7 +1,7 @@
 """ClothSlide-v0 and SliderCrank-v0 in both action modes: their spaces and measures, success
 and its hold, the native vector env's batching (masked resets, one tiled system, frames,
-AsyncVectorEnv), bad arguments, divergence, agents, the compiled whole step against the general
-path, and the batched start draws. What every env promises (checker, determinism, state,
+AsyncVectorEnv), bad arguments, divergence, agents, the compiled end of a step against the
+general path, and the batched start draws. What every env promises (checker, determinism, state,
 pickling, vector env against single envs, bad actions) is in tests/test_env_conformance.py.
 """
 
@@ -268,7 +268,6 @@ def test_compiled_steps_equal_the_general_path(mode):
         env.reset(seed=3)
         return env
     fast, general = make(), make()
-    general.unwrapped.task._step_all = lambda actions, steps, max_steps: None
     general.unwrapped.task._finish_step = lambda steps, max_steps: None
     calls = []
 
@@ -281,7 +280,6 @@ def test_compiled_steps_equal_the_general_path(mode):
             return done
         return call
 
-    fast.unwrapped.task._step_all = counted("_step_all")
     fast.unwrapped.task._finish_step = counted("_finish_step")
     rng = np.random.default_rng(3)
     ends = np.zeros(2, int)
@@ -305,9 +303,9 @@ def test_compiled_steps_equal_the_general_path(mode):
         assert sum(calls) >= 60  # mostly calm steps, taken by a compiled path
 
 
-def test_compiled_step_refuses_nonfinite_actions_and_changes_nothing():
-    """An action that is not finite raises ValueError, with the state, the actions and the
-    actuator as they were."""
+def test_a_nonfinite_action_raises_and_changes_nothing():
+    """An action that is not finite raises ValueError from a SliderCrank vector step, with the
+    state, the actions, the actuator and the step counters as they were."""
     env = gym.make_vec("SliderCrank-v0", num_envs=3, vectorization_mode="vector_entry_point")
     env.reset(seed=0)
     env.step(np.full((3, 1), 0.5, np.float32))

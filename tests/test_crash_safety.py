@@ -391,10 +391,10 @@ def test_two_threads_stepping_one_system_get_a_clear_error() -> None:
 
 
 def test_an_env_step_while_its_system_is_being_stepped_gets_a_clear_error() -> None:
-    """SliderCrank's native vector env steps every copy in one compiled call that shares the
-    system's pack buffers with ``ParticleSystem.step``, so it takes the system's step lock
-    too: while another caller holds it (``system.stepping()``), a step raises the same
-    RuntimeError and the state stays as it was; once released, the env steps."""
+    """While another caller holds a vector env's system step lock (``system.stepping()``), an
+    env step raises the same RuntimeError as ``ParticleSystem.step`` and the state (x, v, t)
+    stays as it was (the actions and the actuator's forces, written before the physics, are
+    not rolled back); once released, the env steps."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the ids)

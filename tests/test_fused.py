@@ -228,6 +228,53 @@ def test_out_of_range_index_never_reaches_compiled_code():
             t.step(1e-3, "rk4")
 
 
+def test_the_step_checks_the_state_once_and_refuses_what_the_full_check_refuses():
+    """A step checks its state once (``ParticleSystem._check_state``); when that finds the
+    usual exact float64 arrays, ``fused.prepare`` checks only what it leaves open. Both
+    together accept exactly what ``prepare``'s own full check accepts, for every odd state
+    below, and an unpickled state (whose float64 dtype is an equal but other object) is still
+    the usual case."""
+    s = scenes.cloth(3, 3)
+    s.step(1e-3, "symplectic_euler")
+    n, lam = s.n, s.constraint_solver.lam
+    good = (s.x, s.v, s.mass, s.inv_mass)
+    big = np.zeros((n, 2), ">f8")
+
+    class Sub(np.ndarray):
+        pass
+
+    odd = {"fortran": (np.asfortranarray(s.x), 0), "strided": (np.zeros((n, 4))[:, ::2], 0),
+           "reversed": (s.x[::-1], 0), "short": (s.x[:-1], 0),
+           "float32": (s.x.astype(np.float32), 0),
+           "big-endian": (big, 0), "3-d": (s.x[None], 0), "subclass": (s.x.view(Sub), 0),
+           "short v": (s.v[:-1], 1), "strided v": (np.zeros((n, 4))[:, ::2], 1),
+           "short mass": (s.mass[:-1], 2), "strided mass": (np.zeros(2 * n)[::2], 2),
+           "short inv_mass": (s.inv_mass[:-1], 3),
+           "float32 inv_mass": (s.inv_mass.astype(np.float32), 3)}
+    cases = {"good": (good, lam, 0.0), "short lam": (good, lam[:-1], 0.0),
+             "float32 lam": (good, lam.astype(np.float32), 0.0)}
+    for name, (arr, k) in odd.items():
+        state = list(good)
+        state[k] = arr
+        cases[name] = (tuple(state), lam, 0.0)
+    accepted = []
+    for name, (state, lam_, t) in cases.items():
+        full = fused.prepare(s, lam_, np.inf, state) is not None
+        try:
+            usual = ParticleSystem._check_state(*state, t)
+        except ValueError:
+            assert not full, name  # refused at the door: the full check refuses it too
+            continue
+        assert (fused.prepare(s, lam_, np.inf, state, usual) is not None) == full, name
+        if full:
+            accepted.append(name)
+    assert accepted == ["good"]
+    import pickle
+    u = pickle.loads(pickle.dumps(s))
+    assert u.x.dtype is not np.dtype(np.float64) and u.x.dtype == np.float64  # (the premise)
+    assert ParticleSystem._check_state(u.x, u.v, u.mass, u.inv_mass, u.t)
+
+
 def test_divergence_keeps_the_state_from_before_the_call():
     s = scenes.spring_pair(ks=1e7)
     x0, v0 = s.x.copy(), s.v.copy()
