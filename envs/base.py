@@ -127,6 +127,8 @@ class ParticleTask(SteppedCopies):
                  integrator: str, max_force: float, grab_radius: float, mouse_ks: float,
                  mouse_kd: float, goal_tolerance: float, rest_speed: float,
                  hold_steps: int, residual_limit: float = 0.01, rest_window: int = 10) -> None:
+        #: Which compiled paths this task takes (:meth:`_compiled_paths`), decided once, here
+        self._paths = self._compiled_paths()
         self.num_envs = check_positive("num_envs", num_envs, integer=True, maximum=10**6)
         self._every = np.arange(self.num_envs)
         self._one_piece = np.ones(self.num_envs, np.int64)
@@ -531,13 +533,28 @@ class ParticleTask(SteppedCopies):
                                         float(OBS_LIMIT))
         return self._scale
 
+    def _compiled_paths(self) -> dict[str, bool]:
+        """Which compiled paths this task takes, decided once, when it is built. A compiled
+        path computes what some methods compute, so it runs only where the task's class keeps
+        them as written; a subclass that redefines one gets the numpy reference for that part
+        (the same values with the methods as written). Subclasses add their own entries:
+
+        - ``measure_observe``: :meth:`measure_observe` in one compiled call;
+        - ``goal``: the compiled measures compute :meth:`goal_distance`;
+        - ``restart_all``: an env step in which every copy starts anew may skip the physics
+          (:meth:`simulate` is the base one, which only steps the copies' physics)."""
+        cls = type(self)
+        return {"measure_observe": (cls.measure is ParticleTask.measure
+                                    and cls.observe is ParticleTask.observe),
+                "goal": cls.goal_distance is ParticleTask.goal_distance,
+                "restart_all": cls.simulate is ParticleTask.simulate}
+
     def measure_observe(self, stepped: np.ndarray | None = None
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`measure` (``stepped`` as there), then :meth:`observe`: what the envs need
         after every step. In one compiled call (:func:`envs._measure.measures_observe`) when
         a subclass redefines neither and the blocks allow it; the same values either way."""
-        post = (self._compiled_post() if type(self).measure is ParticleTask.measure
-                and type(self).observe is ParticleTask.observe else None)
+        post = self._compiled_post() if self._paths["measure_observe"] else None
         if post is not None:
             obs = np.empty((len(post[1].goal), 4 * post[1].n + 1), np.float32)
             return self.add_measures(*self._measures(stepped, walls=self.measure_walls,
@@ -602,8 +619,7 @@ class ParticleTask(SteppedCopies):
         :attr:`rest_count` in [1, n] and, for a :attr:`planar_goal`, a finite number as
         ``goal_height``."""
         count, height = self.rest_count, self.goal_height
-        return (type(self).goal_distance is ParticleTask.goal_distance
-                and type(count) is int and 0 < count <= self.n
+        return (self._paths["goal"] and type(count) is int and 0 < count <= self.n
                 and (not self.planar_goal
                      or (isinstance(height, (int, float)) and not isinstance(height, bool)
                          and math.isfinite(height))))

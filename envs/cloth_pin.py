@@ -420,6 +420,15 @@ class ClothPin(ShapedTask, ParticleTask):
         self.placed_now[i] = False
 
     # ------------------------------------------------------------------ measures
+    def _compiled_paths(self) -> dict[str, bool]:
+        """``ParticleTask._compiled_paths``, with ``measure_observe`` for this class's
+        :meth:`observe` (the pin observation)."""
+        paths = super()._compiled_paths()
+        cls = type(self)
+        paths["measure_observe"] = (cls.measure is ParticleTask.measure
+                                    and cls.observe is ClothPin.observe)
+        return paths
+
     def observe(self) -> np.ndarray:
         """Observations (num_envs, 4 nc + 1 + 7 max_springs) float32: the cloth's normalized
         positions and velocities, the goal, and one row per spring slot (see the env docs).
@@ -440,9 +449,7 @@ class ClothPin(ShapedTask, ParticleTask):
         """:meth:`measure`, then :meth:`observe`: in one compiled call
         (:func:`envs._measure.pin_measures_observe`) unless a subclass redefines either or
         the arrays do not allow it; the same values either way."""
-        cls = type(self)
-        post = (self._compiled_post() if cls.measure is ParticleTask.measure
-                and cls.observe is ClothPin.observe else None)
+        post = self._compiled_post() if self._paths["measure_observe"] else None
         if post is None:
             return self.measure(stepped), self.observe()
         p, goal, (x, v, mass) = post

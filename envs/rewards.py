@@ -48,6 +48,14 @@ class ShapedTask:
     step_cost: float = TIME_COST
     num_envs: int
     measure: Any  # ParticleTask.measure
+    _paths: dict[str, bool]  # ParticleTask._paths
+
+    def _compiled_paths(self) -> dict[str, bool]:
+        """``ParticleTask._compiled_paths`` with ``penalties``: whether :meth:`penalties` is
+        redefined (the reward subtracts penalties only then: x - 0 is x)."""
+        paths = super()._compiled_paths()  # type: ignore[misc]
+        paths["penalties"] = type(self).penalties is not ShapedTask.penalties
+        return paths
 
     def potential(self, m: dict[str, Any]) -> Any:
         """The cost to go ``Phi`` (num_envs,) >= 0 from measures ``m``; 0 at the goal at rest.
@@ -85,7 +93,7 @@ class ShapedTask:
         """``k (Phi_before - Phi_after) - TIME_COST - penalties + SUCCESS_BONUS * success``
         per copy (called once per env step, after the physics)."""
         phi = self.potential(m)
-        penalized = type(self).penalties is not ShapedTask.penalties  # (x - 0 is x)
+        penalized = self._paths["penalties"]  # (else none: x - 0 is x)
         before = self._phi()
         success = m["is_success"]
         if (_measure.ENABLED and type(phi) is np.ndarray and phi.dtype == np.float64

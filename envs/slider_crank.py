@@ -76,6 +76,26 @@ class SliderCrank(ShapedTask, ParticleTask):
         """The crank particle."""
         return np.array([0])
 
+    def _compiled_paths(self) -> dict[str, bool]:
+        """``ParticleTask._compiled_paths`` for the crank: ``measure_observe`` with this
+        class's :meth:`measure`; ``push`` (:meth:`force_vectors` compiled); ``starts``
+        (:meth:`sample_starts` in one pass: ``sample_start`` and ``linkage`` as written);
+        ``finish`` (:meth:`_finish_step`: the measures, observation, potential and reward as
+        written)."""
+        paths = super()._compiled_paths()
+        cls = type(self)
+        paths["measure_observe"] = (cls.measure is SliderCrank.measure
+                                    and cls.observe is ParticleTask.observe)
+        paths["push"] = cls.force_vectors is SliderCrank.force_vectors
+        paths["starts"] = (cls.sample_start is SliderCrank.sample_start
+                           and cls.linkage is SliderCrank.linkage)
+        paths["finish"] = (paths["measure_observe"]
+                           and cls.measure_observe is SliderCrank.measure_observe
+                           and cls.potential is SliderCrank.potential
+                           and cls.penalties is ShapedTask.penalties
+                           and cls.reward is ShapedTask.reward)
+        return paths
+
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``action * max_force`` (N) along the crank's counter-clockwise tangent."""
         if (_measure.ENABLED and _owned(action, np.float64, (len(action), 1))
@@ -91,7 +111,7 @@ class SliderCrank(ShapedTask, ParticleTask):
     def _write_forces(self, action: np.ndarray, out: np.ndarray) -> None:
         """:meth:`force_vectors` written straight into the actuator's rows ``out`` (compiled),
         unless a subclass redefines it."""
-        if (_measure.ENABLED and type(self).force_vectors is SliderCrank.force_vectors
+        if (_measure.ENABLED and self._paths["push"]
                 and out.flags.c_contiguous and out.dtype == np.float64
                 and out.shape == (self.num_envs, 2)
                 and _owned(action, np.float64, (self.num_envs, 1))
@@ -140,8 +160,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         """:meth:`sample_start` for each generator, stacked (the same draws and arithmetic,
         so bit for bit the same starts). A subclass that redefines ``sample_start`` or
         ``linkage`` gets the base version, which calls them."""
-        if (type(self).sample_start is not SliderCrank.sample_start
-                or type(self).linkage is not SliderCrank.linkage):
+        if not self._paths["starts"]:
             return super().sample_starts(rngs)
         draws = [self._draw(rng) for rng in rngs]
         states = np.array([values for values, _ in draws]).reshape(len(rngs), 2, 2, 2)
@@ -176,8 +195,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`measure`, then :meth:`observe`: in one compiled call
         (:func:`envs._measure.crank_measures_observe`) unless a subclass redefines either."""
-        post = (self._compiled_post() if type(self).measure is SliderCrank.measure
-                and type(self).observe is ParticleTask.observe else None)
+        post = self._compiled_post() if self._paths["measure_observe"] else None
         if post is None:
             return super().measure_observe(stepped)
         p, goal, (x, v, mass) = post
@@ -227,12 +245,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         call (:func:`envs._measure.crank_finish`). Returns ``(obs, measures, reward,
         terminated, truncated, ended, number ended)``, or None where the general path must run
         (compiled bookkeeping off, or a subclass redefines a part of it)."""
-        cls = type(self)
-        if not (cls.measure is SliderCrank.measure and cls.observe is ParticleTask.observe
-                and cls.measure_observe is SliderCrank.measure_observe
-                and cls.potential is SliderCrank.potential
-                and cls.penalties is ShapedTask.penalties and cls.reward is ShapedTask.reward
-                and steps.dtype == np.int64 and steps.shape == (self.num_envs,)):
+        if not (self._paths["finish"] and steps.dtype == np.int64
+                and steps.shape == (self.num_envs,)):
             return None
         post = self._compiled_post()
         before = self._phi()

@@ -351,6 +351,50 @@ def test_a_subclass_start_is_used_by_batched_resets():
     assert not v.any()
 
 
+def test_a_subclass_redefinition_takes_the_numpy_path_chosen_when_the_task_is_built():
+    """The compiled or reference choice is made once per task, from its class: a SliderCrank
+    subclass that redefines ``potential`` (or ``penalties``, ``force_vectors``) gets the
+    general end of step, and its own potential shapes its reward; the physics and the
+    observations stay those of SliderCrank, step for step."""
+    from envs.slider_crank import SliderCrank, SliderCrankVectorEnv
+
+    class Steeper(SliderCrank):
+        def potential(self, m):
+            return 2.0 * super().potential(m)
+
+    class Fined(SliderCrank):
+        def penalties(self, m):
+            return 0.25 + 0.0 * m["distance"]
+
+    class Pushed(SliderCrank):
+        def force_vectors(self, action, x):
+            return super().force_vectors(action, x)
+
+    base = SliderCrank(2)
+    assert base._paths["finish"] and base._paths["push"] and not base._paths["penalties"]
+    assert not Steeper(2)._paths["finish"] and Steeper(2)._paths["measure_observe"]
+    assert not Fined(2)._paths["finish"] and Fined(2)._paths["penalties"]
+    assert not Pushed(2)._paths["push"] and Pushed(2)._paths["finish"]
+
+    def make(cls):
+        vector_class = type(f"{cls.__name__}Vector", (SliderCrankVectorEnv,), {"task_class": cls})
+        env = vector_class(3, max_episode_steps=1000)
+        env.reset(seed=4)
+        return env
+
+    envs_ = {cls.__name__: make(cls) for cls in (SliderCrank, Steeper, Fined, Pushed)}
+    rng = np.random.default_rng(4)
+    for _ in range(30):
+        a = rng.uniform(-1, 1, (3, 1)).astype(np.float32)
+        out = {name: env.step(a) for name, env in envs_.items()}
+        ref = out["SliderCrank"]
+        for name, step in out.items():
+            assert step[0].tobytes() == ref[0].tobytes(), name
+        assert np.array_equal(out["Pushed"][1], ref[1])
+        assert np.allclose(out["Fined"][1], ref[1] - 0.25, rtol=0, atol=1e-12)
+        assert not np.array_equal(out["Steeper"][1], ref[1])  # its own potential shapes it
+
+
 def test_scaled_draws_are_numpys_uniform_bit_for_bit():
     """envs.base.scaled of a ``rng.random()`` draw (the starts' scalar draws) is exactly what
     Generator.uniform returns from the same stream, for ranges of every sign and size."""
