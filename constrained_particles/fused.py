@@ -92,12 +92,9 @@ def integrator_args(method: str) -> tuple[int, bool | None]:
     ``method`` (a name in :data:`METHOD_CODES`): its code, and True for RATTLE, else None.
     The kernel is compiled once per pattern of None: RATTLE, which has its own step, is
     compiled only by a run that uses it. The explicit methods (euler, midpoint, rk4,
-    symplectic_euler) share one version and choose by code at run time: compiled per family,
-    SliderCrank's rk4 after ClothSlide's symplectic_euler compiled the step loop and its entry
-    a second time: its first demo took 21.3 s of CPU that way, 10.8 s without
-    (docs/compile_time.md). (The tableaus stay compile-time
-    constants: passed as arrays instead, rk4 and midpoint measured slower in one run, though
-    a repeat was within this machine's noise.)"""
+    symplectic_euler) share one version and choose by code at run time, so a run of another
+    explicit method loads the step loop from the cache instead of compiling it again
+    (docs/compile_time.md). The tableaus stay compile-time constants."""
     return _INTEGRATOR_ARGS[method]
 
 
