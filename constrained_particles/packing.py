@@ -169,7 +169,8 @@ class Packed:
         self.forces = list(system.forces)
         self.constraints = list(system.constraints)
         self.zero_copy = True
-        self.versions = [b.version for b in (*self.forces, *self.constraints)]
+        self._terms = (*self.forces, *self.constraints)  # (the blocks in versions' order)
+        self.versions = [b.version for b in self._terms]
         self.constraint_versions = [c.version for c in self.constraints]
         self.valid = self.supported = supported(system)
         self._mouse_blocks: list[MouseSpring] = []
@@ -482,7 +483,7 @@ class Packed:
                 and system.constraints == self.constraints):
             return False
         versions = self.versions
-        for k, block in enumerate((*self.forces, *self.constraints)):
+        for k, block in enumerate(self._terms):
             if block.version != versions[k]:
                 if not self._take_mouse(block):
                     return False

@@ -324,7 +324,7 @@ RecordRef: Any = None
 if kernels.ENABLED:
     from numba.core import cgutils, types
     from numba.experimental import structref
-    from numba.extending import intrinsic, overload
+    from numba.extending import intrinsic, overload, typeof_impl
     from numba.np.arrayobj import make_array
 
     from .jit import njit
@@ -384,6 +384,13 @@ if kernels.ENABLED:
 
     structref.define_boxing(RecordRefType, _RecordRef)
     RecordRef = _RecordRef
+
+    @typeof_impl.register(_RecordRef)
+    def _typeof_record_ref(val: Any, c: Any) -> Any:
+        """A record reference's Numba type, read directly: Numba's generic ``typeof`` first
+        tries the buffer protocol (an exception raised and caught) before it reads
+        ``_numba_type_``, which cost every call that passes a reference about 1.5 us."""
+        return val._type
 
     def _by_reference(record: Any) -> Any:
         """``record`` (a named tuple) held by reference: a structure with the same fields
