@@ -182,9 +182,9 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
         return int(status), x_out, v_out, int(failed)
     if pieces.shape != (p.n,) or pieces.dtype != np.int64:
         return FALLBACK, None, None, 0
-    status, failed = fused_steps(code, rattle, 0, h, h / pieces,
-                                 pieces * int(steps), tuple(start), x_out, v_out,
-                                 tuple(settings), refs.engine, p.live_ref)
+    status, failed = fused_split(code, rattle, h, h / pieces, pieces * int(steps),
+                                 tuple(start), x_out, v_out, tuple(settings), refs.engine,
+                                 p.live_ref)
     return int(status), x_out, v_out, int(failed)
 
 
@@ -348,56 +348,109 @@ if kernels.ENABLED:
                 k += 1
         return k
 
-    @njit
-    def _steps(method, rattle, steps, h, hp, counts, state, x_out, v_out, settings,
-               blocks, rows, ws, live):  # pragma: no cover - compiled
-        """The step loop of :func:`fused_steps` (inputs checked, ``ws.w2`` and ``ws.tmp``
-        prepared by it): ``steps`` steps of ``h`` seconds, or of ``hp[q]`` seconds for particle
-        q if ``hp`` is not empty; with ``live`` (the workspace of :func:`_gate`), particle q
-        takes only ``counts[q]`` of them. Reads ``state.x, state.v`` and writes ``x_out,
-        v_out`` only.
+    @njit(nogil=True)
+    def fused_steps(method, rattle, steps, h, hp, counts, state, x_out, v_out,
+                    settings, engine, live):  # pragma: no cover - compiled
+        """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
+        ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
+        ``method, rattle`` give as :func:`integrator_args` makes them: RATTLE if ``rattle`` is
+        not None (Numba compiles a version per pattern of None and drops the other branches
+        from it), else ``method``: 0 euler, 3 symplectic_euler, or the explicit Runge-Kutta
+        method 1 midpoint, 2 rk4 (one stage loop over its tableau). Returns ``(status, steps
+        done)``. Reads ``state`` and writes ``x_out, v_out`` only (the first step reads the
+        caller's state, the last writes the caller's output).
 
-        The integrator is RATTLE if ``rattle`` is not None (Numba compiles a version per
-        pattern of None and drops the other branches from it), else ``method``: 0 euler, 3
-        symplectic_euler, or the explicit Runge-Kutta method 1 midpoint, 2 rk4."""
+        The records come as the pack holds them: its ``blocks``, ``rows`` and workspace in one
+        :class:`~.records.Engine` by reference (:attr:`~.packing.Packed.refs`), the others in
+        :func:`~.records.plain` form, rebuilt here: ``State(*state)`` (its ``lam`` is the warm
+        start, updated in place) and ``Settings(*settings)``. Every array here lives in the
+        caller for the whole call, so the plain records are built from borrowed arrays
+        (:func:`~.records.borrowed`): passing and unpacking them costs no reference counting.
+
+        ``live`` is None (every particle takes every step; ``counts`` is empty, or has one
+        entry per particle and is ignored) or the pack's live workspace
+        (:attr:`~.packing.Packed.live_ref`, the workspace of :func:`_gate`): particle q then
+        takes only ``counts[q]`` of the steps (a particle with fewer waits, and the elements,
+        constraint rows and components of waiting particles are skipped).
+        :func:`fused_split` runs a split step so. ``live`` itself is never reassigned and is
+        what the None tests read: Numba then drops the branches that a None ``live`` rules
+        out, so a run without pieces compiles no masked step.
+
+        The entry and the step loop are one function: each compiled function that calls
+        another has the callee's code optimised again inside its own (docs/compile_time.md),
+        so a level between the entry and the loop would optimise the acceleration once more."""
+        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
+        start, xo, vo = State(*b_state), b_out[0], b_out[1]
+        cfg = Settings(*settings)
+        blocks, rows, ws = engine.blocks, engine.rows, engine.work
+        n = start.x.shape[0]
+        m = start.lam.shape[0]
+        per_particle = b_hp.shape[0] > 0
+        shape = start.x.shape
+        if (shape[1] != 2 or start.v.shape != shape or xo.shape != shape or vo.shape != shape
+                or start.mass.shape[0] != n or start.inv_mass.shape[0] != n):
+            return FALLBACK, 0
+        if per_particle and (rattle is not None or b_hp.shape[0] != n):
+            return FALLBACK, 0
+        if live is not None and (not per_particle or b_counts.shape[0] != n
+                                 or not _live_fits(live, blocks, n, m,
+                                                   rows.comp_ptr.shape[0] - 1)):
+            return FALLBACK, 0
+        if live is None and b_counts.shape[0] != 0 and b_counts.shape[0] != n:
+            return FALLBACK, 0
+        if not _check_inputs(blocks, rows, n, m, start.lam, b_counts):
+            return FALLBACK, 0
+        if not _work_fits(ws, n, m):
+            return FALLBACK, 0
+        w2, tmp, inv_mass = ws.w2, ws.tmp, start.inv_mass
+        if rattle is None:  # w2 and tmp are read only at the constraint rows' coordinates:
+            cols, nnz = rows.cols, rows.nnz  # O(rows) instead of O(particles) per call
+            for r in range(m):
+                for k in range(nnz[r]):
+                    c = cols[r, k]
+                    w2[c] = inv_mass[c // 2]
+                    tmp[c] = 0.0
+        else:  # RATTLE's corrections run over every coordinate
+            for q in range(n):
+                w2[2 * q] = inv_mass[q]
+                w2[2 * q + 1] = inv_mass[q]
+                tmp[2 * q] = 0.0
+                tmp[2 * q + 1] = 0.0
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
-        x0, v0 = state.x, state.v
-        n = x0.shape[0]
-        m = state.lam.shape[0]
-        per_particle = hp.shape[0] > 0
+        x0, v0 = start.x, start.v
         a1, a2, a3, a4 = ws.a1, ws.a2, ws.a3, ws.a4
-        limit = settings.limit
+        limit = cfg.limit
         # the first step reads the caller's state, the last writes the caller's output: no
         # copies in or out, and x0, v0 are never written (the state before the call is kept)
         x, v = x0, v0
         xs, vs = ws.xs, ws.vs
         spare_x, spare_v = ws.spare_x, ws.spare_v
         if live is not None:  # a particle that waits is never read by the steps it sits out
-            _copy_flat(x0, x_out)  # (its forces and rows are those of waiting particles only):
-            _copy_flat(v0, v_out)  # it waits in the output, written when it stops stepping
+            _copy_flat(x0, xo)  # (its forces and rows are those of waiting particles only):
+            _copy_flat(v0, vo)  # it waits in the output, written when it stops stepping
         for step in range(steps):
             if step == steps - 1:
-                xs, vs = x_out, v_out
+                xs, vs = xo, vo
             if live is not None:
                 if step > 0 and step >= live.sizes[LIVE_NEXT]:  # some stop here
                     mask = live.mask
                     for q in range(n):
-                        if mask[q] and step >= counts[q]:
-                            x_out[q, 0], x_out[q, 1] = x[q, 0], x[q, 1]
-                            v_out[q, 0], v_out[q, 1] = v[q, 0], v[q, 1]
-                _gate(step, counts, rows, blocks, live)
+                        if mask[q] and step >= b_counts[q]:
+                            xo[q, 0], xo[q, 1] = x[q, 0], x[q, 1]
+                            vo[q, 0], vo[q, 1] = v[q, 0], v[q, 1]
+                _gate(step, b_counts, rows, blocks, live)
             if rattle is not None:
-                if not _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws):
+                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
-                if not _accel(x, v, a1, state, settings, blocks, rows, ws, live):
+                if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live):
                     return FALLBACK, step
                 flat = live is None and not per_particle and n >= FLAT_MIN
                 if flat:
                     _euler_flat(method == 0, h, x, v, a1, xs, vs)
                 for i in range(0 if flat else _count(live, LIVE_PARTICLES, n)):
                     q = i if live is None else lp[i]
-                    hq = hp[q] if per_particle else h
+                    hq = b_hp[q] if per_particle else h
                     for d in range(2):
                         if method == 0:
                             xs[q, d] = x[q, d] + hq * v[q, d]
@@ -418,7 +471,7 @@ if kernels.ENABLED:
                         out_v = kv[stage - 1]
                         for i in range(_count(live, LIVE_PARTICLES, n)):
                             q = i if live is None else lp[i]
-                            hq = hp[q] if per_particle else h
+                            hq = b_hp[q] if per_particle else h
                             for d in range(2):
                                 px, pv = x[q, d], v[q, d]
                                 for j in range(stage):
@@ -431,12 +484,12 @@ if kernels.ENABLED:
                         sx, sv = xs, out_v
                     else:
                         sx, sv = x, v
-                    if not _accel(sx, sv, ka[stage], state, settings, blocks, rows, ws, live):
+                    if not _accel(sx, sv, ka[stage], start, cfg, blocks, rows, ws, live):
                         return FALLBACK, step
                 # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
                 for i in range(_count(live, LIVE_PARTICLES, n)):
                     q = i if live is None else lp[i]
-                    scale = (hp[q] if per_particle else h) / tab_d
+                    scale = (b_hp[q] if per_particle else h) / tab_d
                     for d in range(2):
                         tx, tv, first = 0.0, 0.0, True
                         for j in range(stages):
@@ -460,8 +513,8 @@ if kernels.ENABLED:
                     for d in range(2):
                         if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                             return DIVERGED, step
-            if settings.residual_limit < math.inf and m:
-                if not _distance_error(xs, blocks, live) <= settings.residual_limit:
+            if cfg.residual_limit < math.inf and m:
+                if not _distance_error(xs, blocks, live) <= cfg.residual_limit:
                     return DIVERGED, step
             if step == 0:  # the new state becomes current; never reuse the caller's arrays
                 x, xs = xs, spare_x
@@ -470,91 +523,34 @@ if kernels.ENABLED:
                 x, xs = xs, x
                 v, vs = vs, v
         if steps == 0:  # (copied in loops: a slice assignment compiles Numba's error messages)
-            _copy_flat(x0, x_out)
-            _copy_flat(v0, v_out)
+            _copy_flat(x0, xo)
+            _copy_flat(v0, vo)
         return OK, steps
 
-
     @njit(nogil=True)
-    def fused_steps(method, rattle, steps, h, hp, counts, state, x_out, v_out,
-                    settings, engine, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
-        ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
-        ``method, rattle`` give as :func:`integrator_args` makes them. The
-        records come as the pack holds them: its ``blocks``, ``rows`` and workspace in one
-        :class:`~.records.Engine` by reference (:attr:`~.packing.Packed.refs`), the others in
-        :func:`~.records.plain` form, rebuilt here: ``State(*state)`` (its ``lam`` is the
-        warm start, updated in place) and ``Settings(*settings)``; ``live`` (None, or the
-        pack's :attr:`~.packing.Packed.live_ref`) by reference too.
-        With ``live`` (the workspace of :func:`_gate`; None: every
-        particle takes every step), particle q takes ``counts[q]`` steps instead (``steps``
-        is ignored): first the steps only some particles take (a particle with fewer waits,
-        and the elements, constraint rows and components of waiting particles are skipped),
-        then the steps every particle takes, without the mask. Each particle takes its own
-        steps in its own order, so each independent group of particles is stepped exactly as
-        it would be alone. Returns ``(status, steps done)``.
-
-        Every array here lives in the caller for the whole call, so the plain records are
-        built from borrowed arrays (:func:`~.records.borrowed`): passing and unpacking them
-        costs no reference counting. (The caller's plain tuples are borrowed, never a record
-        built here: a record is a temporary of this function.) ``live`` itself is never
-        reassigned and is what the None tests read: Numba then drops the branch that a None
-        ``live`` rules out, so a run without pieces compiles no masked step."""
+    def fused_split(method, rattle, h, hp, counts, state, x_out, v_out, settings, engine,
+                    live):  # pragma: no cover - compiled
+        """A split step: particle q takes ``counts[q]`` steps of ``hp[q]`` seconds (arguments
+        as for :func:`fused_steps`, ``live`` the pack's live workspace). First the steps only
+        some particles take (masked), while their data are likely still in cache from the
+        last call, then every particle's common steps (unmasked). Each particle takes its own
+        steps in its own order, so the order of the two passes changes no bit, and each
+        independent group of particles is stepped exactly as it would be alone."""
         b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
-        start, xo, vo = State(*b_state), b_out[0], b_out[1]
-        cfg = Settings(*settings)
-        blocks, rows, ws = engine.blocks, engine.rows, engine.work
-        n = start.x.shape[0]
-        m = start.lam.shape[0]
-        per_particle = b_hp.shape[0] > 0
-        shape = start.x.shape
-        if (shape[1] != 2 or start.v.shape != shape or xo.shape != shape or vo.shape != shape
-                or start.mass.shape[0] != n or start.inv_mass.shape[0] != n):
-            return FALLBACK, 0
-        if per_particle and (rattle is not None or b_hp.shape[0] != n):
-            return FALLBACK, 0
-        if live is not None and (not per_particle or b_counts.shape[0] != n
-                                 or not _live_fits(live, blocks, n, m,
-                                                   rows.comp_ptr.shape[0] - 1)):
-            return FALLBACK, 0
-        if live is None and b_counts.shape[0] != 0:
-            return FALLBACK, 0
-        if not _check_inputs(blocks, rows, n, m, start.lam, b_counts):
-            return FALLBACK, 0
-        if not _work_fits(ws, n, m):
-            return FALLBACK, 0
-        w2, tmp, inv_mass = ws.w2, ws.tmp, start.inv_mass
-        if rattle is None:  # w2 and tmp are read only at the constraint rows' coordinates:
-            cols, nnz = rows.cols, rows.nnz  # O(rows) instead of O(particles) per call
-            for r in range(m):
-                for k in range(nnz[r]):
-                    c = cols[r, k]
-                    w2[c] = inv_mass[c // 2]
-                    tmp[c] = 0.0
-        else:  # RATTLE's corrections run over every coordinate
-            for q in range(n):
-                w2[2 * q] = inv_mass[q]
-                w2[2 * q + 1] = inv_mass[q]
-                tmp[2 * q] = 0.0
-                tmp[2 * q + 1] = 0.0
-        if live is None:
-            return _steps(method, rattle, steps, h, b_hp, b_counts, start, xo, vo,
-                          cfg, blocks, rows, ws, None)
-        if n == 0:
-            return OK, 0
+        if b_counts.shape[0] == 0 or b_counts.shape[0] != b_state[0].shape[0]:
+            return (OK, 0) if b_state[0].shape[0] == 0 and b_counts.shape[0] == 0 else (
+                FALLBACK, 0)
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return _steps(method, rattle, total, h, b_hp, b_counts, start, xo, vo,
-                          cfg, blocks, rows, ws, None)
-        # the steps only some particles take come first, while their data are likely still in
-        # cache from the last call (each particle takes its own steps in its own order, so
-        # the order of the two passes changes no bit); then every particle's common steps
-        status, done = _steps(method, rattle, total - first, h, b_hp,
-                              b_counts - first, start, ws.x_mid, ws.v_mid, cfg, blocks, rows,
-                              ws, live)
+            return fused_steps(method, rattle, total, h, b_hp, b_counts, b_state, b_out[0],
+                               b_out[1], settings, engine, None)
+        ws = engine.work
+        x_mid, v_mid = ws.x_mid, ws.v_mid
+        status, done = fused_steps(method, rattle, total - first, h, b_hp, b_counts - first,
+                                   b_state, x_mid, v_mid, settings, engine, live)
         if status != OK:
             return status, done
-        middle = State(ws.x_mid, ws.v_mid, start.mass, start.inv_mass, start.lam)
-        status, more = _steps(method, rattle, first, h, b_hp, b_counts, middle, xo,
-                              vo, cfg, blocks, rows, ws, None)
+        middle = (x_mid, v_mid, b_state[2], b_state[3], b_state[4])
+        status, more = fused_steps(method, rattle, first, h, b_hp, b_counts, middle, b_out[0],
+                                   b_out[1], settings, engine, None)
         return status, done + more
