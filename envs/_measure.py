@@ -584,14 +584,16 @@ if ENABLED:
             out[i] = r + bonus * (1.0 if success[i] else 0.0)
             before[i] = phi[i]
 
-    @njit(nogil=True)
+    # The two wrappers below are inlined into their callers (the entries): a compiled level of
+    # their own would have LLVM optimise everything under it once more (docs/compile_time.md).
+    @njit(inline="always")
     def _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success,
                           view, obs):  # pragma: no cover - compiled
         """:func:`_measures` then :func:`_observe` (one call from Python instead of two)."""
         _measures(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success)
         _observe(x, v, task.n, task.goal, view, obs)
 
-    @njit(nogil=True)
+    @njit(inline="always")
     def _crank_measures_observe(crank, x, v, mass, task, blocks, walls, rest, stepped, out,
                                 success, view, obs):  # pragma: no cover - compiled
         """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
