@@ -4,11 +4,11 @@ One env step of a small scene costs little physics once the step is compiled; wh
 the bookkeeping around it. The kernels here do that bookkeeping for every copy of a tiled task
 in one call each, with no Python between:
 
-- :func:`measures`: per copy, the RMS particle speed (m/s), kinetic energy (J), the largest
-  geometric constraint residual (m, see ``Constraint.distance_error``), the distance (m) from
-  the tracked x coordinate (the mean x of some particles) or point to the goal, optionally the
-  walls' total contact force (N), and the update of the count of consecutive steps at the goal
-  (the rest test);
+- the measures (``_measures``, which every entry below computes): per copy, the RMS particle
+  speed (m/s), kinetic energy (J), the largest geometric constraint residual (m, see
+  ``Constraint.distance_error``), the distance (m) from the tracked x coordinate (the mean x of
+  some particles) or point to the goal, optionally the walls' total contact force (N), and the
+  update of the count of consecutive steps at the goal (the rest test);
 - :func:`observe`: the float32 observation (normalized positions, velocities, goal), clipped.
 
 They read the system's blocks through :func:`constrained_particles.fused.pack`, so they see
@@ -114,7 +114,7 @@ class Finish(NamedTuple):
     task: Goal
     rest: Rest
     every: np.ndarray  #: (N,) bool, all True: the copies that stepped
-    out: np.ndarray  #: (5, N) out: the rows of :func:`measures`
+    out: np.ndarray  #: (5, N) out: the measures' rows (``_measures``)
     success: np.ndarray  #: (N,) bool out
     frame: View  #: the observation's normalization
     obs: np.ndarray  #: (N, 4 n + 1) float32 out
@@ -167,11 +167,10 @@ def packed(system: Any) -> Any:
     return p
 
 
-measures: Any = None  #: the compiled measure kernel (None when ``ENABLED`` is False)
 observe: Any = None  #: the compiled observation kernel (None when ``ENABLED`` is False)
 #: ClothPin's compiled observation (None when ``ENABLED`` is False)
 pin_observe: Any = None
-#: :func:`measures` then ClothPin's observation, in one call (None when ``ENABLED`` is False)
+#: the measures then ClothPin's observation, in one call (None when ``ENABLED`` is False)
 pin_measures_observe: Any = None
 #: ClothPin's drawing check (None when ``ENABLED`` is False)
 pin_draws: Any = None
@@ -180,9 +179,9 @@ clip_actions: Any = None  #: the compiled action check and clip (None when ``ENA
 crank: Any = None  #: the compiled SliderCrank measures (None when ``ENABLED`` is False)
 crank_push: Any = None  #: the compiled SliderCrank force action (None when ``ENABLED`` is False)
 shaped_reward: Any = None  #: the compiled shaped reward (None when ``ENABLED`` is False)
-#: :func:`measures` then :func:`observe`, in one call (None when ``ENABLED`` is False)
+#: the measures then :func:`observe`'s observation, in one call (None when ``ENABLED`` is False)
 measures_observe: Any = None
-#: :func:`crank`, then :func:`measures` with the crank's ``below`` as ``blocked``, then
+#: :func:`crank`, then the measures with the crank's ``below`` as ``blocked``, then
 #: :func:`observe`, in one call (None when ``ENABLED`` is False)
 crank_measures_observe: Any = None
 #: :func:`crank_measures_observe`, SliderCrank's shaped reward and the episode counters of a
@@ -617,13 +616,6 @@ if ENABLED:
                       View(*frame), obs, Reward(*reward), Episode(*episode))
 
     @njit(nogil=True)
-    def _measures_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success):
-        # pragma: no cover - compiled
-        task, rest = borrowed((task, rest))
-        _measures(x, v, mass, Goal(*task), blocks, walls, Rest(*rest), stepped,
-                  blocked, out, success)
-
-    @njit(nogil=True)
     def _observe_entry(x, v, n, goal, view, obs):  # pragma: no cover - compiled
         _observe(x, v, n, goal, View(*view), obs)
 
@@ -702,7 +694,6 @@ if ENABLED:
     def _crank_entry(x, n, goal, crank):  # pragma: no cover - compiled
         _crank(x, n, goal, Crank(*crank))
 
-    measures = _measures_entry
     observe = _observe_entry
     pin_observe = _pin_observe_entry
     pin_measures_observe = _pin_measures_observe_entry

@@ -702,9 +702,9 @@ class ParticleTask(SteppedCopies):
         the goal, slower than ``rest_speed`` (the RMS of the moving average velocities of its
         first :attr:`rest_count` particles), not ``blocked`` and (with ``walls``, in a task
         with :attr:`wall_rest`) touching no wall; otherwise it restarts at 0. Computed in one
-        compiled pass (:func:`envs._measure.measures`) when the system's blocks allow it, else
-        by the numpy reference below. With ``obs``, the compiled pass also writes :meth:`observe`'s
-        observation into it (:func:`envs._measure.measures_observe`); the reference does not.
+        compiled pass (:func:`envs._measure.measures_observe`) when the system's blocks allow
+        it, else by the numpy reference below. With ``obs``, the compiled pass also writes
+        :meth:`observe`'s observation into it; the reference does not.
         ``post``: :meth:`_compiled_post` if the caller has it (else made here).
         """
         N, n = self.num_envs, self.n
@@ -717,10 +717,9 @@ class ParticleTask(SteppedCopies):
             success = np.empty(N, bool)
             args = (x, v, mass, tuple(goal), p.refs.blocks, walls, tuple(self._rest()),
                     self._mask(stepped), self._mask(blocked), out, success)
-            if obs is None:
-                _measure.measures(*args)
-            else:
-                _measure.measures_observe(*args, tuple(self._view()), obs)
+            if obs is None:  # (one compiled entry for both: the observation is scratch here)
+                obs = np.empty((N, 4 * n + 1), np.float32)
+            _measure.measures_observe(*args, tuple(self._view()), obs)
             return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
@@ -808,6 +807,7 @@ class ParticleTask(SteppedCopies):
 
 
 def _measured(out: np.ndarray, success: np.ndarray) -> dict[str, np.ndarray]:
-    """The measures dict from the compiled measures' output rows (see ``_measure.measures``)."""
+    """The measures dict from the compiled measures' output rows (see
+    ``_measure.measures_observe``)."""
     return {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
             "constraint_residual": out[3], "is_success": success}

@@ -229,9 +229,10 @@ class SliderCrank(ShapedTask, ParticleTask):
 
     def _crank_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Fresh outputs of the compiled crank bookkeeping, filled in place by the kernels: a
-        float block (8, num_envs) (the five rows of ``_measure.measures``, crank height, arc to
-        go, reward), a bool block (5, num_envs) (success, crank below the wire, terminated,
-        truncated, ended), the observation, and the measures dict over their rows."""
+        float block (8, num_envs) (the five measures' rows of ``_measure.measures_observe``,
+        crank height, arc to go, reward), a bool block (5, num_envs) (success, crank below the
+        wire, terminated, truncated, ended), the observation, and the measures dict over their
+        rows."""
         N = self.num_envs
         values, flags = np.empty((8, N)), np.empty((5, N), bool)
         m = _measured(values[:5], flags[0])
