@@ -147,7 +147,7 @@ if kernels.ENABLED:
                     return False
         return True
 
-    @njit
+    @njit_inline  # (a dispatcher between loops: inlined, no compiled level of its own)
     def _springs(x, v, F, spring):  # pragma: no cover - compiled
         """Add the forces (N) of the springs ``spring`` (:class:`~.records.SpringArrays`) at
         ``(x, v)`` into ``F``, in spring order: the runs (see :func:`spring_runs`, checked when

@@ -397,7 +397,7 @@ if kernels.ENABLED:
         (compiled only)."""
         raise NotImplementedError("compiled code only")
 
-    @overload(_by_reference)
+    @overload(_by_reference, inline="always")  # (straight-line code: no compile of its own)
     def _typed_by_reference(record):  # (no annotations: Numba compares them with impl's)
         """:func:`_by_reference` for the named tuple type of ``record``: a
         :class:`RecordRefType` with its fields, each set from the field of that name."""

@@ -335,7 +335,7 @@ if ENABLED:
                 obs[i, 2 * count + 2 * k + 1] = _unit(v[p, 1] * iy, lo, hi)
             obs[i, 4 * count] = _unit((goal[i] - cx) * ix, lo, hi)
 
-    @njit(nogil=True)
+    @njit(inline="always")  # (a wrapper: inlined, no compiled level of its own)
     def _observe(x, v, n, goal, view, obs):  # pragma: no cover - compiled
         """Write ``obs`` (N, 4 n + 1) float32: ``(x - c) / h``, ``v / h``, the goal's
         ``(goal - c_x) / h_x``, each computed in float64 (``view``: ``ix, iy`` = 1 / h),
