@@ -537,9 +537,11 @@ if kernels.ENABLED:
         steps in its own order, so the order of the two passes changes no bit, and each
         independent group of particles is stepped exactly as it would be alone."""
         b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
-        if b_counts.shape[0] == 0 or b_counts.shape[0] != b_state[0].shape[0]:
-            return (OK, 0) if b_state[0].shape[0] == 0 and b_counts.shape[0] == 0 else (
-                FALLBACK, 0)
+        n = b_state[0].shape[0]
+        if b_counts.shape[0] != n:
+            return FALLBACK, 0
+        if n == 0:
+            return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
             return fused_steps(method, rattle, total, h, b_hp, b_counts, b_state, b_out[0],
