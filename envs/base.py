@@ -717,8 +717,9 @@ class ParticleTask(SteppedCopies):
             success = np.empty(N, bool)
             args = (x, v, mass, tuple(goal), p.refs.blocks, walls, tuple(self._rest()),
                     self._mask(stepped), self._mask(blocked), out, success)
-            if obs is None:  # (one compiled entry for both: the observation is scratch here)
-                obs = np.empty((N, 4 * n + 1), np.float32)
+            if obs is None:  # (one compiled entry for both: the observation is scratch here,
+                # sized from the record the kernel reads, as measure_observe sizes it)
+                obs = np.empty((len(goal.goal), 4 * goal.n + 1), np.float32)
             _measure.measures_observe(*args, tuple(self._view()), obs)
             return _measured(out, success), out[4]
         v = s.v
