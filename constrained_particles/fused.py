@@ -37,12 +37,13 @@ gives the plain loop's forces bit for bit.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import kernels
+from . import kernels, parallel
 from .fused_accel import (
     DIVERGED,
     FALLBACK,
@@ -170,9 +171,15 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if ready is None:
         return FALLBACK, None, None, 0
     p, start, settings = ready
-    refs = p.refs
     code, rattle = integrator_args(method)
     h = float(dt)
+    threads = system.__dict__.get("_threads", 1)
+    if (threads > 1 and (part := parallel.partition(system, p, threads)) is not None
+            and part.take_mouse()):
+        if pieces is not None and (pieces.shape != (p.n,) or pieces.dtype != np.int64):
+            return FALLBACK, None, None, 0
+        return _run_ranges(part, code, rattle, h, int(steps), pieces, start, settings)
+    refs = p.refs
     x_out = np.empty_like(start.x)
     v_out = np.empty_like(start.v)
     if pieces is None:
@@ -186,6 +193,45 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
                                  tuple(start), x_out, v_out, tuple(settings), refs.engine,
                                  p.live_ref)
     return int(status), x_out, v_out, int(failed)
+
+
+def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, steps: int,
+                pieces: np.ndarray | None, start: State, settings: Settings
+                ) -> tuple[int, np.ndarray, np.ndarray, int]:
+    """:func:`run` with the system's particles cut into ``part``'s ranges, each stepped by the
+    kernel on a thread of its own (:mod:`.parallel`): the same status and the same bits as one
+    call over the whole system. The warm start of a range's rows is gathered into an array of
+    its own and written back only when every range succeeded."""
+    x, v, mass, inv_mass, lam = start
+    x_out, v_out = np.empty_like(x), np.empty_like(v)
+    if pieces is not None:
+        hp, counts = h / pieces, pieces * steps
+    bounds, calls, lams = part.bounds, [], []
+    for r, sp in enumerate(part.packs):
+        if sp._refresh:
+            sp.refresh()
+        lo, hi = int(bounds[r]), int(bounds[r + 1])
+        lam_r = lam[part.rows[r]]
+        lams.append(lam_r)
+        state = (x[lo:hi], v[lo:hi], mass[lo:hi], inv_mass[lo:hi], lam_r)
+        if pieces is None:
+            args = (code, rattle, steps, h, _F0, _NO_COUNTS, state, x_out[lo:hi],
+                    v_out[lo:hi], tuple(settings), sp.refs.engine, None)
+            calls.append(functools.partial(fused_steps, *args))
+        else:
+            args = (code, rattle, h, hp[lo:hi], counts[lo:hi], state, x_out[lo:hi],
+                    v_out[lo:hi], tuple(settings), sp.refs.engine, sp.live_ref)
+            calls.append(functools.partial(fused_split, *args))
+    results = part.crew().run(calls[0], calls[1:])
+    statuses = [int(status) for status, _ in results]
+    if all(status == OK for status in statuses):
+        for rows, lam_r in zip(part.rows, lams, strict=True):
+            lam[rows] = lam_r
+        return OK, x_out, v_out, int(results[0][1])
+    if FALLBACK in statuses:
+        return FALLBACK, None, None, 0
+    return DIVERGED, None, None, min(int(done) for status, done in results
+                                       if int(status) == DIVERGED)
 
 
 if kernels.ENABLED:

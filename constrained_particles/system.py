@@ -32,6 +32,8 @@ IMPLICIT_SOLVERS = ("auto", "cg", "direct")
 
 #: Shortest accepted time step (s): below it ``t + dt`` and ``1 / dt`` stop being meaningful.
 MIN_DT = 1e-9
+#: Most threads a system may be given (:attr:`ParticleSystem.threads`)
+MAX_THREADS = 1024
 _F64 = np.dtype(np.float64)  #: NumPy's float64 dtype (one object: compared by identity)
 
 
@@ -141,6 +143,26 @@ class ParticleSystem:
         self.forces: list[Force] = []
         self.constraints: list[Constraint] = []
         self._solver: ConstraintSolver | None = None
+
+    # ------------------------------------------------------------------ threads
+    @property
+    def threads(self) -> int:
+        """Threads a compiled step may use (default 1). With k > 1 the particles are cut into
+        up to k ranges that no force element or constraint couples, each stepped on a thread
+        of its own, with the same bits as on one thread (:mod:`constrained_particles.parallel`);
+        a system that cannot be cut so (or is too small to gain) steps on one."""
+        return self.__dict__.get("_threads", 1)
+
+    @threads.setter
+    def threads(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise ArgumentTypeError(f"threads must be a positive int, got {value!r}")
+        if not 1 <= value <= MAX_THREADS:
+            raise ValueError(f"threads must be in [1, {MAX_THREADS}], got {value!r}")
+        self.__dict__["_threads"] = int(value)
+        held = self.__dict__.pop("_partition", None)
+        if held is not None:
+            held.close()
 
     # ------------------------------------------------------------------ building
     @property
@@ -282,6 +304,8 @@ class ParticleSystem:
             term._bound_n = out.n
         out._solver = None
         out.__dict__.pop("_packed", None)
+        out.__dict__.pop("_partition", None)  # (threads of its own, on first use)
+        out.__dict__.pop("_stepping", None)
         return out
 
     def __getstate__(self) -> dict[str, Any]:
@@ -290,6 +314,7 @@ class ParticleSystem:
         state = self.__dict__.copy()
         state.pop("_packed", None)
         state.pop("_stepping", None)
+        state.pop("_partition", None)
         return state
 
     def copy(self) -> ParticleSystem:

@@ -43,7 +43,8 @@ CONFIGS = [(env_id, kind, {"action_mode": mode})
                                  ("ChainSwing-v0", ("force", "spring")),
                                  ("ClothPin-v0", ("draw",)))
            for mode in modes for kind in ("single", "vector")]
-# the threaded vector env: two shards of one copy each, stepped on two threads
+# the threaded vector env: its physics cut into two ranges of one copy each, stepped on two
+# threads (ranges as small as one copy are allowed for it: see _make)
 CONFIGS += [("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads": 2})]
 EDITS = ("huge", "negative", "nan", "inf", "one_row", "dtype")
 ALLOWED = (ValueError, TypeError, RuntimeError)
@@ -100,6 +101,10 @@ def _make(env_id: str, kind: str, kwargs: dict) -> Any:
 
     import envs  # noqa: F401 - registers the ids
 
+    if "num_threads" in kwargs:
+        from constrained_particles import parallel
+
+        parallel.MIN_PARTICLES = 1  # (two copies of two particles: one range each)
     if kind == "vector":
         env = gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point",
                            **kwargs)
@@ -107,6 +112,13 @@ def _make(env_id: str, kind: str, kwargs: dict) -> Any:
         env = gym.make(env_id, disable_env_checker=True, **kwargs)
     env.reset(seed=0)
     env.action_space.seed(0)
+    if "num_threads" in kwargs:  # the ranges are what this config is for: they must exist
+        twin = copy.deepcopy(env)
+        twin.step(twin.action_space.sample())
+        held = twin.unwrapped.task.system.__dict__.get("_partition")
+        if held is None or not held.valid or len(held.packs) != kwargs["num_threads"]:
+            raise RuntimeError("the threaded config's system was not cut into ranges")
+        twin.close()
     return env
 
 

@@ -1,0 +1,399 @@
+"""Stepping the independent parts of one system on several threads.
+
+A system whose particles fall into groups that no force element or constraint couples (the
+tiled copies of a batched environment, say) can take its compiled steps on
+``ParticleSystem.threads`` threads: its particles are cut into that many consecutive ranges,
+each cut between two groups, and each range is stepped by the fused kernel on a thread of its
+own, reading and writing only its own slices of the state. The kernels release the GIL, so the
+ranges run in parallel; the Python before and after the kernels runs once per step, as with
+one thread.
+
+**Same bits for every thread count.** A group of coupled particles is stepped exactly as it
+would be alone (each constraint component is solved on its own, each particle's update reads
+only its own group), so which range a group falls in, and which thread steps it, changes no
+bit: a step with k threads returns the state and warm start of a step with one.
+
+**What is cut.** :func:`cuts` finds where the particles can be cut (no element has particles on
+both sides), and the range nearest each share of ``n / k`` particles ends there. A range's
+blocks are views of the system's blocks (the elements of that range, with particle indices
+shifted to the range's start), packed on their own (:class:`~.packing.Packed`): parameter
+arrays are shared, so in-place edits (an environment's actions written into
+``ConstantForce.force``) reach every range, and a reassigned attribute rebuilds the system's
+pack and with it the ranges. Where no cut fits (one big group, elements not ordered by
+particle, mouse springs, whose particles move between calls) or the system is too small to
+gain (fewer than :data:`MIN_PARTICLES` particles a range), the step runs on one thread.
+
+The threads are a :class:`Crew`: k - 1 daemon threads that poll for the next call for
+:data:`POLL_SECONDS` and then sleep on an event, the calling thread taking the first range.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+import time
+import weakref
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import kernels
+from .forces import MouseSpring
+from .packing import Packed
+from .terms import frozen
+
+if TYPE_CHECKING:
+    from .system import ParticleSystem
+
+__all__ = ["MIN_PARTICLES", "POLL_SECONDS", "SPINS", "Crew", "Partition", "cuts"]
+
+#: Fewest particles a range must have for a step to be cut into ranges at all: below it, handing
+#: the ranges to threads costs more than it saves.
+MIN_PARTICLES = 64
+#: How long a crew thread waits for its next call, spinning without the GIL, before it sleeps
+#: on an event (as spins of an atomic load, about 1.5 ns each on this class of machine: about
+#: 2 ms). Waking a sleeping thread costs this class of VM 50-150 us, a spin about nothing; a
+#: busy loop steps again well within it, an idle system costs no CPU after it.
+SPINS = 1_500_000
+POLL_SECONDS = 0.002  #: the same wait where the compiled code is off (polling with the GIL)
+
+
+def _wait_for(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
+    """True once ``flags[i] == value``; False if it is not so after ``spins`` looks (numpy
+    path: polling for :data:`POLL_SECONDS`, yielding the GIL between looks)."""
+    start = time.perf_counter()
+    while flags[i] != value:
+        if time.perf_counter() - start > POLL_SECONDS:
+            return False
+        time.sleep(0)
+    return True
+
+
+if kernels.ENABLED:
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
+    from .jit import njit
+
+    @intrinsic
+    def _load_acquire(typingctx, flags, i):  # pragma: no cover - compiled
+        """``flags[i]`` read with an atomic load (acquire): a loop of them is never folded
+        into one read, and sees what the writer stored before its flag."""
+        if not (isinstance(flags, types.Array) and flags.dtype == types.int64
+                and flags.ndim == 1):
+            return None
+        sig = types.int64(flags, types.intp)
+
+        def codegen(context, builder, sig, args):
+            ary = context.make_array(sig.args[0])(context, builder, args[0])
+            ptr = cgutils.get_item_pointer(context, builder, sig.args[0], ary, [args[1]],
+                                           wraparound=False)
+            return builder.load_atomic(ptr, ordering="acquire", align=8)
+
+        return sig, codegen
+
+    @njit(nogil=True)
+    def _wait_for(flags, i, value, spins):  # noqa: F811  # pragma: no cover - compiled
+        """True once ``flags[i] == value``, looked at up to ``spins`` times without the GIL
+        (``i`` in range: the caller's own flag array)."""
+        for _ in range(spins):
+            if _load_acquire(flags, i) == value:
+                return True
+        return False
+
+
+class Crew:
+    """``k`` daemon threads that each run one call per :meth:`run`, the calling thread running
+    another.
+
+    Handing a call over and waiting for its end use a flag per thread, looked at in a compiled
+    loop that holds no GIL (:func:`_wait_for`): the calling thread's Python runs undisturbed
+    while a crew thread waits, and a call starts within about a microsecond of being handed
+    over (a thread woken from an event would take 50-150 us on this class of VM). A crew thread
+    that has waited :data:`SPINS` looks sleeps on an event until the next call."""
+
+    _STOP = object()
+
+    def __init__(self, k: int, name: str) -> None:
+        self._calls: list[Any] = [None] * k
+        self._results: list[tuple[bool, Any] | None] = [None] * k
+        self._posted = np.zeros(k, np.int64)  # the number of calls handed to thread i
+        self._done = np.zeros(k, np.int64)  # the number of calls thread i has finished
+        self._sleeping = [False] * k
+        self._wake = [threading.Event() for _ in range(k)]
+        self._threads = [threading.Thread(target=self._serve, args=(i,), daemon=True,
+                                          name=f"{name}-{i + 1}") for i in range(k)]
+        for t in self._threads:
+            t.start()
+
+    @property
+    def size(self) -> int:
+        """Number of threads besides the caller's."""
+        return len(self._threads)
+
+    def _serve(self, i: int) -> None:
+        posted, done, wake = self._posted, self._done, self._wake[i]
+        seq = 0
+        while True:
+            seq += 1
+            if not _wait_for(posted, i, seq, SPINS):
+                self._sleeping[i] = True  # (then looked at again: run() may have posted
+                while posted[i] != seq:  # before it saw this flag)
+                    wake.wait()
+                    wake.clear()
+                self._sleeping[i] = False
+            call = self._calls[i]
+            self._calls[i] = None
+            if call is self._STOP:
+                return
+            try:
+                result = (True, call())
+            except BaseException as exc:  # handed to the caller of run()
+                result = (False, exc)
+            self._results[i] = result
+            done[i] = seq
+
+    def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
+        """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
+        have returned, raising the first error (this thread's first)."""
+        posted, done = self._posted, self._done
+        for i, call in enumerate(others):
+            self._calls[i] = call
+            posted[i] += 1
+            if self._sleeping[i]:
+                self._wake[i].set()
+        try:
+            mine = first()
+        finally:
+            for i in range(len(others)):  # no call is still running when this returns
+                while not _wait_for(done, i, posted[i], SPINS):
+                    pass
+        out = [mine]
+        for i in range(len(others)):
+            ok, value = self._results[i]  # type: ignore[misc]
+            self._results[i] = None
+            if not ok:
+                raise value
+            out.append(value)
+        return out
+
+    def close(self) -> None:
+        """Stop the threads (safe to call twice)."""
+        for i, t in enumerate(self._threads):
+            if t.is_alive() and self._calls[i] is not self._STOP:
+                self._calls[i] = self._STOP
+                self._posted[i] += 1
+                self._wake[i].set()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join()
+
+
+def _spans(blocks: list[Any], n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The lowest and highest particle of every element that couples particles (an element
+    with two or more index fields), or None if a block refers to all particles implicitly
+    with more than one field (nothing such exists today)."""
+    lows, highs = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for b in blocks:
+        if len(b.index_fields) < 2 or not len(b):
+            continue
+        idx = [b.__dict__.get(name) for name in b.index_fields]
+        if any(i is None for i in idx):
+            return None
+        stacked = np.stack([np.asarray(i, np.int64) for i in idx])
+        lows.append(stacked.min(axis=0))
+        highs.append(stacked.max(axis=0))
+    return np.concatenate(lows), np.concatenate(highs)
+
+
+def cuts(blocks: list[Any], n: int, k: int) -> list[int]:
+    """Where ``n`` particles with elements ``blocks`` are cut into at most ``k`` ranges: the
+    inner boundaries, increasing, each the allowed cut nearest its share ``i n / k`` (a cut
+    at ``c`` is allowed when no element has particles both below ``c`` and at or above it).
+    Empty when no cut is allowed."""
+    spans = _spans(blocks, n)
+    if spans is None or k < 2 or n < 2:
+        return []
+    low, high = spans
+    cover = np.zeros(n + 1, np.int64)  # cover[c] > 0: some element spans the cut at c
+    np.add.at(cover, low + 1, 1)
+    np.add.at(cover, high + 1, -1)
+    allowed = np.flatnonzero(np.cumsum(cover)[1:n] == 0) + 1  # cuts in [1, n - 1]
+    if not len(allowed):
+        return []
+    out: list[int] = []
+    for i in range(1, k):
+        target = i * n / k
+        j = int(np.searchsorted(allowed, target))
+        near = [allowed[t] for t in (j - 1, j) if 0 <= t < len(allowed)]
+        c = int(min(near, key=lambda a: (abs(a - target), a)))
+        if (not out or c > out[-1]) and c < n:
+            out.append(c)
+    return out
+
+
+class _Part:
+    """The particle count and blocks of one range: what :class:`~.packing.Packed` reads of a
+    system."""
+
+    def __init__(self, n: int, forces: list[Any], constraints: list[Any]) -> None:
+        self.n = n
+        self.forces = forces
+        self.constraints = constraints
+
+
+def _element_ranges(block: Any, bounds: np.ndarray) -> np.ndarray | None:
+    """For each range ``[bounds[r], bounds[r + 1])``, the first and end element of ``block``
+    in it (``(ranges + 1,)`` element offsets), or None where the block's elements are not
+    ordered by range. A block without particle lists (all particles) has None here too; its
+    caller keeps it whole."""
+    idx = block.__dict__.get(block.index_fields[0]) if block.index_fields else None
+    if idx is None:
+        return None
+    rid = np.searchsorted(bounds, np.asarray(idx, np.int64), side="right") - 1
+    if len(rid) and np.any(np.diff(rid) < 0):
+        return None
+    return np.searchsorted(rid, np.arange(len(bounds)), side="left")
+
+
+def _mouse_ranges(count: int, bounds: np.ndarray) -> np.ndarray | None:
+    """The element offsets per range of a mouse block of ``count`` springs: its particles move
+    between calls, so its elements are shared out in proportion to the ranges' particles
+    (spring ``e`` of ``count`` to the range of particle ``e n / count``: one spring per copy of
+    a tiled system, say), or None where the proportion is not whole. Each call checks that
+    every active spring's particle is in its range (:meth:`Partition.take_mouse`)."""
+    n = int(bounds[-1])
+    scaled = count * bounds
+    if np.any(scaled % n):
+        return None
+    return scaled // n
+
+
+def _sub_block(block: Any, a: int, b: int, lo: int) -> Any:
+    """Elements ``a:b`` of ``block`` as a block of its own, particle indices less ``lo``:
+    per-element arrays as views and every other attribute shared (in-place edits of the
+    system's block are seen)."""
+    sub = copy.copy(block)
+    d = sub.__dict__
+    for name in block.index_fields:
+        idx = block.__dict__.get(name)
+        if idx is not None:
+            d[name] = frozen(np.asarray(idx[a:b], np.int64) - lo)
+    for name in block.element_fields:
+        arr = block.__dict__.get(name)
+        if arr is not None:
+            d[name] = arr[a:b]
+    return sub
+
+
+class Partition:
+    """A system's particles cut into ranges stepped on threads (see the module docstring),
+    made for one :class:`~.packing.Packed` form of the system; :attr:`valid` False where no
+    cut fits."""
+
+    def __init__(self, parent: Packed, k: int) -> None:
+        self.parent = parent
+        self.k = k
+        self.valid = False
+        self._crew: Crew | None = None
+        n = parent.n
+        blocks = [*parent.forces, *parent.constraints]
+        mice = [b for b in parent.forces if type(b) is MouseSpring]
+        if k < 2 or not parent.valid or not parent.zero_copy or len(mice) > 1:
+            return
+        inner = cuts(blocks, n, min(k, n // MIN_PARTICLES))
+        if not inner:
+            return
+        bounds = np.array([0, *inner, n], np.int64)
+        ranges = len(bounds) - 1
+        forces: list[list[Any]] = [[] for _ in range(ranges)]
+        constraints: list[list[Any]] = [[] for _ in range(ranges)]
+        row_range = np.empty(parent.m, np.int64)  # the range of each constraint row
+        offset = 0
+        nf = len(parent.forces)
+        for b_no, block in enumerate(blocks):
+            is_constraint = b_no >= nf
+            if block.index_fields and block.__dict__.get(block.index_fields[0]) is None:
+                if len(block.index_fields) > 1 or is_constraint:
+                    return  # (no such block exists; kept whole it would span the ranges)
+                parts = [copy.copy(block) for _ in range(ranges)]  # (all of each range's)
+            else:
+                el = (_mouse_ranges(len(block), bounds) if type(block) is MouseSpring
+                      else _element_ranges(block, bounds))
+                if el is None:
+                    return
+                if type(block) is MouseSpring:
+                    #: the mouse springs' element offsets per range (see :meth:`take_mouse`)
+                    self.mouse_elements = el
+                parts = [_sub_block(block, int(el[r]), int(el[r + 1]), int(bounds[r]))
+                         for r in range(ranges)]
+                if is_constraint:
+                    per = block.rows_per_element
+                    for r in range(ranges):
+                        row_range[offset + per * el[r]:offset + per * el[r + 1]] = r
+            for r in range(ranges):
+                (constraints if is_constraint else forces)[r].append(parts[r])
+            if is_constraint:
+                offset += block.n_rows
+        #: the first particle of each range, and the end of the last
+        self.bounds = bounds
+        #: each range's packed blocks
+        self.packs = [Packed(_Part(int(bounds[r + 1] - bounds[r]), forces[r], constraints[r]))
+                      for r in range(ranges)]
+        #: the system's constraint rows of each range, in the system's order (which is the
+        #: range's own: blocks in order, elements in order within a block)
+        self.rows = [np.flatnonzero(row_range == r) for r in range(ranges)]
+        self.valid = (offset == parent.m and all(p.valid and p.zero_copy for p in self.packs)
+                      and all(len(rows) == p.m for rows, p in zip(self.rows, self.packs,
+                                                                     strict=True)))
+
+    def take_mouse(self) -> bool:
+        """Copy the system's mouse springs (the particles and ``active`` flags its pack just
+        took, :meth:`~.packing.Packed.take_mouse`) into each range's, particle indices less the
+        range's start (an inactive spring's index as 0). False, with nothing changed, if an
+        active spring's particle is outside its range: the step then runs whole."""
+        el = getattr(self, "mouse_elements", None)
+        if el is None:
+            return True
+        refs = self.parent.refs
+        particle, active = refs.mouse_particle, refs.mouse_active
+        bounds = self.bounds
+        for r in range(len(self.packs)):
+            a, b, lo, hi = int(el[r]), int(el[r + 1]), int(bounds[r]), int(bounds[r + 1])
+            p, on = particle[a:b], active[a:b]
+            if np.any(on & ((p < lo) | (p >= hi))):
+                return False
+        for r, sp in enumerate(self.packs):
+            a, b, lo = int(el[r]), int(el[r + 1]), int(bounds[r])
+            mine = sp.refs
+            np.copyto(mine.mouse_active, active[a:b])
+            np.copyto(mine.mouse_particle, np.where(active[a:b], particle[a:b] - lo, 0))
+        return True
+
+    def crew(self) -> Crew:
+        """The threads that step every range but the first (started on first use, stopped
+        when the partition is dropped)."""
+        if self._crew is None:
+            self._crew = Crew(len(self.packs) - 1, "cparticles-range")
+            weakref.finalize(self, self._crew.close)
+        return self._crew
+
+    def close(self) -> None:
+        """Stop the threads (safe to call twice)."""
+        if self._crew is not None:
+            self._crew.close()
+            self._crew = None
+
+
+def partition(system: ParticleSystem, parent: Packed, k: int) -> Partition | None:
+    """The system's :class:`Partition` into ``k`` ranges for its pack ``parent`` (made once
+    per pack and thread count, kept on the system), or None where it cannot be cut."""
+    held = system.__dict__.get("_partition")
+    if held is None or held.parent is not parent or held.k != k:
+        if held is not None:
+            held.close()
+        held = Partition(parent, k)
+        system.__dict__["_partition"] = held
+    return held if held.valid else None

@@ -1,0 +1,240 @@
+"""A system's compiled step on several threads (``ParticleSystem.threads``,
+``constrained_particles.parallel``): the same bits as on one thread, for every method, split
+steps and divergence; cut only where nothing couples the two sides; edits of the system seen.
+
+The speed of it is measured by ``cparticles bench`` (section "threads"), not here.
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+import threading
+
+import numpy as np
+import pytest
+
+from constrained_particles import (
+    DampedSpring,
+    MouseSpring,
+    ParticleSystem,
+    SimulationDiverged,
+    fused,
+    kernels,
+    parallel,
+    scenes,
+)
+
+pytestmark = pytest.mark.skipif(not kernels.ENABLED, reason="threads step the compiled kernel")
+
+
+@pytest.fixture(autouse=True)
+def small_ranges(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ranges of any size: the systems here are small."""
+    monkeypatch.setattr(parallel, "MIN_PARTICLES", 1)
+
+
+def _cloths(copies: int = 6, threads: int = 1, nx: int = 4) -> ParticleSystem:
+    s = scenes.cloth(nx, nx).tile(copies)
+    rng = np.random.default_rng(3)
+    s.v = rng.normal(0.0, 0.3, s.v.shape)  # (copies that differ)
+    s.threads = threads
+    return s
+
+
+def _ranges(s: ParticleSystem) -> int:
+    held = s.__dict__.get("_partition")
+    return len(held.packs) if held is not None and held.valid else 1
+
+
+@pytest.mark.parametrize("method", ["euler", "symplectic_euler", "midpoint", "rk4", "rattle"])
+def test_every_method_gives_the_same_bits_on_threads(method: str) -> None:
+    systems = [_cloths(threads=k) for k in (1, 2, 3)]
+    for _ in range(20):
+        for s in systems:
+            s.step(2e-3, method, steps=3)
+    assert [_ranges(s) for s in systems] == [1, 2, 3]
+    for s in systems[1:]:
+        np.testing.assert_array_equal(s.x, systems[0].x)
+        np.testing.assert_array_equal(s.v, systems[0].v)
+        np.testing.assert_array_equal(s.constraint_solver.lam, systems[0].constraint_solver.lam)
+        assert s.t == systems[0].t
+
+
+def test_split_steps_give_the_same_bits_on_threads() -> None:
+    n = scenes.cloth(4, 4).n
+    pieces = np.repeat(np.array([1, 3, 2, 5, 1, 4], np.int64), n)  # one count per copy
+    one, two = _cloths(threads=1), _cloths(threads=2)
+    for _ in range(10):
+        assert one.step_pieces(2e-3, "rk4", 2, pieces)
+        assert two.step_pieces(2e-3, "rk4", 2, pieces)
+    assert _ranges(two) == 2
+    np.testing.assert_array_equal(two.x, one.x)
+    np.testing.assert_array_equal(two.v, one.v)
+    np.testing.assert_array_equal(two.constraint_solver.lam, one.constraint_solver.lam)
+
+
+def test_a_diverging_range_keeps_the_whole_state() -> None:
+    """A copy in the second range blows up: the step raises as on one thread, and no range
+    (not even the first, which stepped fine) keeps its new state or warm start."""
+    systems = []
+    for k in (1, 2):
+        s = _cloths(threads=k)
+        s.step(1e-3, "symplectic_euler")
+        s.v[-1] = 1e9  # the last copy's last particle: beyond the divergence limit after a step
+        systems.append(s)
+    for s in systems:
+        x, v, lam, t = s.x.copy(), s.v.copy(), s.constraint_solver.lam.copy(), s.t
+        with pytest.raises(SimulationDiverged):
+            s.step(1e-3, "symplectic_euler")
+        np.testing.assert_array_equal(s.x, x)
+        np.testing.assert_array_equal(s.v, v)
+        np.testing.assert_array_equal(s.constraint_solver.lam, lam)
+        assert s.t == t
+    assert _ranges(systems[1]) == 2
+
+
+def test_cuts_only_where_nothing_couples() -> None:
+    s = ParticleSystem()
+    s.add_particles(np.zeros((10, 2)))
+    # particles 0-3 in a chain, 4-5 a pair, 6-9 a chain: cuts allowed at 4, 6
+    s.add(DampedSpring([0, 1, 2, 4, 6, 7, 8], [1, 2, 3, 5, 7, 8, 9], rest=0.0))
+    assert parallel.cuts(s.forces, s.n, 2) == [4]  # (5 is not allowed; 4 and 6 are as near)
+    assert parallel.cuts(s.forces, s.n, 3) == [4, 6]
+    s.add(DampedSpring([3], [6], rest=0.0))  # couples everything from 0 to 9
+    assert parallel.cuts(s.forces, s.n, 2) == []
+
+
+def test_one_piece_is_stepped_on_one_thread() -> None:
+    """A single cloth cannot be cut: it steps whole, with the bits of one thread."""
+    one, many = scenes.cloth(6, 6), scenes.cloth(6, 6)
+    many.threads = 4
+    for s in (one, many):
+        for _ in range(5):
+            s.step(1e-3, "rk4")
+    assert _ranges(many) == 1
+    np.testing.assert_array_equal(many.x, one.x)
+
+
+def test_elements_out_of_order_are_stepped_whole() -> None:
+    """A block whose elements do not run range by range (here: one spring per copy, listed
+    from the last copy to the first) cannot be sliced: the step runs whole, still right."""
+    systems = []
+    for k in (1, 2):
+        s = _cloths(threads=k)
+        n = scenes.cloth(4, 4).n
+        s.add(DampedSpring(np.arange(5, -1, -1) * n, np.arange(5, -1, -1) * n + 1, rest=0.05))
+        systems.append(s)
+    for s in systems:
+        for _ in range(5):
+            s.step(1e-3, "midpoint")
+    assert _ranges(systems[1]) == 1
+    np.testing.assert_array_equal(systems[1].x, systems[0].x)
+
+
+def test_edits_of_the_system_reach_every_range() -> None:
+    """An in-place edit of a parameter array is seen by the ranges (they hold views); a
+    reassigned attribute cuts the system again."""
+    systems = [_cloths(threads=k) for k in (1, 2)]
+    for s in systems:
+        s.step(1e-3, "symplectic_euler")
+    first = systems[1]._partition
+    for s in systems:
+        spring = next(f for f in s.forces if isinstance(f, DampedSpring))
+        spring.ks[::3] *= 4.0  # in place, in every range
+        s.step(1e-3, "symplectic_euler")
+    assert systems[1]._partition is first
+    for s in systems:
+        spring = next(f for f in s.forces if isinstance(f, DampedSpring))
+        spring.kd = spring.kd * 0.5  # reassigned
+        s.step(1e-3, "symplectic_euler")
+    assert systems[1]._partition is not first and _ranges(systems[1]) == 2
+    np.testing.assert_array_equal(systems[1].x, systems[0].x)
+    np.testing.assert_array_equal(systems[1].v, systems[0].v)
+
+
+def test_mouse_springs_follow_their_range() -> None:
+    """One mouse spring per copy moves with the copy's range; a spring whose particle is in
+    another copy's range makes the step run whole. Both give the bits of one thread."""
+    n = scenes.cloth(4, 4).n
+    systems = []
+    for k in (1, 2):
+        s = _cloths(threads=k)
+        s.add(MouseSpring(np.zeros(6, np.int64), ks=30.0, kd=0.5))
+        s.forces[-1].active[:] = False
+        systems.append(s)
+    for s in systems:
+        s.forces[-1].set(np.arange(6), np.arange(6) * n + 5, np.full((6, 2), 0.3), True)
+        for _ in range(3):
+            s.step(1e-3, "symplectic_euler")
+    calls = []
+    real = fused._run_ranges
+    try:
+        fused._run_ranges = lambda *a: calls.append(1) or real(*a)
+        for s in systems:
+            s.forces[-1].set([0], [5 * n], active=True)  # copy 0's spring on copy 5's particle
+            s.step(1e-3, "symplectic_euler")
+    finally:
+        fused._run_ranges = real
+    assert not calls  # (the second system's step ran whole)
+    np.testing.assert_array_equal(systems[1].x, systems[0].x)
+    np.testing.assert_array_equal(systems[1].v, systems[0].v)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2", None, 10**6])
+def test_bad_thread_count_is_a_clear_error(bad: object) -> None:
+    s = scenes.cloth(2, 2)
+    with pytest.raises((ValueError, TypeError), match="threads"):
+        s.threads = bad
+    assert s.threads == 1
+
+
+def test_copies_of_a_threaded_system_have_threads_of_their_own() -> None:
+    s = _cloths(threads=2)
+    s.step(1e-3, "symplectic_euler")
+    for twin in (copy.deepcopy(s), pickle.loads(pickle.dumps(s)), s.copy()):
+        assert twin.threads == 2 and "_partition" not in twin.__dict__
+        twin.step(1e-3, "symplectic_euler")
+        assert twin._partition is not s._partition and _ranges(twin) == 2
+    tiled = _cloths(copies=2, threads=2).tile(2)
+    assert tiled.threads == 2 and "_partition" not in tiled.__dict__
+    s.threads = 1  # fewer threads: the ranges and their threads go
+    assert "_partition" not in s.__dict__
+
+
+def test_an_error_on_a_crew_thread_reaches_the_caller() -> None:
+    crew = parallel.Crew(2, "test")
+    seen = []
+
+    def failing() -> None:
+        raise RuntimeError("thread 2 failed")
+
+    with pytest.raises(RuntimeError, match="thread 2 failed"):
+        crew.run(lambda: seen.append(threading.current_thread().name),
+                 [lambda: 1, failing])
+    assert seen == [threading.current_thread().name]
+    assert crew.run(lambda: 0, [lambda: 1, lambda: 2]) == [0, 1, 2]  # the threads still serve
+    threads = list(crew._threads)
+    crew.close()
+    crew.close()
+    assert threads and not any(t.is_alive() for t in threads)
+
+
+def test_a_system_that_can_no_longer_be_cut_steps_whole() -> None:
+    """A spring added between the first and the last copy leaves nothing to cut; the system
+    steps whole from then on (through later rebuilds of its pack), with the bits of one
+    thread."""
+    systems = [_cloths(threads=k) for k in (1, 2)]
+    for s in systems:
+        s.step(1e-3, "symplectic_euler")
+    assert _ranges(systems[1]) == 2
+    for s in systems:
+        s.add(DampedSpring([0], [s.n - 1], rest=0.5, ks=1.0))
+        s.step(1e-3, "symplectic_euler")
+    assert _ranges(systems[1]) == 1
+    for s in systems:
+        s.forces[-1].ks = s.forces[-1].ks * 2.0  # (a rebuild: the uncut partition is replaced)
+        s.step(1e-3, "symplectic_euler")
+    assert _ranges(systems[1]) == 1
+    np.testing.assert_array_equal(systems[1].x, systems[0].x)
+    np.testing.assert_array_equal(systems[1].v, systems[0].v)
