@@ -204,24 +204,24 @@ def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, step
     its own and written back only when every range succeeded."""
     x, v, mass, inv_mass, lam = start
     x_out, v_out = np.empty_like(x), np.empty_like(v)
+    plain_settings = tuple(settings)
     if pieces is not None:
         hp, counts = h / pieces, pieces * steps
-    bounds, calls, lams = part.bounds, [], []
-    for r, sp in enumerate(part.packs):
+    calls, lams = [], []
+    for sp, (lo, hi), rows in zip(part.packs, part.spans, part.rows, strict=True):
         if sp._refresh:
             sp.refresh()
-        lo, hi = int(bounds[r]), int(bounds[r + 1])
-        lam_r = lam[part.rows[r]]
+        lam_r = lam[rows]
         lams.append(lam_r)
         state = (x[lo:hi], v[lo:hi], mass[lo:hi], inv_mass[lo:hi], lam_r)
         if pieces is None:
-            args = (code, rattle, steps, h, _F0, _NO_COUNTS, state, x_out[lo:hi],
-                    v_out[lo:hi], tuple(settings), sp.refs.engine, None)
-            calls.append(functools.partial(fused_steps, *args))
+            calls.append(functools.partial(
+                fused_steps, code, rattle, steps, h, _F0, _NO_COUNTS, state, x_out[lo:hi],
+                v_out[lo:hi], plain_settings, sp.refs.engine, None))
         else:
-            args = (code, rattle, h, hp[lo:hi], counts[lo:hi], state, x_out[lo:hi],
-                    v_out[lo:hi], tuple(settings), sp.refs.engine, sp.live_ref)
-            calls.append(functools.partial(fused_split, *args))
+            calls.append(functools.partial(
+                fused_split, code, rattle, h, hp[lo:hi], counts[lo:hi], state, x_out[lo:hi],
+                v_out[lo:hi], plain_settings, sp.refs.engine, sp.live_ref))
     results = part.crew().run(calls[0], calls[1:])
     statuses = [int(status) for status, _ in results]
     if all(status == OK for status in statuses):

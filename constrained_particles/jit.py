@@ -198,7 +198,7 @@ def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
     Use as ``@njit`` or ``@njit(inline="always")``; ``cache`` is not an option (always on where
     a cache directory is usable). Give ``nogil=True`` to an entry point that runs long enough
     (a whole step: hundreds of microseconds) for other threads to use the released GIL, such
-    as the shards of a threaded vector env; a short call keeps it, since every release lets
+    as the ranges of a threaded system; a short call keeps it, since every release lets
     another thread take the GIL and makes this one wait for it on return."""
     if "cache" in options:
         raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")

@@ -339,6 +339,8 @@ class Partition:
                 offset += block.n_rows
         #: the first particle of each range, and the end of the last
         self.bounds = bounds
+        #: each range's first and end particle, as ints
+        self.spans = [(int(bounds[r]), int(bounds[r + 1])) for r in range(ranges)]
         #: each range's packed blocks
         self.packs = [Packed(_Part(int(bounds[r + 1] - bounds[r]), forces[r], constraints[r]))
                       for r in range(ranges)]
