@@ -30,6 +30,7 @@ The threads are a :class:`Crew`: k - 1 daemon threads that poll for the next cal
 from __future__ import annotations
 
 import copy
+import os
 import threading
 import time
 import weakref
@@ -123,6 +124,8 @@ class Crew:
         self._done = np.zeros(k, np.int64)  # the number of calls thread i has finished
         self._sleeping = [False] * k
         self._wake = [threading.Event() for _ in range(k)]
+        #: the process whose threads these are (a forked child has none of them)
+        self.pid = os.getpid()
         self._threads = [threading.Thread(target=self._serve, args=(i,), daemon=True,
                                           name=f"{name}-{i + 1}") for i in range(k)]
         for t in self._threads:
@@ -180,7 +183,9 @@ class Crew:
         return out
 
     def close(self) -> None:
-        """Stop the threads (safe to call twice)."""
+        """Stop the threads (safe to call twice; nothing to stop in a forked child)."""
+        if self.pid != os.getpid():
+            return
         for i, t in enumerate(self._threads):
             if t.is_alive() and self._calls[i] is not self._STOP:
                 self._calls[i] = self._STOP
@@ -375,9 +380,10 @@ class Partition:
         return True
 
     def crew(self) -> Crew:
-        """The threads that step every range but the first (started on first use, stopped
-        when the partition is dropped)."""
-        if self._crew is None:
+        """The threads that step every range but the first (started on first use, and again
+        in a process forked from this one, which has none of them; stopped when the partition
+        is dropped)."""
+        if self._crew is None or self._crew.pid != os.getpid():
             self._crew = Crew(len(self.packs) - 1, "cparticles-range")
             weakref.finalize(self, self._crew.close)
         return self._crew

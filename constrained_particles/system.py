@@ -159,7 +159,17 @@ class ParticleSystem:
             raise ArgumentTypeError(f"threads must be a positive int, got {value!r}")
         if not 1 <= value <= MAX_THREADS:
             raise ValueError(f"threads must be in [1, {MAX_THREADS}], got {value!r}")
-        self.__dict__["_threads"] = int(value)
+        with self.stepping():  # (a step on another thread is using the ranges' threads)
+            self.__dict__["_threads"] = int(value)
+            self._drop_partition()
+
+    def close_threads(self) -> None:
+        """Stop the threads of a threaded step (:attr:`threads`); the next step starts them
+        again. RuntimeError if another thread is stepping the system."""
+        with self.stepping():
+            self._drop_partition()
+
+    def _drop_partition(self) -> None:
         held = self.__dict__.pop("_partition", None)
         if held is not None:
             held.close()

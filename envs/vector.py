@@ -209,9 +209,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def close(self, **kwargs: Any) -> None:
         """Stop the physics threads (safe to call twice; a step after it starts them again)."""
-        held = self.task.system.__dict__.get("_partition")
-        if held is not None:
-            held.close()
+        self.task.system.close_threads()
         super().close(**kwargs)
 
     def __getstate__(self) -> dict[str, Any]:

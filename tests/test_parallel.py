@@ -238,3 +238,45 @@ def test_a_system_that_can_no_longer_be_cut_steps_whole() -> None:
     assert _ranges(systems[1]) == 1
     np.testing.assert_array_equal(systems[1].x, systems[0].x)
     np.testing.assert_array_equal(systems[1].v, systems[0].v)
+
+
+def test_a_forked_child_starts_threads_of_its_own() -> None:
+    """Threads do not survive a fork: a child stepping a threaded system it inherited starts
+    its own (instead of waiting for threads that are not there), with the parent's bits."""
+    import multiprocessing
+
+    s = _cloths(threads=2)
+    s.step(1e-3, "symplectic_euler")
+    expected = s.copy()
+    expected.threads = 1
+    expected.step(1e-3, "symplectic_euler")
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+
+    def child() -> None:
+        s.step(1e-3, "symplectic_euler")
+        queue.put((s.x, _ranges(s)))
+
+    p = ctx.Process(target=child)
+    p.start()
+    try:
+        x, ranges = queue.get(timeout=60)
+        p.join(timeout=60)
+    finally:
+        if p.is_alive():  # (a child waiting for threads it does not have)
+            p.kill()
+    assert p.exitcode == 0 and ranges == 2
+    np.testing.assert_array_equal(x, expected.x)
+
+
+def test_threads_cannot_be_changed_during_a_step() -> None:
+    s = _cloths(threads=2)
+    with s.stepping():  # (as another thread's step holds it)
+        with pytest.raises(RuntimeError, match="another thread"):
+            s.threads = 1
+        with pytest.raises(RuntimeError, match="another thread"):
+            s.close_threads()
+    s.close_threads()
+    s.threads = 3
+    s.step(1e-3, "symplectic_euler")
+    assert _ranges(s) == 3
