@@ -19,12 +19,17 @@ blocks are views of the system's blocks (the elements of that range, with partic
 shifted to the range's start), packed on their own (:class:`~.packing.Packed`): parameter
 arrays are shared, so in-place edits (an environment's actions written into
 ``ConstantForce.force``) reach every range, and a reassigned attribute rebuilds the system's
-pack and with it the ranges. Where no cut fits (one big group, elements not ordered by
-particle, mouse springs, whose particles move between calls) or the system is too small to
-gain (fewer than :data:`MIN_PARTICLES` particles a range), the step runs on one thread.
+pack and with it the ranges. Mouse springs, whose particles move between calls, are shared
+out in proportion (one per copy of a tiled scene), and each call checks that every active one
+pulls a particle of its own range. Where no cut fits (one big group, elements not ordered range
+by range, a mouse spring on another range's particle) or the system is too small to gain
+(fewer than :data:`MIN_PARTICLES` particles a range), the step runs whole on one thread.
 
-The threads are a :class:`Crew`: k - 1 daemon threads that poll for the next call for
-:data:`POLL_SECONDS` and then sleep on an event, the calling thread taking the first range.
+The threads are a :class:`Crew`: k - 1 daemon threads that wait for their next call spinning
+on a flag without the GIL for about :data:`SPINS` looks (2 ms) and then sleep on an event, the
+calling thread taking the first range. They start on the first threaded step, stop with
+``ParticleSystem.close_threads()`` (or when the system is dropped) and start again in a
+forked child.
 """
 
 from __future__ import annotations
