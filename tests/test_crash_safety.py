@@ -45,7 +45,8 @@ CONFIGS = [(env_id, kind, {"action_mode": mode})
            for mode in modes for kind in ("single", "vector")]
 # the threaded vector env: its physics cut into two ranges of one copy each, stepped on two
 # threads (ranges as small as one copy are allowed for it: see _make)
-CONFIGS += [("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads": 2})]
+CONFIGS += [("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads": 2}),
+            ("ClothSlide-v0", "vector", {"action_mode": "force", "num_threads": 2})]
 EDITS = ("huge", "negative", "nan", "inf", "one_row", "dtype")
 ALLOWED = (ValueError, TypeError, RuntimeError)
 STEPS = 3
