@@ -103,7 +103,9 @@ if kernels.ENABLED:
     @njit(nogil=True)
     def _wait_for(flags, i, value, spins):  # noqa: F811  # pragma: no cover - compiled
         """True once ``flags[i] == value``, looked at up to ``spins`` times without the GIL
-        (``i`` in range: the caller's own flag array)."""
+        (False at once for an ``i`` outside ``flags``: the atomic load reads unchecked)."""
+        if not 0 <= i < flags.shape[0]:
+            return False
         for _ in range(spins):
             if _load_acquire(flags, i) == value:
                 return True
