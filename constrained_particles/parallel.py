@@ -395,6 +395,16 @@ class Partition:
             weakref.finalize(self, self._crew.close)
         return self._crew
 
+    def map(self, calls: list[Callable[[], Any]]) -> list[Any]:
+        """Run ``calls[r]()`` for every range r, each on the thread that steps the range (the
+        first on the calling thread); every result once all have returned, raising the first
+        error. For per-range work after a step (an environment's measures of the copies in
+        each range): the calls must touch only their own range's data."""
+        if len(calls) != len(self.packs):
+            raise ValueError(f"calls must hold one call per range ({len(self.packs)}), "
+                             f"got {len(calls)}")
+        return self.crew().run(calls[0], list(calls[1:]))
+
     def close(self) -> None:
         """Stop the threads (safe to call twice)."""
         if self._crew is not None:

@@ -163,6 +163,18 @@ class ParticleSystem:
             self.__dict__["_threads"] = int(value)
             self._drop_partition()
 
+    def thread_ranges(self) -> Any:
+        """The ranges this system's threaded steps cut it into
+        (:class:`~constrained_particles.parallel.Partition`: ``spans`` of particles, ``packs``,
+        and :meth:`~constrained_particles.parallel.Partition.map` to run per-range work on
+        their threads), while they describe the system as it is; None when the system is
+        stepped whole (one thread, nothing to cut, or not yet stepped since a change)."""
+        held = self.__dict__.get("_partition")
+        if held is None or not held.valid or self.threads < 2:
+            return None
+        return held if held.parent is self.__dict__.get("_packed") and held.parent.current(
+            self) else None
+
     def close_threads(self) -> None:
         """Stop the threads of a threaded step (:attr:`threads`); the next step starts them
         again. RuntimeError if another thread is stepping the system."""

@@ -17,6 +17,7 @@ target points all use that map; observed velocities use the same scale per secon
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
@@ -715,12 +716,19 @@ class ParticleTask(SteppedCopies):
             p, goal, (x, v, mass) = post
             out = np.empty((5, N))
             success = np.empty(N, bool)
-            args = (x, v, mass, tuple(goal), p.refs.blocks, walls, tuple(self._rest()),
-                    self._mask(stepped), self._mask(blocked), out, success)
             if obs is None:  # (one compiled entry for both: the observation is scratch here,
                 # sized from the record the kernel reads, as measure_observe sizes it)
                 obs = np.empty((len(goal.goal), 4 * goal.n + 1), np.float32)
-            _measure.measures_observe(*args, tuple(self._view()), obs)
+            rest, view = self._rest(), tuple(self._view())
+            stepped, blocked = self._mask(stepped), self._mask(blocked)
+            part = s.thread_ranges()
+            if part is not None and part.parent is p and len(goal.goal) * n == p.n:
+                self._measures_ranges(part, post, rest, walls, stepped, blocked, out, success,
+                                      view, obs)
+            else:
+                _measure.measures_observe(x, v, mass, tuple(goal), p.refs.blocks, walls,
+                                          tuple(rest), stepped, blocked, out, success, view,
+                                          obs)
             return _measured(out, success), out[4]
         v = s.v
         v2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n)
@@ -752,6 +760,33 @@ class ParticleTask(SteppedCopies):
                 "kinetic_energy": 0.5 * (s.mass.reshape(N, n) * v2).sum(axis=1),
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}, wall_force
+
+    def _measures_ranges(self, part: Any, post: tuple, rest: _measure.Rest, walls: bool,
+                         stepped: np.ndarray, blocked: np.ndarray, out: np.ndarray,
+                         success: np.ndarray, view: tuple, obs: np.ndarray) -> None:
+        """The compiled measures and observation of :meth:`_measures`, each range of the
+        system's threaded steps (``part``: ``ParticleSystem.thread_ranges``) on its own thread,
+        over the copies in it (its blocks are the range's own, particle indices from the
+        range's start). A copy's measures read only its own particles, so they are the same
+        bits as one call over all copies."""
+        n = self.n
+        p, goal, (x, v, mass) = post
+        calls, blocks = [], []
+        for sp, (lo, hi) in zip(part.packs, part.spans, strict=True):
+            if lo % n or hi % n:  # (ranges hold whole copies: a task's copies are uncoupled)
+                raise RuntimeError("a range of the threaded step splits a copy")
+            c0, c1 = lo // n, hi // n
+            sp.refresh(measured_only=True)
+            out_r = np.empty((5, c1 - c0))
+            blocks.append((c0, c1, out_r))
+            calls.append(functools.partial(
+                _measure.measures_observe, x[lo:hi], v[lo:hi], mass[lo:hi],
+                tuple(goal._replace(goal=goal.goal[c0:c1])), sp.refs.blocks, walls,
+                tuple(rest._replace(hold=rest.hold[c0:c1], mean_v=rest.mean_v[lo:hi])),
+                stepped[c0:c1], blocked[c0:c1], out_r, success[c0:c1], view, obs[c0:c1]))
+        part.map(calls)
+        for c0, c1, out_r in blocks:
+            out[:, c0:c1] = out_r
 
     def _rest(self) -> _measure.Rest:
         """The rest test's state as the compiled measures take it."""

@@ -19,6 +19,7 @@ import pytest
 
 import envs
 from constrained_particles import fused, kernels, parallel
+from envs.base import ParticleTask
 from envs.train import ENV_ACTION_MODES
 
 #: Threads step the compiled kernel: with ``CPARTICLES_NUMBA=0`` a threaded env steps on one
@@ -39,18 +40,19 @@ def _ranges(vec: gym.vector.VectorEnv) -> int:
 
 
 def _run(env_id: str, mode: str, threads: int, steps: int = 150
-         ) -> tuple[list[np.ndarray], int, tuple[int, int]]:
+         ) -> tuple[list[np.ndarray], int, tuple[int, int, int]]:
     """Everything 64 copies return over ``steps`` random-action steps (episodes of at most 40
     steps, so that copies end and autoreset along the way), then a masked reset; how many
     episodes ended; and how many of the steps' compiled physics calls ran on ranges, of how
-    many."""
+    many, and how many measures ran on the ranges."""
     vec = _vec(env_id, threads, action_mode=mode, max_episode_steps=40)
     obs, info = vec.reset(seed=11)
     out = [obs, *(info[k] for k in sorted(info))]
     rng = np.random.default_rng(5)
     ended = 0
-    calls = {"run": 0, "ranges": 0}
+    calls = {"run": 0, "ranges": 0, "measures": 0}
     real_run, real_ranges = fused.run, fused._run_ranges
+    real_measures = ParticleTask._measures_ranges
 
     def counted(name: str, real: Any) -> Any:
         def call(*args: object, **kwargs: object) -> object:
@@ -59,6 +61,7 @@ def _run(env_id: str, mode: str, threads: int, steps: int = 150
         return call
 
     fused.run, fused._run_ranges = counted("run", real_run), counted("ranges", real_ranges)
+    ParticleTask._measures_ranges = counted("measures", real_measures)
     try:
         for _ in range(steps):
             a = rng.uniform(-1.2, 1.2, vec.action_space.shape).astype(np.float32)
@@ -68,12 +71,13 @@ def _run(env_id: str, mode: str, threads: int, steps: int = 150
         assert _ranges(vec) == (min(threads, 3) if kernels.ENABLED else 1)
     finally:
         fused.run, fused._run_ranges = real_run, real_ranges
+        ParticleTask._measures_ranges = real_measures
     mask = np.zeros(64, bool)
     mask[[3, 40]] = True  # one copy in each half
     out.append(vec.reset(seed=2, options={"reset_mask": mask})[0])
     out.append(vec.step(np.zeros(vec.action_space.shape, np.float32))[0])
     vec.close()
-    return out, ended, (calls["ranges"], calls["run"])
+    return out, ended, (calls["ranges"], calls["run"], calls["measures"])
 
 
 @pytest.fixture
@@ -89,10 +93,13 @@ def test_threads_give_the_same_bits(env_id: str, mode: str, small_ranges: None) 
     assert ended >= 64, "copies did not end: the autoreset path went untested"
     for threads in (2, 3) if mode == ENV_ACTION_MODES[env_id][0] else (2,):
         # 3 threads (ranges of 22, 21 and 21 copies) in each env's first mode
-        other, _, (on_ranges, calls) = _run(env_id, mode, threads)
-        # (every compiled physics call ran on the ranges: none fell back to one thread)
+        other, _, (on_ranges, calls, measures) = _run(env_id, mode, threads)
+        # (every compiled physics call ran on the ranges: none fell back to one thread; the
+        # tasks whose measures are the generic ones measured on the ranges too)
         if kernels.ENABLED:
             assert calls >= 100 and on_ranges == calls, (on_ranges, calls)
+            if env_id in ("ClothSlide-v0", "ChainSwing-v0"):
+                assert measures >= 100, measures
         assert len(other) == len(one)
         for k, (a, b) in enumerate(zip(one, other, strict=True)):
             assert a.dtype == b.dtype and a.shape == b.shape, k
