@@ -722,7 +722,8 @@ class ParticleTask(SteppedCopies):
             rest, view = self._rest(), tuple(self._view())
             stepped, blocked = self._mask(stepped), self._mask(blocked)
             part = s.thread_ranges()
-            if part is not None and part.parent is p and len(goal.goal) * n == p.n:
+            if (part is not None and part.parent is p and len(goal.goal) * n == p.n
+                    and not any(lo % n for lo, _ in part.spans)):  # (whole copies each)
                 self._measures_ranges(part, post, rest, walls, stepped, blocked, out, success,
                                       view, obs)
             else:
@@ -773,9 +774,7 @@ class ParticleTask(SteppedCopies):
         p, goal, (x, v, mass) = post
         calls, blocks = [], []
         for sp, (lo, hi) in zip(part.packs, part.spans, strict=True):
-            if lo % n or hi % n:  # (ranges hold whole copies: a task's copies are uncoupled)
-                raise RuntimeError("a range of the threaded step splits a copy")
-            c0, c1 = lo // n, hi // n
+            c0, c1 = lo // n, hi // n  # (whole copies: the caller checked)
             sp.refresh(measured_only=True)
             out_r = np.empty((5, c1 - c0))
             blocks.append((c0, c1, out_r))
@@ -784,7 +783,8 @@ class ParticleTask(SteppedCopies):
                 tuple(goal._replace(goal=goal.goal[c0:c1])), sp.refs.blocks, walls,
                 tuple(rest._replace(hold=rest.hold[c0:c1], mean_v=rest.mean_v[lo:hi])),
                 stepped[c0:c1], blocked[c0:c1], out_r, success[c0:c1], view, obs[c0:c1]))
-        part.map(calls)
+        with self.system.stepping():  # (the ranges' threads serve one caller at a time)
+            part.map(calls)
         for c0, c1, out_r in blocks:
             out[:, c0:c1] = out_r
 
