@@ -173,11 +173,11 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     p, start, settings = ready
     code, rattle = integrator_args(method)
     h = float(dt)
+    if pieces is not None and (pieces.shape != (p.n,) or pieces.dtype != np.int64):
+        return FALLBACK, None, None, 0
     threads = system.__dict__.get("_threads", 1)
     if (threads > 1 and (part := parallel.partition(system, p, threads)) is not None
             and part.take_mouse()):
-        if pieces is not None and (pieces.shape != (p.n,) or pieces.dtype != np.int64):
-            return FALLBACK, None, None, 0
         return _run_ranges(part, code, rattle, h, int(steps), pieces, start, settings)
     refs = p.refs
     x_out = np.empty_like(start.x)
@@ -187,8 +187,6 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
                                      tuple(start), x_out, v_out, tuple(settings), refs.engine,
                                      None)
         return int(status), x_out, v_out, int(failed)
-    if pieces.shape != (p.n,) or pieces.dtype != np.int64:
-        return FALLBACK, None, None, 0
     status, failed = fused_split(code, rattle, h, h / pieces, pieces * int(steps),
                                  tuple(start), x_out, v_out, tuple(settings), refs.engine,
                                  p.live_ref)

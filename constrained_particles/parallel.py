@@ -138,11 +138,6 @@ class Crew:
         for t in self._threads:
             t.start()
 
-    @property
-    def size(self) -> int:
-        """Number of threads besides the caller's."""
-        return len(self._threads)
-
     def _serve(self, i: int) -> None:
         posted, done, wake = self._posted, self._done, self._wake[i]
         seq = 0
@@ -203,7 +198,7 @@ class Crew:
                 t.join()
 
 
-def _spans(blocks: list[Any], n: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _spans(blocks: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:
     """The lowest and highest particle of every element that couples particles (an element
     with two or more index fields), or None if a block refers to all particles implicitly
     with more than one field (nothing such exists today)."""
@@ -225,7 +220,7 @@ def cuts(blocks: list[Any], n: int, k: int) -> list[int]:
     inner boundaries, increasing, each the allowed cut nearest its share ``i n / k`` (a cut
     at ``c`` is allowed when no element has particles both below ``c`` and at or above it).
     Empty when no cut is allowed."""
-    spans = _spans(blocks, n)
+    spans = _spans(blocks)
     if spans is None or k < 2 or n < 2:
         return []
     low, high = spans
@@ -241,7 +236,7 @@ def cuts(blocks: list[Any], n: int, k: int) -> list[int]:
         j = int(np.searchsorted(allowed, target))
         near = [allowed[t] for t in (j - 1, j) if 0 <= t < len(allowed)]
         c = int(min(near, key=lambda a: (abs(a - target), a)))
-        if (not out or c > out[-1]) and c < n:
+        if not out or c > out[-1]:  # (allowed cuts lie in [1, n - 1])
             out.append(c)
     return out
 
@@ -310,6 +305,9 @@ class Partition:
         self.k = k
         self.valid = False
         self._crew: Crew | None = None
+        #: the mouse springs' element offsets per range, if the system has a mouse block (see
+        #: :meth:`take_mouse`)
+        self.mouse_elements: np.ndarray | None = None
         n = parent.n
         blocks = [*parent.forces, *parent.constraints]
         mice = [b for b in parent.forces if type(b) is MouseSpring]
@@ -337,7 +335,6 @@ class Partition:
                 if el is None:
                     return
                 if type(block) is MouseSpring:
-                    #: the mouse springs' element offsets per range (see :meth:`take_mouse`)
                     self.mouse_elements = el
                 parts = [_sub_block(block, int(el[r]), int(el[r + 1]), int(bounds[r]))
                          for r in range(ranges)]
@@ -349,16 +346,14 @@ class Partition:
                 (constraints if is_constraint else forces)[r].append(parts[r])
             if is_constraint:
                 offset += block.n_rows
-        #: the first particle of each range, and the end of the last
-        self.bounds = bounds
         #: each range's first and end particle, as ints
-        self.spans = [(int(bounds[r]), int(bounds[r + 1])) for r in range(ranges)]
+        self.spans = tuple((int(bounds[r]), int(bounds[r + 1])) for r in range(ranges))
         #: each range's packed blocks
-        self.packs = [Packed(_Part(int(bounds[r + 1] - bounds[r]), forces[r], constraints[r]))
-                      for r in range(ranges)]
+        self.packs = tuple(Packed(_Part(hi - lo, forces[r], constraints[r]))
+                           for r, (lo, hi) in enumerate(self.spans))
         #: the system's constraint rows of each range, in the system's order (which is the
         #: range's own: blocks in order, elements in order within a block)
-        self.rows = [np.flatnonzero(row_range == r) for r in range(ranges)]
+        self.rows = tuple(np.flatnonzero(row_range == r) for r in range(ranges))
         self.valid = (offset == parent.m and all(p.valid and p.zero_copy for p in self.packs)
                       and all(len(rows) == p.m for rows, p in zip(self.rows, self.packs,
                                                                      strict=True)))
@@ -368,19 +363,18 @@ class Partition:
         took, :meth:`~.packing.Packed.take_mouse`) into each range's, particle indices less the
         range's start (an inactive spring's index as 0). False, with nothing changed, if an
         active spring's particle is outside its range: the step then runs whole."""
-        el = getattr(self, "mouse_elements", None)
+        el = self.mouse_elements
         if el is None:
             return True
         refs = self.parent.refs
         particle, active = refs.mouse_particle, refs.mouse_active
-        bounds = self.bounds
-        for r in range(len(self.packs)):
-            a, b, lo, hi = int(el[r]), int(el[r + 1]), int(bounds[r]), int(bounds[r + 1])
+        for r, (lo, hi) in enumerate(self.spans):
+            a, b = int(el[r]), int(el[r + 1])
             p, on = particle[a:b], active[a:b]
             if np.any(on & ((p < lo) | (p >= hi))):
                 return False
-        for r, sp in enumerate(self.packs):
-            a, b, lo = int(el[r]), int(el[r + 1]), int(bounds[r])
+        for r, (sp, (lo, _)) in enumerate(zip(self.packs, self.spans, strict=True)):
+            a, b = int(el[r]), int(el[r + 1])
             mine = sp.refs
             np.copyto(mine.mouse_active, active[a:b])
             np.copyto(mine.mouse_particle, np.where(active[a:b], particle[a:b] - lo, 0))

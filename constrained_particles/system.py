@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from . import fused
+from . import fused, parallel
 from .constraints import Constraint
 from .forces import Force
 from .integrators import get_method
@@ -163,7 +163,7 @@ class ParticleSystem:
             self.__dict__["_threads"] = int(value)
             self._drop_partition()
 
-    def thread_ranges(self) -> Any:
+    def thread_ranges(self) -> parallel.Partition | None:
         """The ranges this system's threaded steps cut it into
         (:class:`~constrained_particles.parallel.Partition`: ``spans`` of particles, ``packs``,
         and :meth:`~constrained_particles.parallel.Partition.map` to run per-range work on

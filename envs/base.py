@@ -722,8 +722,7 @@ class ParticleTask(SteppedCopies):
             rest, view = self._rest(), tuple(self._view())
             stepped, blocked = self._mask(stepped), self._mask(blocked)
             part = s.thread_ranges()
-            if (part is not None and part.parent is p and len(goal.goal) * n == p.n
-                    and not any(lo % n for lo, _ in part.spans)):  # (whole copies each)
+            if part is not None and not any(lo % n for lo, _ in part.spans):  # (whole copies)
                 self._measures_ranges(part, post, rest, walls, stepped, blocked, out, success,
                                       view, obs)
             else:
