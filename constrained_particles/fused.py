@@ -221,15 +221,19 @@ def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, step
                 fused_split, code, rattle, h, hp[lo:hi], counts[lo:hi], state, x_out[lo:hi],
                 v_out[lo:hi], plain_settings, sp.refs.engine, sp.live_ref))
     results = part.crew().run(calls[0], calls[1:])
-    statuses = [int(status) for status, _ in results]
-    if all(status == OK for status in statuses):
+    failed = [(int(done), int(status) == DIVERGED) for status, done in results
+              if int(status) != OK]
+    if not failed:
         for rows, lam_r in zip(part.rows, lams, strict=True):
             lam[rows] = lam_r
         return OK, x_out, v_out, int(results[0][1])
-    if FALLBACK in statuses:
-        return FALLBACK, None, None, 0
-    return DIVERGED, None, None, min(int(done) for status, done in results
-                                       if int(status) == DIVERGED)
+    # The range that failed first decides, as in one call over the whole system, which
+    # stops at its first failing step: a divergence there, else the reference path (a
+    # range that falls back at a step another diverges at falls back: the reference path
+    # then finds the divergence itself). With split steps (``pieces``) the ranges count
+    # steps of their own lengths, and the step named may differ from one call's.
+    step, diverged = min(failed)
+    return (DIVERGED, None, None, step) if diverged else (FALLBACK, None, None, 0)
 
 
 if kernels.ENABLED:

@@ -199,9 +199,15 @@ def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
     a cache directory is usable). Give ``nogil=True`` to an entry point that runs long enough
     (a whole step: hundreds of microseconds) for other threads to use the released GIL, such
     as the ranges of a threaded system; a short call keeps it, since every release lets
-    another thread take the GIL and makes this one wait for it on return."""
+    another thread take the GIL and makes this one wait for it on return.
+
+    Division follows NumPy (``error_model="numpy"``): a float divided by zero is inf or nan,
+    as in the numpy reference, which the kernels' finiteness checks then catch (a diverging
+    step, or the reference path taking over), never a ZeroDivisionError out of compiled
+    code."""
     if "cache" in options:
         raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")
+    options.setdefault("error_model", "numpy")
 
     def decorate(f: Callable[..., Any]) -> Any:
         return _cached(numba.njit(**options)(f))

@@ -52,7 +52,8 @@ from .terms import frozen
 if TYPE_CHECKING:
     from .system import ParticleSystem
 
-__all__ = ["MIN_PARTICLES", "POLL_SECONDS", "SPINS", "Crew", "Partition", "cuts"]
+__all__ = ["CLOSE_SECONDS", "MIN_PARTICLES", "POLL_SECONDS", "SETTLED", "SPINS", "Crew",
+           "Partition", "cuts"]
 
 #: Fewest particles a range must have for a step to be cut into ranges at all: below it, handing
 #: the ranges to threads costs more than it saves.
@@ -63,13 +64,19 @@ MIN_PARTICLES = 64
 #: busy loop steps again well within it, an idle system costs no CPU after it.
 SPINS = 1_500_000
 POLL_SECONDS = 0.002  #: the same wait where the compiled code is off (polling with the GIL)
+#: Longest wait (s) of :meth:`Crew.close` for a run in progress, and for each thread to end.
+CLOSE_SECONDS = 5.0
+#: Calls a partition must serve before a new pack of the system is cut again at once: a system
+#: whose blocks change at nearly every call (a spring drawn at every step) steps a new pack
+#: whole, and cuts it only at its second call (cutting costs more than one step gains).
+SETTLED = 2
 
 
 def _wait_for(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
-    """True once ``flags[i] == value``; False if it is not so after ``spins`` looks (numpy
+    """True once ``flags[i] >= value``; False if it is not so after ``spins`` looks (numpy
     path: polling for :data:`POLL_SECONDS`, yielding the GIL between looks)."""
     start = time.perf_counter()
-    while flags[i] != value:
+    while flags[i] < value:
         if time.perf_counter() - start > POLL_SECONDS:
             return False
         time.sleep(0)
@@ -102,12 +109,12 @@ if kernels.ENABLED:
 
     @njit(nogil=True)
     def _wait_for(flags, i, value, spins):  # noqa: F811  # pragma: no cover - compiled
-        """True once ``flags[i] == value``, looked at up to ``spins`` times without the GIL
+        """True once ``flags[i] >= value``, looked at up to ``spins`` times without the GIL
         (False at once for an ``i`` outside ``flags``: the atomic load reads unchecked)."""
         if not 0 <= i < flags.shape[0]:
             return False
         for _ in range(spins):
-            if _load_acquire(flags, i) == value:
+            if _load_acquire(flags, i) >= value:
                 return True
         return False
 
@@ -116,11 +123,20 @@ class Crew:
     """``k`` daemon threads that each run one call per :meth:`run`, the calling thread running
     another.
 
-    Handing a call over and waiting for its end use a flag per thread, looked at in a compiled
-    loop that holds no GIL (:func:`_wait_for`): the calling thread's Python runs undisturbed
-    while a crew thread waits, and a call starts within about a microsecond of being handed
-    over (a thread woken from an event would take 50-150 us on this class of VM). A crew thread
-    that has waited :data:`SPINS` looks sleeps on an event until the next call."""
+    Handing a call over and waiting for its end use a counter per thread (calls posted, calls
+    done), looked at in a compiled loop that holds no GIL (:func:`_wait_for`): the calling
+    thread's Python runs undisturbed while a crew thread waits, and a call starts within about
+    a microsecond of being handed over (a thread woken from an event would take 50-150 us on
+    this class of VM). A crew thread that has waited :data:`SPINS` looks sleeps on an event
+    until the next call.
+
+    A crew serves one caller at a time: :meth:`run` while another thread is in it raises
+    RuntimeError (so does a call that reaches :meth:`run` again from inside one). A run left
+    by an exception (an interrupt while it waits, say) leaves nothing behind that the next
+    run could mistake for its own: the waits compare counters, and a thread that was still
+    busy takes the next call when it is done. :meth:`close` waits up to
+    :data:`CLOSE_SECONDS` for a run in progress; a crew closed while one runs stops when it
+    ends."""
 
     _STOP = object()
 
@@ -131,84 +147,145 @@ class Crew:
         self._done = np.zeros(k, np.int64)  # the number of calls thread i has finished
         self._sleeping = [False] * k
         self._wake = [threading.Event() for _ in range(k)]
+        self._lock = threading.Lock()  # held by the caller of run()
+        self._closed = False
         #: the process whose threads these are (a forked child has none of them)
         self.pid = os.getpid()
-        self._threads = [threading.Thread(target=self._serve, args=(i,), daemon=True,
-                                          name=f"{name}-{i + 1}") for i in range(k)]
-        for t in self._threads:
-            t.start()
+        self._threads: list[threading.Thread] = []
+        try:
+            for i in range(k):
+                t = threading.Thread(target=self._serve, args=(i,), daemon=True,
+                                     name=f"{name}-{i + 1}")
+                t.start()
+                self._threads.append(t)
+        except BaseException:  # (threads that started are stopped, not leaked)
+            self._stop()
+            raise
+
+    @property
+    def size(self) -> int:
+        """The number of crew threads (calls a run can hand over besides its own)."""
+        return len(self._calls)
+
+    @property
+    def live(self) -> bool:
+        """True while the crew can run calls: not closed, and in the process that made it."""
+        return not self._closed and self.pid == os.getpid()
 
     def _serve(self, i: int) -> None:
         posted, done, wake = self._posted, self._done, self._wake[i]
         seq = 0
         while True:
-            seq += 1
-            if not _wait_for(posted, i, seq, SPINS):
+            if not _wait_for(posted, i, seq + 1, SPINS):
                 self._sleeping[i] = True  # (then looked at again: run() may have posted
-                while posted[i] != seq:  # before it saw this flag)
+                while posted[i] <= seq:  # before it saw this flag)
                     wake.wait()
                     wake.clear()
                 self._sleeping[i] = False
-            call = self._calls[i]
+            seq = int(posted[i])  # (a call posted by a run that was interrupted before this
+            call = self._calls[i]  # thread took it is superseded by the newest)
             self._calls[i] = None
             if call is self._STOP:
+                self._results[i] = (False, RuntimeError("this crew is stopped"))
+                done[i] = seq
                 return
             try:
                 result = (True, call())
             except BaseException as exc:  # handed to the caller of run()
                 result = (False, exc)
             self._results[i] = result
+            call = result = None  # (nothing of a finished call is kept alive here)
             done[i] = seq
 
     def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
-        have returned, raising the first error (this thread's first)."""
+        have returned, raising the first error (this thread's first). RuntimeError if another
+        caller is in a run or the crew is stopped; ValueError for more calls than threads."""
+        if len(others) > self.size:
+            raise ValueError(f"others must hold at most {self.size} calls (one per crew "
+                             f"thread), got {len(others)}")
+        if not self._lock.acquire(blocking=False):
+            raise RuntimeError("this crew's threads serve one caller at a time (another run "
+                               "is in progress)")
+        try:
+            if not self.live:
+                raise RuntimeError("this crew is stopped (close() was called, or it belongs "
+                                   "to another process)")
+            return self._run(first, others)
+        finally:
+            if self._closed:  # (closed while running: stopped now that the run is over)
+                self._stop()
+            self._lock.release()
+
+    def _run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         posted, done = self._posted, self._done
+        targets = []
         for i, call in enumerate(others):
             self._calls[i] = call
             posted[i] += 1
+            targets.append(int(posted[i]))
             if self._sleeping[i]:
                 self._wake[i].set()
         try:
             mine = first()
         finally:
-            for i in range(len(others)):  # no call is still running when this returns
-                while not _wait_for(done, i, posted[i], SPINS):
+            for i, target in enumerate(targets):  # no call is still running when this returns
+                while not _wait_for(done, i, target, SPINS):
                     pass
         out = [mine]
+        errors = []
         for i in range(len(others)):
             ok, value = self._results[i]  # type: ignore[misc]
             self._results[i] = None
-            if not ok:
-                raise value
-            out.append(value)
+            (out if ok else errors).append(value)
+        if errors:
+            raise errors[0]
         return out
 
     def close(self) -> None:
-        """Stop the threads (safe to call twice; nothing to stop in a forked child)."""
+        """Stop the threads (safe to call twice; nothing to stop in a forked child). Waits up
+        to :data:`CLOSE_SECONDS` for a run in progress on another thread; if it is still
+        running then (or this is called from inside a run), the threads stop when it ends."""
         if self.pid != os.getpid():
             return
+        self._closed = True
+        here = threading.current_thread()
+        inside = any(t is here for t in self._threads)
+        if not (self._lock.acquire(blocking=False) if inside
+                else self._lock.acquire(timeout=CLOSE_SECONDS)):
+            return  # (run() stops the threads as it returns)
+        try:
+            self._stop()
+        finally:
+            self._lock.release()
+
+    def _stop(self) -> None:
+        """Hand every live thread the stop call and join them (the run lock held, or no run
+        possible)."""
+        self._closed = True
+        here = threading.current_thread()
         for i, t in enumerate(self._threads):
             if t.is_alive() and self._calls[i] is not self._STOP:
                 self._calls[i] = self._STOP
                 self._posted[i] += 1
                 self._wake[i].set()
         for t in self._threads:
-            if t is not threading.current_thread():
-                t.join()
+            if t is not here:
+                t.join(CLOSE_SECONDS)
 
 
 def _spans(blocks: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:
     """The lowest and highest particle of every element that couples particles (an element
     with two or more index fields), or None if a block refers to all particles implicitly
-    with more than one field (nothing such exists today)."""
+    with more than one field (nothing such exists today) or its index arrays are not one
+    dimensional arrays of one length."""
     lows, highs = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for b in blocks:
         if len(b.index_fields) < 2 or not len(b):
             continue
         idx = [b.__dict__.get(name) for name in b.index_fields]
-        if any(i is None for i in idx):
-            return None
+        if any(i is None or np.ndim(i) != 1 or len(i) != len(idx[0]) for i in idx):
+            return None  # (an index array reshaped in place, say: the step runs whole)
         stacked = np.stack([np.asarray(i, np.int64) for i in idx])
         lows.append(stacked.min(axis=0))
         highs.append(stacked.max(axis=0))
@@ -257,7 +334,7 @@ def _element_ranges(block: Any, bounds: np.ndarray) -> np.ndarray | None:
     ordered by range. A block without particle lists (all particles) has None here too; its
     caller keeps it whole."""
     idx = block.__dict__.get(block.index_fields[0]) if block.index_fields else None
-    if idx is None:
+    if idx is None or np.ndim(idx) != 1:
         return None
     rid = np.searchsorted(bounds, np.asarray(idx, np.int64), side="right") - 1
     if len(rid) and np.any(np.diff(rid) < 0):
@@ -300,11 +377,21 @@ class Partition:
     made for one :class:`~.packing.Packed` form of the system; :attr:`valid` False where no
     cut fits."""
 
-    def __init__(self, parent: Packed, k: int) -> None:
+    def __init__(self, parent: Packed, k: int, previous: Partition | None = None) -> None:
+        """``previous``: the system's last partition, whose constraint blocks per range (and
+        so each range's constraint rows and components, :class:`~.packing.Packed`) are taken
+        over when the ranges and the system's constraint blocks are the same and unchanged."""
         self.parent = parent
         self.k = k
         self.valid = False
-        self._crew: Crew | None = None
+        #: the steps (calls) this partition has served
+        self.calls = 0
+        # the crew, in a box the finalizer shares: a crew handed on to the next partition
+        # (take_crew) is not stopped when this one is dropped
+        self._box: list[Crew | None] = [None]
+        weakref.finalize(self, _close_box, self._box)
+        #: each range's blocks of each constraint block of ``parent``, in order
+        self._constraint_parts: list[list[Any]] = []
         #: the mouse springs' element offsets per range, if the system has a mouse block (see
         #: :meth:`take_mouse`)
         self.mouse_elements: np.ndarray | None = None
@@ -318,6 +405,12 @@ class Partition:
             return
         bounds = np.array([0, *inner, n], np.int64)
         ranges = len(bounds) - 1
+        spans = tuple((int(bounds[r]), int(bounds[r + 1])) for r in range(ranges))
+        same = (previous is not None and previous.valid and previous.spans == spans
+                and previous.parent.constraints == parent.constraints
+                and all(a is b for a, b in zip(previous.parent.constraints, parent.constraints,
+                                               strict=True))
+                and previous.parent.constraint_versions == parent.constraint_versions)
         forces: list[list[Any]] = [[] for _ in range(ranges)]
         constraints: list[list[Any]] = [[] for _ in range(ranges)]
         row_range = np.empty(parent.m, np.int64)  # the range of each constraint row
@@ -336,8 +429,11 @@ class Partition:
                     return
                 if type(block) is MouseSpring:
                     self.mouse_elements = el
-                parts = [_sub_block(block, int(el[r]), int(el[r + 1]), int(bounds[r]))
-                         for r in range(ranges)]
+                if is_constraint and same:  # (the same objects: the ranges' packs then
+                    parts = previous._constraint_parts[b_no - nf]  # keep their row graphs)
+                else:
+                    parts = [_sub_block(block, int(el[r]), int(el[r + 1]), int(bounds[r]))
+                             for r in range(ranges)]
                 if is_constraint:
                     per = block.rows_per_element
                     for r in range(ranges):
@@ -346,10 +442,12 @@ class Partition:
                 (constraints if is_constraint else forces)[r].append(parts[r])
             if is_constraint:
                 offset += block.n_rows
+                self._constraint_parts.append(parts)
         #: each range's first and end particle, as ints
-        self.spans = tuple((int(bounds[r]), int(bounds[r + 1])) for r in range(ranges))
+        self.spans = spans
         #: each range's packed blocks
-        self.packs = tuple(Packed(_Part(hi - lo, forces[r], constraints[r]))
+        self.packs = tuple(Packed(_Part(hi - lo, forces[r], constraints[r]),
+                                  previous.packs[r] if same else None)
                            for r, (lo, hi) in enumerate(self.spans))
         #: the system's constraint rows of each range, in the system's order (which is the
         #: range's own: blocks in order, elements in order within a block)
@@ -384,10 +482,18 @@ class Partition:
         """The threads that step every range but the first (started on first use, and again
         in a process forked from this one, which has none of them; stopped when the partition
         is dropped)."""
-        if self._crew is None or self._crew.pid != os.getpid():
-            self._crew = Crew(len(self.packs) - 1, "cparticles-range")
-            weakref.finalize(self, self._crew.close)
-        return self._crew
+        crew = self._box[0]
+        if crew is None or not crew.live:
+            self._box[0] = crew = Crew(len(self.packs) - 1, "cparticles-range")
+        return crew
+
+    def take_crew(self, other: Partition) -> None:
+        """Take over ``other``'s threads if they are live and as many as this partition needs
+        (a system whose blocks changed keeps its threads); ``other`` is left without."""
+        crew = other._box[0]
+        if (self.valid and self._box[0] is None and crew is not None and crew.live
+                and crew.size == len(self.packs) - 1):
+            self._box[0], other._box[0] = crew, None
 
     def map(self, calls: list[Callable[[], Any]]) -> list[Any]:
         """Run ``calls[r]()`` for every range r, each on the thread that steps the range (the
@@ -401,18 +507,37 @@ class Partition:
 
     def close(self) -> None:
         """Stop the threads (safe to call twice)."""
-        if self._crew is not None:
-            self._crew.close()
-            self._crew = None
+        _close_box(self._box)
+
+
+def _close_box(box: list[Crew | None]) -> None:
+    """Stop the crew in ``box``, if any, and empty it."""
+    crew, box[0] = box[0], None
+    if crew is not None:
+        crew.close()
 
 
 def partition(system: ParticleSystem, parent: Packed, k: int) -> Partition | None:
     """The system's :class:`Partition` into ``k`` ranges for its pack ``parent`` (made once
-    per pack and thread count, kept on the system), or None where it cannot be cut."""
-    held = system.__dict__.get("_partition")
+    per pack and thread count, kept on the system), or None where the step runs whole: no cut
+    fits, or the system's blocks change at nearly every call (the partition before served
+    fewer than :data:`SETTLED` calls: the new pack is stepped whole once, and cut if it serves
+    a second call). A new partition keeps the threads, and where the constraints and ranges
+    are unchanged the row graphs, of the one before."""
+    d = system.__dict__
+    held = d.get("_partition")
     if held is None or held.parent is not parent or held.k != k:
-        if held is not None:
+        if held is not None and held.k != k:
             held.close()
-        held = Partition(parent, k)
-        system.__dict__["_partition"] = held
+            held = None
+        if held is not None and held.calls < SETTLED and d.get("_whole_for") is not parent:
+            d["_whole_for"] = parent
+            return None
+        new = Partition(parent, k, held)
+        if held is not None:
+            new.take_crew(held)
+            held.close()
+        d["_partition"] = held = new
+        d.pop("_whole_for", None)
+    held.calls += 1
     return held if held.valid else None

@@ -63,6 +63,13 @@ def _finite_vectors(name: str, value: Any, shape: tuple[int, ...], limit: float)
     return arr
 
 
+def _busy() -> None:
+    """RuntimeError for a step call on a system another thread is stepping."""
+    raise RuntimeError("this ParticleSystem is being stepped by another thread: a system takes "
+                       "one step call at a time (use one system per thread, or take turns with "
+                       "a lock)")
+
+
 class ParticleSystem:
     """A 2D constrained particle system (Witkin & Baraff).
 
@@ -182,6 +189,7 @@ class ParticleSystem:
             self._drop_partition()
 
     def _drop_partition(self) -> None:
+        self.__dict__.pop("_whole_for", None)
         held = self.__dict__.pop("_partition", None)
         if held is not None:
             held.close()
@@ -327,6 +335,7 @@ class ParticleSystem:
         out._solver = None
         out.__dict__.pop("_packed", None)
         out.__dict__.pop("_partition", None)  # (threads of its own, on first use)
+        out.__dict__.pop("_whole_for", None)
         out.__dict__.pop("_stepping", None)
         return out
 
@@ -337,6 +346,7 @@ class ParticleSystem:
         state.pop("_packed", None)
         state.pop("_stepping", None)
         state.pop("_partition", None)
+        state.pop("_whole_for", None)
         return state
 
     def copy(self) -> ParticleSystem:
@@ -409,6 +419,8 @@ class ParticleSystem:
         integrate = get_method(method)
         project = self.project_each_step if project is None else _flag("project", project)
         lock = self._step_lock()
+        if not lock.acquire(blocking=False):  # (acquired last before the try: nothing runs
+            _busy()  # between them that could leave it held)
         try:
             self._step(dt, integrate, method, int(steps), project)
         finally:
@@ -421,21 +433,18 @@ class ParticleSystem:
         another thread is stepping the system. The fused kernels of one system share its
         pack's buffers, so a call into them from outside :meth:`step` belongs in this block."""
         lock = self._step_lock()
+        if not lock.acquire(blocking=False):  # (acquired last before the try: nothing runs
+            _busy()  # between them that could leave it held)
         try:
             yield
         finally:
             lock.release()
 
     def _step_lock(self) -> threading.Lock:
-        """This system's step lock, acquired (released by the caller); RuntimeError if another
-        thread holds it."""
-        lock = self.__dict__.get("_stepping") or self.__dict__.setdefault("_stepping",
-                                                                          threading.Lock())
-        if not lock.acquire(blocking=False):
-            raise RuntimeError("this ParticleSystem is being stepped by another thread: a "
-                               "system takes one step call at a time (use one system per "
-                               "thread, or take turns with a lock)")
-        return lock
+        """This system's step lock (not acquired: the caller acquires it without blocking,
+        right before its ``try``, and calls :func:`_busy` if that fails)."""
+        return (self.__dict__.get("_stepping")
+                or self.__dict__.setdefault("_stepping", threading.Lock()))
 
     def _step(self, h: float, integrate: Any, method: str, steps: int, project: bool) -> None:
         """The body of :meth:`step` (arguments checked, the step lock held)."""
@@ -534,6 +543,8 @@ class ParticleSystem:
             self.check_arrays()
             return False
         lock = self._step_lock()
+        if not lock.acquire(blocking=False):  # (acquired last before the try: nothing runs
+            _busy()  # between them that could leave it held)
         try:
             state = self.x, self.v, self.mass, self.inv_mass, self.t
             usual = self._check_state(*state)

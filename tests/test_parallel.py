@@ -43,8 +43,9 @@ def _cloths(copies: int = 6, threads: int = 1, nx: int = 4) -> ParticleSystem:
 
 
 def _ranges(s: ParticleSystem) -> int:
-    held = s.__dict__.get("_partition")
-    return len(held.packs) if held is not None and held.valid else 1
+    """The ranges the system's last step was cut into (1: stepped whole)."""
+    part = s.thread_ranges()
+    return 1 if part is None else len(part.packs)
 
 
 @pytest.mark.parametrize("method", ["euler", "symplectic_euler", "midpoint", "rk4", "rattle"])
@@ -280,3 +281,151 @@ def test_threads_cannot_be_changed_during_a_step() -> None:
     s.threads = 3
     s.step(1e-3, "symplectic_euler")
     assert _ranges(s) == 3
+
+
+def test_a_crew_serves_one_caller_at_a_time() -> None:
+    """A second caller (another thread, or a call that reaches the crew again from inside a
+    run) gets a clear error instead of taking the first caller's threads or results."""
+    crew = parallel.Crew(1, "test")
+    started, release = threading.Event(), threading.Event()
+    errors: list[BaseException] = []
+
+    def slow() -> int:
+        started.set()
+        release.wait(10)
+        return 1
+
+    def caller() -> None:
+        try:
+            crew.run(lambda: 0, [slow])
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    t = threading.Thread(target=caller)
+    t.start()
+    try:
+        assert started.wait(10)
+        with pytest.raises(RuntimeError, match="one caller at a time"):
+            crew.run(lambda: 0, [lambda: 1])
+    finally:
+        release.set()
+        t.join(10)
+    assert not errors
+    with pytest.raises(RuntimeError, match="one caller at a time"):  # re-entered from a call
+        crew.run(lambda: crew.run(lambda: 0, [lambda: 1]), [lambda: 1])
+    assert crew.run(lambda: 0, [lambda: 2]) == [0, 2]  # (nothing left behind by either)
+    with pytest.raises(ValueError, match="others"):
+        crew.run(lambda: 0, [lambda: 1, lambda: 2])
+    crew.close()
+
+
+def test_closing_a_crew_waits_for_its_run_and_a_closed_crew_refuses() -> None:
+    crew = parallel.Crew(2, "test")
+    started = threading.Event()
+    results: list[object] = []
+
+    def slow() -> str:
+        started.set()
+        threading.Event().wait(0.3)
+        return "finished"
+
+    t = threading.Thread(target=lambda: results.append(crew.run(lambda: 0, [slow, slow])))
+    t.start()
+    assert started.wait(10)
+    threads = list(crew._threads)
+    crew.close()  # (while the run is in progress: it ends first)
+    t.join(10)
+    assert results == [[0, "finished", "finished"]]
+    assert not any(th.is_alive() for th in threads)
+    with pytest.raises(RuntimeError, match="stopped"):
+        crew.run(lambda: 0, [lambda: 1])
+
+
+def test_a_crew_keeps_nothing_of_a_finished_call() -> None:
+    """A call's arguments and result are not kept alive by the crew after the run."""
+    import gc
+    import weakref
+
+    class Big:
+        pass
+
+    crew = parallel.Crew(1, "test")
+    arg, result = Big(), []
+    refs = [weakref.ref(arg)]
+
+    def call(a: Big = arg) -> Big:
+        out = Big()
+        refs.append(weakref.ref(out))
+        return out
+
+    result = crew.run(lambda: 0, [call])
+    del arg, call, result
+    gc.collect()
+    assert [r() for r in refs] == [None, None]
+    crew.close()
+
+
+def test_a_partition_made_again_keeps_its_threads_and_row_graphs() -> None:
+    """A force attribute reassigned: the system is cut again, on the same threads, and each
+    range keeps its constraint rows (the constraints did not change)."""
+    s = scenes.cloth(4, 4).tile(4)
+    s.threads = 2
+    for _ in range(2):
+        s.step(1e-3, "symplectic_euler")
+    first = s.thread_ranges()
+    assert first is not None and first.packs[0].m > 0
+    crew = first.crew()
+    spring = next(f for f in s.forces if isinstance(f, DampedSpring))
+    spring.kd = spring.kd * 0.5
+    s.step(1e-3, "symplectic_euler")
+    again = s.thread_ranges()
+    assert again is not None and again is not first
+    assert again.crew() is crew and crew.live
+    assert all(a.rows is b.rows for a, b in zip(again.packs, first.packs, strict=True))
+
+
+def test_blocks_reassigned_at_every_step_are_stepped_whole(monkeypatch: pytest.MonkeyPatch
+                                                           ) -> None:
+    """A system whose pack changes at every step (a spring drawn at every step, say) is not
+    cut again at every step (cutting costs more than the step gains): it steps whole, with the
+    bits of one thread, and is cut again once its blocks hold still."""
+    made = []
+
+    class Counted(parallel.Partition):
+        def __init__(self, *args: object) -> None:
+            made.append(1)
+            super().__init__(*args)
+
+    monkeypatch.setattr(parallel, "Partition", Counted)
+    systems = [_cloths(threads=k) for k in (1, 2)]
+    for step in range(8):
+        for s in systems:
+            spring = next(f for f in s.forces if isinstance(f, DampedSpring))
+            spring.kd = spring.kd * (1.0 + 0.01 * step)  # reassigned: a new pack
+            s.step(1e-3, "symplectic_euler")
+    assert len(made) == 1 and _ranges(systems[1]) == 1
+    for _ in range(3):
+        for s in systems:
+            s.step(1e-3, "symplectic_euler")
+    assert len(made) == 2 and _ranges(systems[1]) == 2
+    np.testing.assert_array_equal(systems[1].x, systems[0].x)
+    np.testing.assert_array_equal(systems[1].v, systems[0].v)
+
+
+@pytest.mark.parametrize(("results", "expected"), [
+    ([(fused.OK, 3), (fused.DIVERGED, 2), (fused.FALLBACK, 1)], (fused.FALLBACK, 0)),
+    ([(fused.DIVERGED, 1), (fused.FALLBACK, 2), (fused.OK, 3)], (fused.DIVERGED, 1)),
+    ([(fused.FALLBACK, 2), (fused.DIVERGED, 2), (fused.DIVERGED, 3)], (fused.FALLBACK, 0)),
+])
+def test_the_range_that_fails_first_decides(monkeypatch: pytest.MonkeyPatch,
+                                            results: list, expected: tuple) -> None:
+    """As one call over the whole system stops at its first failing step, the ranges' result
+    is that of the range that failed first (a fallback where one falls back at the step
+    another diverges at: the reference path then finds the divergence)."""
+    s = _cloths(threads=3)
+    s.step(1e-3, "symplectic_euler")
+    assert _ranges(s) == 3
+    monkeypatch.setattr(parallel.Crew, "run", lambda self, first, others: list(results))
+    status, x, v, step = fused.run(s, 1e-3, "symplectic_euler", 3, s.constraint_solver.lam,
+                                   1e-3)
+    assert (status, step) == expected and x is None and v is None
