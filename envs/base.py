@@ -721,11 +721,8 @@ class ParticleTask(SteppedCopies):
                 obs = np.empty((len(goal.goal), 4 * goal.n + 1), np.float32)
             rest, view = self._rest(), tuple(self._view())
             stepped, blocked = self._mask(stepped), self._mask(blocked)
-            part = s.thread_ranges()
-            if part is not None and not any(lo % n for lo, _ in part.spans):  # (whole copies)
-                self._measures_ranges(part, post, rest, walls, stepped, blocked, out, success,
-                                      view, obs)
-            else:
+            if not self._measures_ranges(post, rest, walls, stepped, blocked, out, success,
+                                         view, obs):
                 _measure.measures_observe(x, v, mass, tuple(goal), p.refs.blocks, walls,
                                           tuple(rest), stepped, blocked, out, success, view,
                                           obs)
@@ -761,31 +758,40 @@ class ParticleTask(SteppedCopies):
                 "constraint_residual": residual,
                 "is_success": self.hold >= self.hold_steps}, wall_force
 
-    def _measures_ranges(self, part: Any, post: tuple, rest: _measure.Rest, walls: bool,
+    def _measures_ranges(self, post: tuple, rest: _measure.Rest, walls: bool,
                          stepped: np.ndarray, blocked: np.ndarray, out: np.ndarray,
-                         success: np.ndarray, view: tuple, obs: np.ndarray) -> None:
+                         success: np.ndarray, view: tuple, obs: np.ndarray) -> bool:
         """The compiled measures and observation of :meth:`_measures`, each range of the
-        system's threaded steps (``part``: ``ParticleSystem.thread_ranges``) on its own thread,
-        over the copies in it (its blocks are the range's own, particle indices from the
-        range's start). A copy's measures read only its own particles, so they are the same
-        bits as one call over all copies."""
+        system's threaded steps (``ParticleSystem.thread_ranges``) on its own thread, over the
+        copies in it (its blocks are the range's own, particle indices from the range's
+        start); False, with nothing done, unless the ranges are those of the pack in ``post``
+        and each holds whole copies (the caller then makes one call). A copy's measures read
+        only its own particles, so they are the same bits as one call over all copies.
+
+        The ranges are read, refreshed and run under the system's step lock: another thread
+        cannot step the system, and with it change the ranges, in between."""
         n = self.n
         p, goal, (x, v, mass) = post
-        calls, blocks = [], []
-        for sp, (lo, hi) in zip(part.packs, part.spans, strict=True):
-            c0, c1 = lo // n, hi // n  # (whole copies: the caller checked)
-            sp.refresh(measured_only=True)
-            out_r = np.empty((5, c1 - c0))
-            blocks.append((c0, c1, out_r))
-            calls.append(functools.partial(
-                _measure.measures_observe, x[lo:hi], v[lo:hi], mass[lo:hi],
-                tuple(goal._replace(goal=goal.goal[c0:c1])), sp.refs.blocks, walls,
-                tuple(rest._replace(hold=rest.hold[c0:c1], mean_v=rest.mean_v[lo:hi])),
-                stepped[c0:c1], blocked[c0:c1], out_r, success[c0:c1], view, obs[c0:c1]))
         with self.system.stepping():  # (the ranges' threads serve one caller at a time)
+            part = self.system.thread_ranges()
+            if (part is None or part.parent is not p or part.spans[-1][1] != len(x)
+                    or any(lo % n or hi % n for lo, hi in part.spans)):
+                return False
+            calls, blocks = [], []
+            for sp, (lo, hi) in zip(part.packs, part.spans, strict=True):
+                c0, c1 = lo // n, hi // n
+                sp.refresh(measured_only=True)
+                out_r = np.empty((5, c1 - c0))
+                blocks.append((c0, c1, out_r))
+                calls.append(functools.partial(
+                    _measure.measures_observe, x[lo:hi], v[lo:hi], mass[lo:hi],
+                    tuple(goal._replace(goal=goal.goal[c0:c1])), sp.refs.blocks, walls,
+                    tuple(rest._replace(hold=rest.hold[c0:c1], mean_v=rest.mean_v[lo:hi])),
+                    stepped[c0:c1], blocked[c0:c1], out_r, success[c0:c1], view, obs[c0:c1]))
             part.map(calls)
         for c0, c1, out_r in blocks:
             out[:, c0:c1] = out_r
+        return True
 
     def _rest(self) -> _measure.Rest:
         """The rest test's state as the compiled measures take it."""

@@ -28,6 +28,11 @@ compiled = pytest.mark.skipif(not kernels.ENABLED, reason="threads step the comp
 CONFIGS = [(env_id, mode) for env_id in envs.ENV_IDS for mode in ENV_ACTION_MODES[env_id]]
 
 
+#: Envs whose physics blocks change at most steps (ClothPin draws its pins as springs): their
+#: new packs are stepped whole, and cut into ranges only once a pack serves a second step.
+CHURNING = {"ClothPin-v0"}
+
+
 def _vec(env_id: str, threads: int, num_envs: int = 64, **kwargs: object) -> gym.vector.VectorEnv:
     return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
                         num_threads=threads, **kwargs)
@@ -35,8 +40,8 @@ def _vec(env_id: str, threads: int, num_envs: int = 64, **kwargs: object) -> gym
 
 def _ranges(vec: gym.vector.VectorEnv) -> int:
     """Into how many ranges the env's physics was cut at its last step (1: not cut)."""
-    held = vec.unwrapped.task.system.__dict__.get("_partition")
-    return len(held.packs) if held is not None and held.valid else 1
+    part = vec.unwrapped.task.system.thread_ranges()
+    return 1 if part is None else len(part.packs)
 
 
 def _run(env_id: str, mode: str, threads: int, steps: int = 150
@@ -56,8 +61,9 @@ def _run(env_id: str, mode: str, threads: int, steps: int = 150
 
     def counted(name: str, real: Any) -> Any:
         def call(*args: object, **kwargs: object) -> object:
-            calls[name] += 1
-            return real(*args, **kwargs)
+            result = real(*args, **kwargs)
+            calls[name] += result is not False  # (measures on the ranges return False
+            return result  # where they did not run there)
         return call
 
     fused.run, fused._run_ranges = counted("run", real_run), counted("ranges", real_ranges)
@@ -68,7 +74,8 @@ def _run(env_id: str, mode: str, threads: int, steps: int = 150
             obs, reward, terminated, truncated, info = vec.step(a)
             out += [obs, reward, terminated, truncated, *(info[k] for k in sorted(info))]
             ended += int(np.count_nonzero(terminated | truncated))
-        assert _ranges(vec) == (min(threads, 3) if kernels.ENABLED else 1)
+        if env_id not in CHURNING:
+            assert _ranges(vec) == (min(threads, 3) if kernels.ENABLED else 1)
     finally:
         fused.run, fused._run_ranges = real_run, real_ranges
         ParticleTask._measures_ranges = real_measures
@@ -96,7 +103,9 @@ def test_threads_give_the_same_bits(env_id: str, mode: str, small_ranges: None) 
         other, _, (on_ranges, calls, measures) = _run(env_id, mode, threads)
         # (every compiled physics call ran on the ranges: none fell back to one thread; the
         # tasks whose measures are the generic ones measured on the ranges too)
-        if kernels.ENABLED:
+        if kernels.ENABLED and env_id in CHURNING:
+            assert calls >= 100 and 0 < on_ranges < calls, (on_ranges, calls)
+        elif kernels.ENABLED:
             assert calls >= 100 and on_ranges == calls, (on_ranges, calls)
             if env_id in ("ClothSlide-v0", "ChainSwing-v0"):
                 assert measures >= 100, measures
@@ -202,7 +211,7 @@ def test_the_threads_of_an_env_never_closed_end_with_it(small_ranges: None) -> N
     vec = _vec("ClothSlide-v0", 2, num_envs=4)
     vec.reset(seed=1)
     vec.step(np.zeros((4, 2), np.float32))
-    threads = list(vec.unwrapped.task.system._partition._crew._threads)
+    threads = list(vec.unwrapped.task.system._partition._box[0]._threads)
     assert threads and all(t.is_alive() for t in threads)
     del vec
     gc.collect()
