@@ -133,10 +133,10 @@ class Crew:
     A crew serves one caller at a time: :meth:`run` while another thread is in it raises
     RuntimeError (so does a call that reaches :meth:`run` again from inside one). A run left
     by an exception (an interrupt while it waits, say) leaves nothing behind that the next
-    run could mistake for its own: the waits compare counters, and a thread that was still
-    busy takes the next call when it is done. :meth:`close` waits up to
-    :data:`CLOSE_SECONDS` for a run in progress; a crew closed while one runs stops when it
-    ends."""
+    run could mistake for its own: the waits compare counters, and the next run hands a
+    thread its call only once the thread has done every call posted before. :meth:`close`
+    waits up to :data:`CLOSE_SECONDS` for a run in progress; a crew closed while one runs
+    stops when it ends."""
 
     _STOP = object()
 
@@ -148,6 +148,7 @@ class Crew:
         self._sleeping = [False] * k
         self._wake = [threading.Event() for _ in range(k)]
         self._lock = threading.Lock()  # held by the caller of run()
+        self._owner: int | None = None  # that caller's thread id, while it is in run()
         self._closed = False
         #: the process whose threads these are (a forked child has none of them)
         self.pid = os.getpid()
@@ -182,8 +183,8 @@ class Crew:
                     wake.wait()
                     wake.clear()
                 self._sleeping[i] = False
-            seq = int(posted[i])  # (a call posted by a run that was interrupted before this
-            call = self._calls[i]  # thread took it is superseded by the newest)
+            seq += 1  # (nothing is posted to this thread before it has done the call before)
+            call = self._calls[i]
             self._calls[i] = None
             if call is self._STOP:
                 self._results[i] = (False, RuntimeError("this crew is stopped"))
@@ -196,6 +197,8 @@ class Crew:
             self._results[i] = result
             call = result = None  # (nothing of a finished call is kept alive here)
             done[i] = seq
+            if self._closed:  # (closed while this call ran: _stop may not have posted the
+                return  # stop call, to leave the call before it undisturbed)
 
     def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
@@ -208,6 +211,7 @@ class Crew:
             raise RuntimeError("this crew's threads serve one caller at a time (another run "
                                "is in progress)")
         try:
+            self._owner = threading.get_ident()
             if not self.live:
                 raise RuntimeError("this crew is stopped (close() was called, or it belongs "
                                    "to another process)")
@@ -215,12 +219,17 @@ class Crew:
         finally:
             if self._closed:  # (closed while running: stopped now that the run is over)
                 self._stop()
+            self._owner = None
             self._lock.release()
 
     def _run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         posted, done = self._posted, self._done
         targets = []
         for i, call in enumerate(others):
+            # a call of a run left by an exception may still be running (or not yet taken):
+            # the slot is written only once the thread has done every call posted before
+            while not _wait_for(done, i, int(posted[i]), SPINS):
+                pass
             self._calls[i] = call
             posted[i] += 1
             targets.append(int(posted[i]))
@@ -250,7 +259,8 @@ class Crew:
             return
         self._closed = True
         here = threading.current_thread()
-        inside = any(t is here for t in self._threads)
+        inside = (self._owner == threading.get_ident()  # (from inside a run: no wait)
+                  or any(t is here for t in self._threads))
         if not (self._lock.acquire(blocking=False) if inside
                 else self._lock.acquire(timeout=CLOSE_SECONDS)):
             return  # (run() stops the threads as it returns)
@@ -260,18 +270,26 @@ class Crew:
             self._lock.release()
 
     def _stop(self) -> None:
-        """Hand every live thread the stop call and join them (the run lock held, or no run
-        possible)."""
+        """Hand every idle live thread the stop call and join them (the run lock held, or no
+        run possible). A thread still busy with a call of a run left by an exception (or the
+        thread calling this) is not handed it: it ends by itself when its call returns, as
+        :attr:`_closed` is set first."""
         self._closed = True
         here = threading.current_thread()
+        deadline = time.monotonic() + CLOSE_SECONDS
         for i, t in enumerate(self._threads):
-            if t.is_alive() and self._calls[i] is not self._STOP:
+            if t is here or not t.is_alive() or self._calls[i] is self._STOP:
+                continue
+            while not _wait_for(self._done, i, int(self._posted[i]), SPINS):
+                if time.monotonic() > deadline:
+                    break
+            else:  # (idle: nothing posted is left undone, so the slot is free)
                 self._calls[i] = self._STOP
                 self._posted[i] += 1
                 self._wake[i].set()
         for t in self._threads:
             if t is not here:
-                t.join(CLOSE_SECONDS)
+                t.join(max(0.0, deadline - time.monotonic()))
 
 
 def _spans(blocks: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:

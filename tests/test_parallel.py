@@ -319,26 +319,73 @@ def test_a_crew_serves_one_caller_at_a_time() -> None:
     crew.close()
 
 
-def test_closing_a_crew_waits_for_its_run_and_a_closed_crew_refuses() -> None:
+def test_a_run_after_an_interrupted_one_gets_its_own_result(monkeypatch) -> None:
+    """A run left by an exception while a crew thread still holds its call (here: between
+    taking it and clearing its slot, a window widened to 0.2 s) does not make the next run
+    lose its call or take the old one's place."""
+    crew = parallel.Crew(1, "test")
+    ran: list[str] = []
+
+    class SlowClear(list):
+        def __setitem__(self, i: int, value: object) -> None:
+            if value is None and threading.current_thread() is not main:
+                threading.Event().wait(0.2)
+            super().__setitem__(i, value)
+
+    main = threading.current_thread()
+    crew._calls = SlowClear(crew._calls)
+    real, looks = parallel._wait_for, []
+
+    def wait(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
+        if flags is crew._done and threading.current_thread() is main:
+            looks.append(value)
+            if len(looks) == 2:  # (the run's wait for its call's end)
+                raise KeyboardInterrupt
+        return real(flags, i, value, spins)
+
+    monkeypatch.setattr(parallel, "_wait_for", wait)
+    with pytest.raises(KeyboardInterrupt):
+        crew.run(lambda: 0, [lambda: ran.append("old") or "old"])
+    assert crew.run(lambda: 0, [lambda: ran.append("new") or "new"]) == [0, "new"]
+    assert ran == ["old", "new"]
+    crew.close()
+    assert not any(t.is_alive() for t in crew._threads)
+
+
+def test_closing_a_crew_waits_for_its_run_and_a_closed_crew_refuses(monkeypatch) -> None:
     crew = parallel.Crew(2, "test")
     started = threading.Event()
     results: list[object] = []
+    finished: list[int] = []
 
     def slow() -> str:
         started.set()
         threading.Event().wait(0.3)
+        finished.append(1)
         return "finished"
 
     t = threading.Thread(target=lambda: results.append(crew.run(lambda: 0, [slow, slow])))
     t.start()
     assert started.wait(10)
     threads = list(crew._threads)
-    crew.close()  # (while the run is in progress: it ends first)
+    crew.close()  # (while the run is in progress: it returns once the run has ended)
+    assert finished == [1, 1]
     t.join(10)
     assert results == [[0, "finished", "finished"]]
     assert not any(th.is_alive() for th in threads)
     with pytest.raises(RuntimeError, match="stopped"):
         crew.run(lambda: 0, [lambda: 1])
+    # closed from inside its own run: no wait for the run (it would wait for itself), and
+    # the threads stop as the run ends
+    monkeypatch.setattr(parallel, "CLOSE_SECONDS", 60.0)
+    crew = parallel.Crew(1, "test")
+    threads = list(crew._threads)
+    closer = threading.Thread(target=lambda: results.append(
+        crew.run(lambda: crew.close(), [lambda: 1])))
+    closer.start()
+    closer.join(10)
+    assert not closer.is_alive() and results[-1] == [None, 1]
+    assert not any(th.is_alive() for th in threads)
 
 
 def test_a_crew_keeps_nothing_of_a_finished_call() -> None:
