@@ -46,7 +46,10 @@ CONFIGS = [(env_id, kind, {"action_mode": mode})
 # the threaded vector env: its physics cut into two ranges of one copy each, stepped on two
 # threads (ranges as small as one copy are allowed for it: see _make)
 CONFIGS += [("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads": 2}),
-            ("ClothSlide-v0", "vector", {"action_mode": "force", "num_threads": 2})]
+            ("ClothSlide-v0", "vector", {"action_mode": "force", "num_threads": 2}),
+            # (its pins change the system's blocks: cut again, stepped whole, cut reusing the
+            # cut before)
+            ("ClothPin-v0", "vector", {"action_mode": "draw", "num_threads": 2})]
 EDITS = ("huge", "negative", "nan", "inf", "one_row", "dtype")
 ALLOWED = (ValueError, TypeError, RuntimeError)
 STEPS = 3
