@@ -52,7 +52,7 @@ APP = "constrained-particles"  #: the folder name inside the user's cache direct
 #: A tag in the name of each cache folder, changed when the options given to :func:`njit` change
 #: (numba's cache index does not record options such as ``nogil``: without it, code compiled
 #: with the old options would be loaded in place of the new)
-FLAVOUR = "o2"
+FLAVOUR = "o3"
 
 
 def default_cache_dir() -> Path | None:

@@ -8,7 +8,7 @@ import numbers
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -63,7 +63,7 @@ def _finite_vectors(name: str, value: Any, shape: tuple[int, ...], limit: float)
     return arr
 
 
-def _busy() -> None:
+def _busy() -> NoReturn:
     """RuntimeError for a step call on a system another thread is stepping."""
     raise RuntimeError("this ParticleSystem is being stepped by another thread: a system takes "
                        "one step call at a time (use one system per thread, or take turns with "
