@@ -150,6 +150,9 @@ class Crew:
         self._lock = threading.Lock()  # held by the caller of run()
         self._owner: int | None = None  # that caller's thread id, while it is in run()
         self._closed = False
+        #: held to post calls, and by a thread deciding to end because the crew is closed: a
+        #: run never posts to a thread that has ended, nor a thread ends with a call posted
+        self._post_lock = threading.Lock()
         #: the process whose threads these are (a forked child has none of them)
         self.pid = os.getpid()
         self._threads: list[threading.Thread] = []
@@ -198,7 +201,9 @@ class Crew:
             call = result = None  # (nothing of a finished call is kept alive here)
             done[i] = seq
             if self._closed:  # (closed while this call ran: _stop may not have posted the
-                return  # stop call, to leave the call before it undisturbed)
+                with self._post_lock:  # stop call, to leave the call before it undisturbed)
+                    if posted[i] == seq:
+                        return
 
     def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
@@ -217,24 +222,30 @@ class Crew:
                                    "to another process)")
             return self._run(first, others)
         finally:
-            if self._closed:  # (closed while running: stopped now that the run is over)
-                self._stop()
-            self._owner = None
-            self._lock.release()
+            try:
+                if self._closed:  # (closed while running: stopped now that the run is over)
+                    self._stop()
+            finally:
+                self._owner = None
+                self._lock.release()
 
     def _run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
         posted, done = self._posted, self._done
         targets = []
-        for i, call in enumerate(others):
+        for i in range(len(others)):
             # a call of a run left by an exception may still be running (or not yet taken):
-            # the slot is written only once the thread has done every call posted before
+            # a slot is written only once its thread has done every call posted before
             while not _wait_for(done, i, int(posted[i]), SPINS):
                 pass
-            self._calls[i] = call
-            posted[i] += 1
-            targets.append(int(posted[i]))
-            if self._sleeping[i]:
-                self._wake[i].set()
+        with self._post_lock:
+            if self._closed:  # (closed meanwhile: a thread may have ended)
+                raise RuntimeError("this crew is stopped (close() was called)")
+            for i, call in enumerate(others):
+                self._calls[i] = call
+                posted[i] += 1
+                targets.append(int(posted[i]))
+                if self._sleeping[i]:
+                    self._wake[i].set()
         try:
             mine = first()
         finally:

@@ -352,6 +352,49 @@ def test_a_run_after_an_interrupted_one_gets_its_own_result(monkeypatch) -> None
     assert not any(t.is_alive() for t in crew._threads)
 
 
+def test_closing_a_crew_while_a_run_waits_for_a_leftover_call_ends_both(monkeypatch) -> None:
+    """A run that waits for a call left by an interrupted run, while the crew is closed from
+    another thread: the run ends (with its result, or RuntimeError if the crew closed first)
+    and so do the crew's threads; no run is handed to a thread that has ended."""
+    monkeypatch.setattr(parallel, "CLOSE_SECONDS", 30.0)
+    crew = parallel.Crew(1, "test")
+    threads = list(crew._threads)
+    main = threading.current_thread()
+    release = threading.Event()
+    real, looks = parallel._wait_for, []
+
+    def wait(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
+        if flags is crew._done and threading.current_thread() is main:
+            looks.append(value)
+            if len(looks) == 2:  # (the first run's wait for its call's end)
+                raise KeyboardInterrupt
+        return real(flags, i, value, spins)
+
+    monkeypatch.setattr(parallel, "_wait_for", wait)
+    with pytest.raises(KeyboardInterrupt):
+        crew.run(lambda: 0, [lambda: release.wait(10)])  # (left running)
+    outcome: list[object] = []
+
+    def second() -> None:
+        try:
+            outcome.append(crew.run(lambda: 0, [lambda: "new"]))
+        except RuntimeError as exc:
+            outcome.append(exc)
+
+    runner = threading.Thread(target=second)
+    closer = threading.Thread(target=crew.close)
+    runner.start()
+    threading.Event().wait(0.1)  # (the second run waits for the leftover call)
+    closer.start()
+    threading.Event().wait(0.1)  # (close() has marked the crew closed and waits)
+    release.set()
+    runner.join(10)
+    closer.join(10)
+    assert not runner.is_alive() and not closer.is_alive()
+    assert outcome == [[0, "new"]] or "stopped" in str(outcome[0])
+    assert not any(th.is_alive() for th in threads)
+
+
 def test_closing_a_crew_waits_for_its_run_and_a_closed_crew_refuses(monkeypatch) -> None:
     crew = parallel.Crew(2, "test")
     started = threading.Event()
