@@ -190,7 +190,6 @@ class Crew:
             call = self._calls[i]
             self._calls[i] = None
             if call is self._STOP:
-                self._results[i] = (False, RuntimeError("this crew is stopped"))
                 done[i] = seq
                 return
             try:
@@ -436,7 +435,7 @@ class Partition:
         ranges = len(bounds) - 1
         spans = tuple((int(bounds[r]), int(bounds[r + 1])) for r in range(ranges))
         same = (previous is not None and previous.valid and previous.spans == spans
-                and previous.parent.constraints == parent.constraints
+                and len(previous.parent.constraints) == len(parent.constraints)
                 and all(a is b for a, b in zip(previous.parent.constraints, parent.constraints,
                                                strict=True))
                 and previous.parent.constraint_versions == parent.constraint_versions)

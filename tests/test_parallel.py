@@ -319,6 +319,22 @@ def test_a_crew_serves_one_caller_at_a_time() -> None:
     crew.close()
 
 
+def _interrupt_the_first_runs_wait(monkeypatch: pytest.MonkeyPatch, crew: parallel.Crew
+                                   ) -> None:
+    """Make the calling thread's first run of ``crew`` raise KeyboardInterrupt in its wait for
+    its calls' end (as Ctrl-C would), leaving its call to the crew thread."""
+    main, real, looks = threading.current_thread(), parallel._wait_for, []
+
+    def wait(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
+        if flags is crew._done and threading.current_thread() is main:
+            looks.append(value)
+            if len(looks) == 2:  # (the first look is the run's wait for an idle thread)
+                raise KeyboardInterrupt
+        return real(flags, i, value, spins)
+
+    monkeypatch.setattr(parallel, "_wait_for", wait)
+
+
 def test_a_run_after_an_interrupted_one_gets_its_own_result(monkeypatch) -> None:
     """A run left by an exception while a crew thread still holds its call (here: between
     taking it and clearing its slot, a window widened to 0.2 s) does not make the next run
@@ -334,16 +350,7 @@ def test_a_run_after_an_interrupted_one_gets_its_own_result(monkeypatch) -> None
 
     main = threading.current_thread()
     crew._calls = SlowClear(crew._calls)
-    real, looks = parallel._wait_for, []
-
-    def wait(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
-        if flags is crew._done and threading.current_thread() is main:
-            looks.append(value)
-            if len(looks) == 2:  # (the run's wait for its call's end)
-                raise KeyboardInterrupt
-        return real(flags, i, value, spins)
-
-    monkeypatch.setattr(parallel, "_wait_for", wait)
+    _interrupt_the_first_runs_wait(monkeypatch, crew)
     with pytest.raises(KeyboardInterrupt):
         crew.run(lambda: 0, [lambda: ran.append("old") or "old"])
     assert crew.run(lambda: 0, [lambda: ran.append("new") or "new"]) == [0, "new"]
@@ -359,18 +366,8 @@ def test_closing_a_crew_while_a_run_waits_for_a_leftover_call_ends_both(monkeypa
     monkeypatch.setattr(parallel, "CLOSE_SECONDS", 30.0)
     crew = parallel.Crew(1, "test")
     threads = list(crew._threads)
-    main = threading.current_thread()
     release = threading.Event()
-    real, looks = parallel._wait_for, []
-
-    def wait(flags: np.ndarray, i: int, value: int, spins: int) -> bool:
-        if flags is crew._done and threading.current_thread() is main:
-            looks.append(value)
-            if len(looks) == 2:  # (the first run's wait for its call's end)
-                raise KeyboardInterrupt
-        return real(flags, i, value, spins)
-
-    monkeypatch.setattr(parallel, "_wait_for", wait)
+    _interrupt_the_first_runs_wait(monkeypatch, crew)
     with pytest.raises(KeyboardInterrupt):
         crew.run(lambda: 0, [lambda: release.wait(10)])  # (left running)
     outcome: list[object] = []
