@@ -183,11 +183,11 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     x_out = np.empty_like(start.x)
     v_out = np.empty_like(start.v)
     if pieces is None:
-        status, failed = fused_steps(code, rattle, int(steps), h, _F0, _NO_COUNTS,
+        status, failed = fused_steps(code, rattle, *p.variant, int(steps), h, _F0, _NO_COUNTS,
                                      tuple(start), x_out, v_out, tuple(settings), refs.engine,
                                      None)
         return int(status), x_out, v_out, int(failed)
-    status, failed = fused_split(code, rattle, h, h / pieces, pieces * int(steps),
+    status, failed = fused_split(code, rattle, *p.variant, h, h / pieces, pieces * int(steps),
                                  tuple(start), x_out, v_out, tuple(settings), refs.engine,
                                  p.live_ref)
     return int(status), x_out, v_out, int(failed)
@@ -214,12 +214,12 @@ def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, step
         state = (x[lo:hi], v[lo:hi], mass[lo:hi], inv_mass[lo:hi], lam_r)
         if pieces is None:
             calls.append(functools.partial(
-                fused_steps, code, rattle, steps, h, _F0, _NO_COUNTS, state, x_out[lo:hi],
-                v_out[lo:hi], plain_settings, sp.refs.engine, None))
+                fused_steps, code, rattle, *sp.variant, steps, h, _F0, _NO_COUNTS, state,
+                x_out[lo:hi], v_out[lo:hi], plain_settings, sp.refs.engine, None))
         else:
             calls.append(functools.partial(
-                fused_split, code, rattle, h, hp[lo:hi], counts[lo:hi], state, x_out[lo:hi],
-                v_out[lo:hi], plain_settings, sp.refs.engine, sp.live_ref))
+                fused_split, code, rattle, *sp.variant, h, hp[lo:hi], counts[lo:hi], state,
+                x_out[lo:hi], v_out[lo:hi], plain_settings, sp.refs.engine, sp.live_ref))
     results = part.crew().run(calls[0], calls[1:])
     failed = [(int(done), int(status) == DIVERGED) for status, done in results
               if int(status) != OK]
@@ -397,16 +397,19 @@ if kernels.ENABLED:
         return k
 
     @njit(nogil=True)
-    def fused_steps(method, rattle, steps, h, hp, counts, state, x_out, v_out,
+    def fused_steps(method, rattle, large, runs, steps, h, hp, counts, state, x_out, v_out,
                     settings, engine, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
         ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
         ``method, rattle`` give as :func:`integrator_args` makes them: RATTLE if ``rattle`` is
         not None (Numba compiles a version per pattern of None and drops the other branches
         from it), else ``method``: 0 euler, 3 symplectic_euler, or the explicit Runge-Kutta
-        method 1 midpoint, 2 rk4 (one stage loop over its tableau). Returns ``(status, steps
-        done)``. Reads ``state`` and writes ``x_out, v_out`` only (the first step reads the
-        caller's state, the last writes the caller's output).
+        method 1 midpoint, 2 rk4 (one stage loop over its tableau). ``large, runs`` are the
+        pack's :attr:`~.packing.Packed.variant`: None where no constraint component has more
+        than ``DIRECT_MAX`` rows (the version for None compiles no conjugate gradients), and
+        where no springs form runs (it compiles no run loop). Returns
+        ``(status, steps done)``. Reads ``state`` and writes ``x_out, v_out`` only (the
+        first step reads the caller's state, the last writes the caller's output).
 
         The records come as the pack holds them: its ``blocks``, ``rows`` and workspace in one
         :class:`~.records.Engine` by reference (:attr:`~.packing.Packed.refs`), the others in
@@ -488,10 +491,10 @@ if kernels.ENABLED:
                             vo[q, 0], vo[q, 1] = v[q, 0], v[q, 1]
                 _gate(step, b_counts, rows, blocks, live)
             if rattle is not None:
-                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws):
+                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws, large, runs):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
-                if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live):
+                if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live, large, runs):
                     return FALLBACK, step
                 flat = live is None and not per_particle and n >= FLAT_MIN
                 if flat:
@@ -532,7 +535,8 @@ if kernels.ENABLED:
                         sx, sv = xs, out_v
                     else:
                         sx, sv = x, v
-                    if not _accel(sx, sv, ka[stage], start, cfg, blocks, rows, ws, live):
+                    if not _accel(sx, sv, ka[stage], start, cfg, blocks, rows, ws, live,
+                                  large, runs):
                         return FALLBACK, step
                 # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
                 for i in range(_count(live, LIVE_PARTICLES, n)):
@@ -576,8 +580,8 @@ if kernels.ENABLED:
         return OK, steps
 
     @njit(nogil=True)
-    def fused_split(method, rattle, h, hp, counts, state, x_out, v_out, settings, engine,
-                    live):  # pragma: no cover - compiled
+    def fused_split(method, rattle, large, runs, h, hp, counts, state, x_out, v_out, settings,
+                    engine, live):  # pragma: no cover - compiled
         """A split step: particle q takes ``counts[q]`` steps of ``hp[q]`` seconds (arguments
         as for :func:`fused_steps`, ``live`` the pack's live workspace). First the steps only
         some particles take (masked), while their data are likely still in cache from the
@@ -592,15 +596,16 @@ if kernels.ENABLED:
             return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return fused_steps(method, rattle, total, h, b_hp, b_counts, b_state, b_out[0],
-                               b_out[1], settings, engine, None)
+            return fused_steps(method, rattle, large, runs, total, h, b_hp, b_counts, b_state,
+                               b_out[0], b_out[1], settings, engine, None)
         ws = engine.work
         x_mid, v_mid = ws.x_mid, ws.v_mid
-        status, done = fused_steps(method, rattle, total - first, h, b_hp, b_counts - first,
-                                   b_state, x_mid, v_mid, settings, engine, live)
+        status, done = fused_steps(method, rattle, large, runs, total - first, h, b_hp,
+                                   b_counts - first, b_state, x_mid, v_mid, settings, engine,
+                                   live)
         if status != OK:
             return status, done
         middle = (x_mid, v_mid, b_state[2], b_state[3], b_state[4])
-        status, more = fused_steps(method, rattle, first, h, b_hp, b_counts, middle, b_out[0],
-                                   b_out[1], settings, engine, None)
+        status, more = fused_steps(method, rattle, large, runs, first, h, b_hp, b_counts, middle,
+                                   b_out[0], b_out[1], settings, engine, None)
         return status, done + more

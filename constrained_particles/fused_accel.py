@@ -148,20 +148,22 @@ if kernels.ENABLED:
         return True
 
     @njit_inline  # (a dispatcher between loops: inlined, no compiled level of its own)
-    def _springs(x, v, F, spring):  # pragma: no cover - compiled
+    def _springs(x, v, F, spring, runs):  # pragma: no cover - compiled
         """Add the forces (N) of the springs ``spring`` (:class:`~.records.SpringArrays`) at
         ``(x, v)`` into ``F``, in spring order: the runs (see :func:`spring_runs`, checked when
         packed) by :func:`_spring_run`, the springs between them by
-        :func:`_scattered_springs`. Bitwise the plain loop's result either way."""
-        si, sj, srest, sks, skd, runs = (spring.i, spring.j, spring.rest, spring.ks, spring.kd,
-                                         spring.runs)
+        :func:`_scattered_springs`. Bitwise the plain loop's result either way. ``runs``
+        (``Packed.spring_runs``) None: the pack has no runs, and Numba drops the runs' code
+        from this version (every spring then goes by :func:`_scattered_springs`)."""
+        si, sj, srest, sks, skd = spring.i, spring.j, spring.rest, spring.ks, spring.kd
         k = si.shape[0]
-        if runs.shape[0] == 0:
+        if runs is None or spring.runs.shape[0] == 0:
             _scattered_springs(x, v, F, si, sj, srest, sks, skd)
             return
         xf, vf, Ff = x.reshape(-1), v.reshape(-1), F.reshape(-1)
         ws = np.empty((6, RUN_BLOCK))
         e = 0
+        runs = spring.runs
         for r in range(runs.shape[0] + 1):
             stop = runs[r, 0] if r < runs.shape[0] else k
             if stop > e:
@@ -327,11 +329,11 @@ if kernels.ENABLED:
         return everything if live is None else live.sizes[kind]
 
     @njit_inline
-    def _forces(x, v, mass, F, blocks, live):  # pragma: no cover - compiled
+    def _forces(x, v, mass, F, blocks, live, runs):  # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
         all live), elements on particles that are not live are skipped, and so are those
-        particles' rows of F (nothing reads them)."""
+        particles' rows of F (nothing reads them). ``runs``: see :func:`_springs`."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         if live is None:
             F[:, :] = 0.0
@@ -355,7 +357,7 @@ if kernels.ENABLED:
             F[q, 1] += const.force[e, 1]
         spring = blocks.spring
         if live is None:
-            _springs(x, v, F, spring)
+            _springs(x, v, F, spring, runs)
         else:
             for ee in range(live.sizes[LIVE_ELEMENTS + SPRING]):
                 e = el.spring[ee]
@@ -482,11 +484,14 @@ if kernels.ENABLED:
         return worst
 
     @njit_inline
-    def _solve_components(rows, ws, b, lam, tol, live):  # pragma: no cover - compiled
+    def _solve_components(rows, ws, b, lam, tol, live, large):  # pragma: no cover - compiled
         """Solve ``J W J^T lam = b`` (``J`` the values ``ws.Jv`` on ``rows``) component by
         component (with ``live``, only those of live particles: see :func:`_gate`); False if
         any solve is singular, ill-posed or does not converge (the caller then uses the
-        reference solver)."""
+        reference solver). Components of more than ``DIRECT_MAX`` rows are solved by
+        conjugate gradients if ``large`` is not None (``Packed.large``: the pack has such a
+        component); with None, Numba drops that branch, so a system without them compiles no
+        conjugate gradients, and such a component (never there) would return False."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         cols, nnz, comp_rows, comp_ptr = rows.cols, rows.nnz, rows.comp_rows, rows.comp_ptr
         w2, Jv, work, A, tmp = ws.w2, ws.Jv, ws.work, ws.A, ws.tmp
@@ -534,10 +539,10 @@ if kernels.ENABLED:
                     work[i] = acc / A[i, i]
                 for i in range(s):
                     lam[comp_rows[start + i]] = work[i]
-            else:
-                if not _cg_component(cols, nnz, comp_rows[start:stop], w2, Jv, b, lam, tol,
-                                     tmp):
-                    return False
+            elif large is None:
+                return False
+            elif not _cg_component(cols, nnz, comp_rows[start:stop], w2, Jv, b, lam, tol, tmp):
+                return False
         return True
 
     @njit
@@ -609,14 +614,15 @@ if kernels.ENABLED:
         return False
 
     @njit
-    def _accel(x, v, out, state, settings, blocks, rows, ws, live):
+    def _accel(x, v, out, state, settings, blocks, rows, ws, live, large, runs):
         # pragma: no cover - compiled
         """``qddot = W (Q + J^T lam)`` (m/s^2) at ``(x, v)`` into ``out`` (with ``live``, of
         the live particles only: see :func:`_gate`), the multipliers into ``state.lam`` (warm
-        start in); False if the solve failed."""
+        start in); False if the solve failed. ``large``: see :func:`_solve_components`; ``runs``:
+        see :func:`_springs`."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         mass, inv_mass, lam = state.mass, state.inv_mass, state.lam
-        _forces(x, v, mass, out, blocks, live)
+        _forces(x, v, mass, out, blocks, live, runs)
         C, Cdot, Jv, Jdv, b, w2 = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.b, ws.w2
         cols, nnz = rows.cols, rows.nnz
         m = C.shape[0]
@@ -631,7 +637,7 @@ if kernels.ENABLED:
                     q, axis = c // 2, c % 2
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
-            if not _solve_components(rows, ws, b, lam, settings.tol, live):
+            if not _solve_components(rows, ws, b, lam, settings.tol, live, large):
                 return False
             for rr in range(_count(live, LIVE_ROWS, m)):  # Q += J^T lam
                 r = rr if live is None else lr[rr]
@@ -648,11 +654,12 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws):
+    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs):
         # pragma: no cover - compiled
         """One RATTLE step of ``h`` seconds from (x, v) into (xs, vs), as
         :func:`constrained_particles.rattle.rattle` does it; False where the reference must
-        take over (it raises the errors)."""
+        take over (it raises the errors). ``large``, ``runs``: see :func:`_solve_components`,
+        :func:`_springs`."""
         mass, inv_mass, tol = state.mass, state.inv_mass, settings.tol
         f0, f1 = ws.a1, ws.a2  # (stage buffers: RATTLE's force and predicted velocity)
         C, Cdot, Jv, Jdv, J0, b, dl = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.J0, ws.b, ws.dl
@@ -661,7 +668,7 @@ if kernels.ENABLED:
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        _forces(x, v, mass, f0, blocks, None)
+        _forces(x, v, mass, f0, blocks, None, runs)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
@@ -707,7 +714,7 @@ if kernels.ENABLED:
                         r = comp_rows[i]
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
-                if not _solve_components(rows, ws, b, dl, tol, None):
+                if not _solve_components(rows, ws, b, dl, tol, None, large):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -722,7 +729,7 @@ if kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        _forces(xs, f1, mass, f0, blocks, None)
+        _forces(xs, f1, mass, f0, blocks, None, runs)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u
@@ -734,7 +741,7 @@ if kernels.ENABLED:
                     acc += Jv[r, k] * vs[c // 2, c % 2]
                 b[r] = acc
                 dl[r] = 0.0
-            if not _solve_components(rows, ws, b, dl, tol, None):
+            if not _solve_components(rows, ws, b, dl, tol, None, large):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):

@@ -339,6 +339,28 @@ class Packed:
         sizes = np.diff(self.rows.comp_ptr)
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
+    @property
+    def variant(self) -> tuple[bool | None, bool | None]:
+        """``(large, spring_runs)``: which optional parts of the fused step this pack needs
+        (True) or not (None). The fused step takes them as arguments, and Numba compiles a
+        version per pattern of None, without the parts a None rules out: a run compiles only
+        what its systems use (docs/compile_time.md)."""
+        return self.large, self.spring_runs
+
+    @property
+    def large(self) -> bool | None:
+        """True if a constraint component has more than ``DIRECT_MAX`` rows (the kernels
+        solve it by conjugate gradients), else None: the fused step takes it as an argument,
+        and its version for None compiles no conjugate gradients (docs/compile_time.md)."""
+        return True if self.max_component > DIRECT_MAX else None
+
+    @property
+    def spring_runs(self) -> bool | None:
+        """True if some of the springs form runs (``SpringArrays.runs``, stepped by the
+        kernels' vectorised run loop), else None: the fused step takes it as an argument, and
+        its version for None compiles no run loop (docs/compile_time.md)."""
+        return True if len(self.blocks.spring.runs) else None
+
     def _consistent(self) -> bool:
         """True if every array the kernel indexes with holds what it must (checked here once:
         they are immutable): particle indices in [0, n), per-element arrays of one length,

@@ -37,6 +37,7 @@ from constrained_particles import (
 )
 from constrained_particles.integrators import METHODS
 from constrained_particles.records import SpringArrays
+from constrained_particles.solver import DIRECT_MAX
 
 pytestmark = pytest.mark.skipif(not kernels.ENABLED, reason="compiled path disabled "
                                 "(CPARTICLES_NUMBA=0): nothing to compare")
@@ -145,6 +146,9 @@ def test_copies_of_a_tiled_scene_are_exactly_independent():
 def test_large_components_use_warm_started_cg_like_the_reference():
     s = scenes.angular_chain(links=14)  # 14 rods in one component: CG
     assert fused.pack(s).max_component == 14
+    assert fused.pack(s).variant == (True, None)  # (the version with conjugate gradients)
+    status, *_ = fused.run(s.copy(), 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), 1e-3)
+    assert status == fused.OK  # solved on the fused path, not handed to the reference
     x_ref, v_ref = reference(s, "rk4", 1e-3, 50)
     s.step(1e-3, "rk4", steps=50)
     close(s.x, x_ref, rtol=1e-8)  # two CG solves, each to tol 1e-10
@@ -470,7 +474,7 @@ def test_many_springs_go_in_blocks_bitwise_like_the_plain_loop_and_close_to_nump
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     blocks = np.zeros((n, 2))
     fused_accel._springs(x, v, blocks,
-                         SpringArrays(i, j, rest, ks, kd, fused.spring_runs(i, j)))
+                         SpringArrays(i, j, rest, ks, kd, fused.spring_runs(i, j)), True)
     plain = np.zeros((n, 2))
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert blocks.tobytes() == plain.tobytes()
@@ -510,9 +514,13 @@ def test_runs_of_springs_are_bitwise_the_plain_loop():
     ks, kd, rest = rng.uniform(1, 100, k), rng.uniform(0, 2, k), rng.uniform(0, 1, k)
     got, plain = rng.normal(size=(n, 2)), np.zeros((n, 2))
     plain[:] = got  # forces add to what F holds
-    fused_accel._springs(x, v, got, SpringArrays(i, j, rest, ks, kd, runs))
+    scattered = got.copy()
+    fused_accel._springs(x, v, got, SpringArrays(i, j, rest, ks, kd, runs), True)
     kernels.spring_forces(x, v, i, j, ks, kd, rest, plain)
     assert got.tobytes() == plain.tobytes()
+    # the fused step's version for packs without runs takes every spring one by one
+    fused_accel._springs(x, v, scattered, SpringArrays(i, j, rest, ks, kd, runs), None)
+    assert scattered.tobytes() == plain.tobytes()
 
 
 def test_a_spring_list_that_no_longer_fits_its_runs_is_refused():
@@ -557,3 +565,30 @@ def test_tiled_cloths_are_copy_exact_with_the_spring_blocks(method):
         one.step(1e-3, method, steps=30)
         assert tiled.x[n * c:n * (c + 1)].tobytes() == one.x.tobytes(), c
         assert tiled.v[n * c:n * (c + 1)].tobytes() == one.v.tobytes(), c
+
+
+def test_small_components_take_the_fused_step_without_conjugate_gradients():
+    # every component of at most DIRECT_MAX rows: the pack says None, and the fused step's
+    # version for None (which compiles no conjugate gradients) steps it like the reference
+    s = scenes.wire_mixture()
+    p = fused.pack(s)
+    assert 0 < p.max_component <= DIRECT_MAX and p.variant == (None, None)
+    x_ref, v_ref = reference(s, "rk4", 1e-3, 50)
+    status, *_ = fused.run(s.copy(), 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), 1e-3)
+    assert status == fused.OK
+    s.step(1e-3, "rk4", steps=50)
+    close(s.x, x_ref)
+    close(s.v, v_ref)
+
+
+@pytest.mark.parametrize("size, runs", [(6, None), (10, True)])
+def test_the_pack_names_the_spring_runs_its_step_needs(size, runs):
+    # a small cloth's springs form no runs (every spring goes one by one, and the fused
+    # step's version for None compiles no run loop); a larger one's rows do
+    s = scenes.cloth(size, size)
+    assert fused.pack(s).variant == (None, runs)
+    assert (len(fused.pack(s).blocks.spring.runs) > 0) == (runs is True)
+    x_ref, v_ref = reference(s, "midpoint", 1e-3, 20)
+    s.step(1e-3, "midpoint", steps=20)
+    close(s.x, x_ref)
+    close(s.v, v_ref)
