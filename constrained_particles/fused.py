@@ -397,17 +397,18 @@ if kernels.ENABLED:
         return k
 
     @njit(nogil=True)
-    def fused_steps(method, rattle, large, runs, steps, h, hp, counts, state, x_out, v_out,
+    def fused_steps(method, rattle, large, runs, extra, steps, h, hp, counts, state, x_out, v_out,
                     settings, engine, live):  # pragma: no cover - compiled
         """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
         ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
         ``method, rattle`` give as :func:`integrator_args` makes them: RATTLE if ``rattle`` is
         not None (Numba compiles a version per pattern of None and drops the other branches
         from it), else ``method``: 0 euler, 3 symplectic_euler, or the explicit Runge-Kutta
-        method 1 midpoint, 2 rk4 (one stage loop over its tableau). ``large, runs`` are the
-        pack's :attr:`~.packing.Packed.variant`: None where no constraint component has more
-        than ``DIRECT_MAX`` rows (the version for None compiles no conjugate gradients), and
-        where no springs form runs (it compiles no run loop). Returns
+        method 1 midpoint, 2 rk4 (one stage loop over its tableau). ``large, runs, extra``
+        are the pack's :attr:`~.packing.Packed.variant`: None where no constraint component
+        has more than ``DIRECT_MAX`` rows (the version for None compiles no conjugate
+        gradients), where no springs form runs (no run loop), and where the system has no
+        angular springs, mouse springs or fixed points (none of their loops). Returns
         ``(status, steps done)``. Reads ``state`` and writes ``x_out, v_out`` only (the
         first step reads the caller's state, the last writes the caller's output).
 
@@ -449,7 +450,7 @@ if kernels.ENABLED:
             return FALLBACK, 0
         if live is None and b_counts.shape[0] != 0 and b_counts.shape[0] != n:
             return FALLBACK, 0
-        if not _check_inputs(blocks, rows, n, m, start.lam, b_counts):
+        if not _check_inputs(blocks, rows, n, m, start.lam, b_counts, extra):
             return FALLBACK, 0
         if not _work_fits(ws, n, m):
             return FALLBACK, 0
@@ -491,10 +492,12 @@ if kernels.ENABLED:
                             vo[q, 0], vo[q, 1] = v[q, 0], v[q, 1]
                 _gate(step, b_counts, rows, blocks, live)
             if rattle is not None:
-                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws, large, runs):
+                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws, large, runs,
+                               extra):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
-                if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live, large, runs):
+                if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live, large, runs,
+                              extra):
                     return FALLBACK, step
                 flat = live is None and not per_particle and n >= FLAT_MIN
                 if flat:
@@ -536,7 +539,7 @@ if kernels.ENABLED:
                     else:
                         sx, sv = x, v
                     if not _accel(sx, sv, ka[stage], start, cfg, blocks, rows, ws, live,
-                                  large, runs):
+                                  large, runs, extra):
                         return FALLBACK, step
                 # y + (h / d) sum_j w_j k_j, summed left to right over the nonzero weights
                 for i in range(_count(live, LIVE_PARTICLES, n)):
@@ -566,7 +569,7 @@ if kernels.ENABLED:
                         if not (abs(xs[q, d]) < limit and abs(vs[q, d]) < limit):
                             return DIVERGED, step
             if cfg.residual_limit < math.inf and m:
-                if not _distance_error(xs, blocks, live) <= cfg.residual_limit:
+                if not _distance_error(xs, blocks, live, extra) <= cfg.residual_limit:
                     return DIVERGED, step
             if step == 0:  # the new state becomes current; never reuse the caller's arrays
                 x, xs = xs, spare_x
@@ -580,8 +583,8 @@ if kernels.ENABLED:
         return OK, steps
 
     @njit(nogil=True)
-    def fused_split(method, rattle, large, runs, h, hp, counts, state, x_out, v_out, settings,
-                    engine, live):  # pragma: no cover - compiled
+    def fused_split(method, rattle, large, runs, extra, h, hp, counts, state, x_out, v_out,
+                    settings, engine, live):  # pragma: no cover - compiled
         """A split step: particle q takes ``counts[q]`` steps of ``hp[q]`` seconds (arguments
         as for :func:`fused_steps`, ``live`` the pack's live workspace). First the steps only
         some particles take (masked), while their data are likely still in cache from the
@@ -596,16 +599,16 @@ if kernels.ENABLED:
             return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return fused_steps(method, rattle, large, runs, total, h, b_hp, b_counts, b_state,
-                               b_out[0], b_out[1], settings, engine, None)
+            return fused_steps(method, rattle, large, runs, extra, total, h, b_hp, b_counts,
+                               b_state, b_out[0], b_out[1], settings, engine, None)
         ws = engine.work
         x_mid, v_mid = ws.x_mid, ws.v_mid
-        status, done = fused_steps(method, rattle, large, runs, total - first, h, b_hp,
+        status, done = fused_steps(method, rattle, large, runs, extra, total - first, h, b_hp,
                                    b_counts - first, b_state, x_mid, v_mid, settings, engine,
                                    live)
         if status != OK:
             return status, done
         middle = (x_mid, v_mid, b_state[2], b_state[3], b_state[4])
-        status, more = fused_steps(method, rattle, large, runs, first, h, b_hp, b_counts, middle,
-                                   b_out[0], b_out[1], settings, engine, None)
+        status, more = fused_steps(method, rattle, large, runs, extra, first, h, b_hp,
+                                   b_counts, middle, b_out[0], b_out[1], settings, engine, None)
         return status, done + more

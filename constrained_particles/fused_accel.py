@@ -81,10 +81,12 @@ if kernels.ENABLED:
         return True
 
     @njit_inline
-    def _check_inputs(blocks, rows, n, m, lam, counts):  # pragma: no cover - compiled
+    def _check_inputs(blocks, rows, n, m, lam, counts, extra):  # pragma: no cover - compiled
         """False if the per-element arrays of a block disagree in length, if an active mouse
-        spring's particle is outside [0, n), or (``counts`` not empty) if two particles
-        coupled by a force element or a constraint row take different numbers of steps.
+        spring's particle is outside [0, n), (``counts`` not empty) if two particles coupled
+        by a force element or a constraint row take different numbers of steps, or if
+        ``extra`` is None (the version of the step without angular springs, mouse springs
+        and fixed points: see :func:`_forces`) and the blocks hold any of them.
 
         O(1) per array (and per mouse spring) on a plain call: the index, row, column and run
         arrays were checked when the pack was built (``Packed._consistent``) and are immutable,
@@ -104,17 +106,27 @@ if kernels.ENABLED:
         if (spring.j.shape[0] != k or spring.rest.shape[0] != k or spring.ks.shape[0] != k
                 or spring.kd.shape[0] != k):
             return False
-        ang = blocks.angular
-        k = ang.a.shape[0]
-        if (ang.b.shape[0] != k or ang.c.shape[0] != k or ang.rest.shape[0] != k
-                or ang.k.shape[0] != k or ang.kd.shape[0] != k):
-            return False
-        mouse = blocks.mouse
-        k = mouse.particle.shape[0]
-        if (mouse.anchor.shape[0] != k or mouse.active.shape[0] != k or mouse.ks.shape[0] != k
-                or mouse.kd.shape[0] != k):
-            return False
-        circ, rod, line, fixed = blocks.circle, blocks.rod, blocks.line, blocks.fixed
+        ang, mouse, fixed = blocks.angular, blocks.mouse, blocks.fixed
+        if extra is None:
+            if ang.a.shape[0] or mouse.particle.shape[0] or fixed.particles.shape[0]:
+                return False
+        else:
+            k = ang.a.shape[0]
+            if (ang.b.shape[0] != k or ang.c.shape[0] != k or ang.rest.shape[0] != k
+                    or ang.k.shape[0] != k or ang.kd.shape[0] != k):
+                return False
+            k = mouse.particle.shape[0]
+            if (mouse.anchor.shape[0] != k or mouse.active.shape[0] != k
+                    or mouse.ks.shape[0] != k or mouse.kd.shape[0] != k):
+                return False
+            k = fixed.particles.shape[0]
+            if fixed.point.shape[0] != k or fixed.row.shape[0] != k:
+                return False
+            mi, mact = mouse.particle, mouse.active
+            for e in range(mi.shape[0]):
+                if mact[e] and (mi[e] < 0 or mi[e] >= n):
+                    return False
+        circ, rod, line = blocks.circle, blocks.rod, blocks.line
         k = circ.particles.shape[0]
         if circ.center.shape[0] != k or circ.radius.shape[0] != k or circ.row.shape[0] != k:
             return False
@@ -124,16 +136,9 @@ if kernels.ENABLED:
         k = line.particles.shape[0]
         if line.normal.shape[0] != k or line.point.shape[0] != k or line.row.shape[0] != k:
             return False
-        k = fixed.particles.shape[0]
-        if fixed.point.shape[0] != k or fixed.row.shape[0] != k:
-            return False
         cols, nnz = rows.cols, rows.nnz
         if lam.shape[0] != m or cols.shape[0] != m or nnz.shape[0] != m:
             return False
-        mi, mact = mouse.particle, mouse.active
-        for e in range(mi.shape[0]):
-            if mact[e] and (mi[e] < 0 or mi[e] >= n):
-                return False
         if counts.shape[0] == 0:
             return True
         if counts.shape[0] != n:
@@ -329,11 +334,14 @@ if kernels.ENABLED:
         return everything if live is None else live.sizes[kind]
 
     @njit_inline
-    def _forces(x, v, mass, F, blocks, live, runs):  # pragma: no cover - compiled
+    def _forces(x, v, mass, F, blocks, live, runs, extra):  # pragma: no cover - compiled
         """Applied forces Q (N) into F (overwritten), summed by block type (indices were
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
         all live), elements on particles that are not live are skipped, and so are those
-        particles' rows of F (nothing reads them). ``runs``: see :func:`_springs`."""
+        particles' rows of F (nothing reads them). ``runs``: see :func:`_springs`. ``extra``
+        (``Packed.extra``) None: the pack has no angular springs, mouse springs or fixed
+        points, and Numba drops their loops from this version (here and in :func:`_rows`,
+        :func:`_distance_error`; :func:`_check_inputs` refuses blocks that hold them)."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         if live is None:
             F[:, :] = 0.0
@@ -363,20 +371,21 @@ if kernels.ENABLED:
                 e = el.spring[ee]
                 add_spring(x, v, F, np.uint64(spring.i[e]), np.uint64(spring.j[e]),
                            spring.ks[e], spring.kd[e], spring.rest[e])
-        ang = blocks.angular
-        for ee in range(_count(live, LIVE_ELEMENTS + ANGULAR, ang.a.shape[0])):
-            e = ee if live is None else el.angular[ee]
-            a, b, c = ang.a[e], ang.b[e], ang.c[e]
-            fax, fay, fbx, fby, fcx, fcy = angular_element(
-                x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
-                v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ang.k[e], ang.kd[e],
-                ang.rest[e])
-            F[a, 0] += fax
-            F[a, 1] += fay
-            F[b, 0] += fbx
-            F[b, 1] += fby
-            F[c, 0] += fcx
-            F[c, 1] += fcy
+        if extra is not None:
+            ang = blocks.angular
+            for ee in range(_count(live, LIVE_ELEMENTS + ANGULAR, ang.a.shape[0])):
+                e = ee if live is None else el.angular[ee]
+                a, b, c = ang.a[e], ang.b[e], ang.c[e]
+                fax, fay, fbx, fby, fcx, fcy = angular_element(
+                    x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
+                    v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ang.k[e], ang.kd[e],
+                    ang.rest[e])
+                F[a, 0] += fax
+                F[a, 1] += fay
+                F[b, 0] += fbx
+                F[b, 1] += fby
+                F[c, 0] += fcx
+                F[c, 1] += fcy
         drag = blocks.drag
         for ee in range(_count(live, LIVE_ELEMENTS + DRAG, drag.particles.shape[0])):
             e = ee if live is None else el.drag[ee]
@@ -392,20 +401,21 @@ if kernels.ENABLED:
                                   wpar[k, 0], wpar[k, 1], wpar[k, 2])
             F[q, 0] += fx
             F[q, 1] += fy
-        mouse = blocks.mouse
-        for ee in range(_count(live, LIVE_ELEMENTS + MOUSE, mouse.particle.shape[0])):
-            e = ee if live is None else el.mouse[ee]
-            if mouse.active[e]:
-                q = mouse.particle[e]
-                fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], mouse.anchor[e, 0],
-                                       mouse.anchor[e, 1], mouse.ks[e], mouse.kd[e])
-                F[q, 0] += fx
-                F[q, 1] += fy
+        if extra is not None:
+            mouse = blocks.mouse
+            for ee in range(_count(live, LIVE_ELEMENTS + MOUSE, mouse.particle.shape[0])):
+                e = ee if live is None else el.mouse[ee]
+                if mouse.active[e]:
+                    q = mouse.particle[e]
+                    fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], mouse.anchor[e, 0],
+                                           mouse.anchor[e, 1], mouse.ks[e], mouse.kd[e])
+                    F[q, 0] += fx
+                    F[q, 1] += fy
 
     @njit_inline
-    def _rows(x, v, blocks, C, Cdot, Jv, Jdv, live):  # pragma: no cover - compiled
+    def _rows(x, v, blocks, C, Cdot, Jv, Jdv, live, extra):  # pragma: no cover - compiled
         """C, Cdot and the values of J and Jdot (m, 4) at (x, v), per row (rows of particles
-        that are not ``live`` are skipped; None: all live)."""
+        that are not ``live`` are skipped; None: all live; ``extra``: see :func:`_forces`)."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         circ = blocks.circle
         cc = circ.center
@@ -434,20 +444,22 @@ if kernels.ENABLED:
                                      lpt[e, 0], lpt[e, 1])
             Jv[r, 0], Jv[r, 1] = ln[e, 0], ln[e, 1]
             Jdv[r, 0], Jdv[r, 1] = 0.0, 0.0
-        fixed = blocks.fixed
-        for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
-            e = ee if live is None else el.fixed[ee]
-            q, r = fixed.particles[e], fixed.row[e]
-            for axis in range(2):
-                C[r + axis] = x[q, axis] - fixed.point[e, axis]
-                Cdot[r + axis] = v[q, axis]
-                Jv[r + axis, 0] = 1.0
-                Jdv[r + axis, 0] = 0.0
+        if extra is not None:
+            fixed = blocks.fixed
+            for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
+                e = ee if live is None else el.fixed[ee]
+                q, r = fixed.particles[e], fixed.row[e]
+                for axis in range(2):
+                    C[r + axis] = x[q, axis] - fixed.point[e, axis]
+                    Cdot[r + axis] = v[q, axis]
+                    Jv[r + axis, 0] = 1.0
+                    Jdv[r + axis, 0] = 0.0
 
     @njit
-    def _distance_error(x, blocks, live):  # pragma: no cover - compiled
+    def _distance_error(x, blocks, live, extra):  # pragma: no cover - compiled
         """Largest geometric constraint residual (m): how far any particle is off its wire,
-        any rod from its length, any pin from its point (of ``live`` particles; None: all)."""
+        any rod from its length, any pin from its point (of ``live`` particles; None: all;
+        ``extra``: see :func:`_forces`)."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         worst = 0.0
         circ = blocks.circle
@@ -473,14 +485,15 @@ if kernels.ENABLED:
             d = line_error(x[q, 0], x[q, 1], ln[e, 0], ln[e, 1], lpt[e, 0], lpt[e, 1])
             if not d <= worst:
                 worst = d
-        fixed = blocks.fixed
-        for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
-            e = ee if live is None else el.fixed[ee]
-            q = fixed.particles[e]
-            for axis in range(2):
-                d = abs(x[q, axis] - fixed.point[e, axis])
-                if not d <= worst:
-                    worst = d
+        if extra is not None:
+            fixed = blocks.fixed
+            for ee in range(_count(live, LIVE_ELEMENTS + FIXED, fixed.particles.shape[0])):
+                e = ee if live is None else el.fixed[ee]
+                q = fixed.particles[e]
+                for axis in range(2):
+                    d = abs(x[q, axis] - fixed.point[e, axis])
+                    if not d <= worst:
+                        worst = d
         return worst
 
     @njit_inline
@@ -614,20 +627,20 @@ if kernels.ENABLED:
         return False
 
     @njit
-    def _accel(x, v, out, state, settings, blocks, rows, ws, live, large, runs):
+    def _accel(x, v, out, state, settings, blocks, rows, ws, live, large, runs, extra):
         # pragma: no cover - compiled
         """``qddot = W (Q + J^T lam)`` (m/s^2) at ``(x, v)`` into ``out`` (with ``live``, of
         the live particles only: see :func:`_gate`), the multipliers into ``state.lam`` (warm
         start in); False if the solve failed. ``large``: see :func:`_solve_components`; ``runs``:
-        see :func:`_springs`."""
+        see :func:`_springs`; ``extra``: see :func:`_forces`."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         mass, inv_mass, lam = state.mass, state.inv_mass, state.lam
-        _forces(x, v, mass, out, blocks, live, runs)
+        _forces(x, v, mass, out, blocks, live, runs, extra)
         C, Cdot, Jv, Jdv, b, w2 = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.b, ws.w2
         cols, nnz = rows.cols, rows.nnz
         m = C.shape[0]
         if m:
-            _rows(x, v, blocks, C, Cdot, Jv, Jdv, live)
+            _rows(x, v, blocks, C, Cdot, Jv, Jdv, live, extra)
             ks, kd = settings.ks, settings.kd
             for rr in range(_count(live, LIVE_ROWS, m)):  # b = -Jdot qdot - J W Q
                 r = rr if live is None else lr[rr]  # - ks C - kd Cdot
@@ -654,12 +667,12 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs):
+    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs, extra):
         # pragma: no cover - compiled
         """One RATTLE step of ``h`` seconds from (x, v) into (xs, vs), as
         :func:`constrained_particles.rattle.rattle` does it; False where the reference must
-        take over (it raises the errors). ``large``, ``runs``: see :func:`_solve_components`,
-        :func:`_springs`."""
+        take over (it raises the errors). ``large``, ``runs``, ``extra``: see
+        :func:`_solve_components`, :func:`_springs`, :func:`_forces`."""
         mass, inv_mass, tol = state.mass, state.inv_mass, settings.tol
         f0, f1 = ws.a1, ws.a2  # (stage buffers: RATTLE's force and predicted velocity)
         C, Cdot, Jv, Jdv, J0, b, dl = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.J0, ws.b, ws.dl
@@ -668,19 +681,19 @@ if kernels.ENABLED:
         n = x.shape[0]
         m = C.shape[0]
         half = 0.5 * h
-        _forces(x, v, mass, f0, blocks, None, runs)
+        _forces(x, v, mass, f0, blocks, None, runs, extra)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = v[q, d] + (half * f0[q, d]) * inv_mass[q]  # v_half
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
-            _rows(x, v, blocks, C, Cdot, J0, Jdv, None)
+            _rows(x, v, blocks, C, Cdot, J0, Jdv, None, extra)
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
             previous = np.full(ncomp, math.inf)
             for iteration in range(RATTLE_MAX_ITERATIONS + 1):
-                _rows(xs, vs, blocks, C, Cdot, Jv, Jdv, None)
+                _rows(xs, vs, blocks, C, Cdot, Jv, Jdv, None, extra)
                 remaining = 0
                 for k in range(ncomp):
                     worst = 0.0
@@ -729,7 +742,7 @@ if kernels.ENABLED:
         for q in range(n):
             for d in range(2):
                 f1[q, d] = 2.0 * vs[q, d] - v[q, d]
-        _forces(xs, f1, mass, f0, blocks, None, runs)
+        _forces(xs, f1, mass, f0, blocks, None, runs, extra)
         for q in range(n):
             for d in range(2):
                 vs[q, d] = vs[q, d] + (half * f0[q, d]) * inv_mass[q]  # u

@@ -340,12 +340,12 @@ class Packed:
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
     @property
-    def variant(self) -> tuple[bool | None, bool | None]:
-        """``(large, spring_runs)``: which optional parts of the fused step this pack needs
+    def variant(self) -> tuple[bool | None, bool | None, bool | None]:
+        """``(large, spring_runs, extra)``: which optional parts of the fused step this pack needs
         (True) or not (None). The fused step takes them as arguments, and Numba compiles a
         version per pattern of None, without the parts a None rules out: a run compiles only
         what its systems use (docs/compile_time.md)."""
-        return self.large, self.spring_runs
+        return self.large, self.spring_runs, self.extra
 
     @property
     def large(self) -> bool | None:
@@ -353,6 +353,16 @@ class Packed:
         solve it by conjugate gradients), else None: the fused step takes it as an argument,
         and its version for None compiles no conjugate gradients (docs/compile_time.md)."""
         return True if self.max_component > DIRECT_MAX else None
+
+    @property
+    def extra(self) -> bool | None:
+        """True if the system has angular springs, mouse springs or fixed points, else None:
+        the fused step's version for None compiles none of their loops (the envs' force-mode
+        tasks and cloths have none; the kernels refuse blocks that hold any with None)."""
+        b = self.blocks
+        if len(b.angular.a) or len(b.mouse.particle) or len(b.fixed.particles):
+            return True
+        return None
 
     @property
     def spring_runs(self) -> bool | None:

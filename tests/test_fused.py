@@ -146,7 +146,8 @@ def test_copies_of_a_tiled_scene_are_exactly_independent():
 def test_large_components_use_warm_started_cg_like_the_reference():
     s = scenes.angular_chain(links=14)  # 14 rods in one component: CG
     assert fused.pack(s).max_component == 14
-    assert fused.pack(s).variant == (True, None)  # (the version with conjugate gradients)
+    # (the version with conjugate gradients, and angular springs)
+    assert fused.pack(s).variant == (True, None, True)
     status, *_ = fused.run(s.copy(), 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), 1e-3)
     assert status == fused.OK  # solved on the fused path, not handed to the reference
     x_ref, v_ref = reference(s, "rk4", 1e-3, 50)
@@ -572,7 +573,7 @@ def test_small_components_take_the_fused_step_without_conjugate_gradients():
     # version for None (which compiles no conjugate gradients) steps it like the reference
     s = scenes.wire_mixture()
     p = fused.pack(s)
-    assert 0 < p.max_component <= DIRECT_MAX and p.variant == (None, None)
+    assert 0 < p.max_component <= DIRECT_MAX and p.variant == (None, None, None)
     x_ref, v_ref = reference(s, "rk4", 1e-3, 50)
     status, *_ = fused.run(s.copy(), 1e-3, "rk4", 1, s.constraint_solver.lam.copy(), 1e-3)
     assert status == fused.OK
@@ -586,9 +587,32 @@ def test_the_pack_names_the_spring_runs_its_step_needs(size, runs):
     # a small cloth's springs form no runs (every spring goes one by one, and the fused
     # step's version for None compiles no run loop); a larger one's rows do
     s = scenes.cloth(size, size)
-    assert fused.pack(s).variant == (None, runs)
+    assert fused.pack(s).variant == (None, runs, None)
     assert (len(fused.pack(s).blocks.spring.runs) > 0) == (runs is True)
     x_ref, v_ref = reference(s, "midpoint", 1e-3, 20)
     s.step(1e-3, "midpoint", steps=20)
     close(s.x, x_ref)
     close(s.v, v_ref)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_step_without_the_rarer_elements_refuses_blocks_that_hold_them(seed):
+    # every_block has angular springs, mouse springs and fixed points: its pack asks for the
+    # fused step's version with their loops, and the version without them (extra None) hands
+    # such blocks to the reference instead of stepping without their forces and rows
+    s = every_block(seed)
+    p, start, settings = fused.prepare(s, s.constraint_solver.lam.copy(), 1e-3)
+    assert p.variant[2] is True
+    code, rattle = fused.integrator_args("midpoint")
+    x_out, v_out = np.full_like(s.x, 7.0), np.full_like(s.v, 7.0)
+    status, _ = fused.fused_steps(code, rattle, p.large, p.spring_runs, None, 1, 1e-3,
+                                  np.zeros(0), np.zeros(0, np.int64), tuple(start), x_out,
+                                  v_out, tuple(settings), p.refs.engine, None)
+    assert status == fused.FALLBACK and (x_out == 7.0).all() and (v_out == 7.0).all()
+    status, _ = fused.fused_steps(code, rattle, *p.variant, 1, 1e-3, np.zeros(0),
+                                  np.zeros(0, np.int64), tuple(start), x_out, v_out,
+                                  tuple(settings), p.refs.engine, None)
+    assert status == fused.OK
+    x_ref, v_ref = reference(s, "midpoint", 1e-3, 1)
+    close(x_out, x_ref)
+    close(v_out, v_ref)
