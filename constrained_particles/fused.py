@@ -30,9 +30,9 @@ checked once when the pack is built; a call checks only what an in-place edit ca
 arrays, the element runs over the block (its square roots and divisions vectorize), and the
 forces are added in spring order. Runs of springs whose ends both step by one (a cloth's rows,
 columns and diagonals: :func:`spring_runs`, found once per topology and checked against the
-index arrays on every call) are read through contiguous slices instead, and each particle's two
-sums from a run are written in one pass in the order the plain loop adds them, so every path
-gives the plain loop's forces bit for bit.
+index arrays when the pack is built) are read through contiguous slices instead, and each
+particle's two sums from a run are written in one pass in the order the plain loop adds them,
+so every path gives the plain loop's forces bit for bit.
 """
 
 from __future__ import annotations

@@ -304,6 +304,13 @@ class Packed:
         else:
             self._build_rows(system)
         self.valid = self.rows_valid and self._consistent()
+        #: ``(large, spring_runs, extra)``: which optional parts of the fused step this pack
+        #: needs (True) or not (None), fixed for the pack's life (a mouse spring's new particle
+        #: array has the old one's shape). The fused step takes them as arguments, and Numba
+        #: compiles a version per pattern of None without the parts a None rules out: a run
+        #: compiles only what its systems use (docs/compile_time.md).
+        self.variant: tuple[bool | None, bool | None, bool | None] = (
+            self.large, self.spring_runs, self.extra)
         #: scratch space reused by every call: the backing arrays and the named
         #: :class:`~.records.Workspace` over them
         self.backing = workspace(n, self.m, DIRECT_MAX)
@@ -340,14 +347,6 @@ class Packed:
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
     @property
-    def variant(self) -> tuple[bool | None, bool | None, bool | None]:
-        """``(large, spring_runs, extra)``: which optional parts of the fused step this pack needs
-        (True) or not (None). The fused step takes them as arguments, and Numba compiles a
-        version per pattern of None, without the parts a None rules out: a run compiles only
-        what its systems use (docs/compile_time.md)."""
-        return self.large, self.spring_runs, self.extra
-
-    @property
     def large(self) -> bool | None:
         """True if a constraint component has more than ``DIRECT_MAX`` rows (the kernels
         solve it by conjugate gradients), else None: the fused step takes it as an argument,
@@ -357,8 +356,9 @@ class Packed:
     @property
     def extra(self) -> bool | None:
         """True if the system has angular springs, mouse springs or fixed points, else None:
-        the fused step's version for None compiles none of their loops (the envs' force-mode
-        tasks and cloths have none; the kernels refuse blocks that hold any with None)."""
+        the fused step's version for None compiles none of their loops, and refuses blocks
+        that hold any (the reference then steps them). None for the cloths, the force-mode
+        ClothSlide and SliderCrank and ClothPin; True for ChainSwing and the spring modes."""
         b = self.blocks
         if len(b.angular.a) or len(b.mouse.particle) or len(b.fixed.particles):
             return True

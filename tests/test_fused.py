@@ -589,30 +589,92 @@ def test_the_pack_names_the_spring_runs_its_step_needs(size, runs):
     s = scenes.cloth(size, size)
     assert fused.pack(s).variant == (None, runs, None)
     assert (len(fused.pack(s).blocks.spring.runs) > 0) == (runs is True)
+    status, *_ = fused.run(s.copy(), 1e-3, "midpoint", 1, s.constraint_solver.lam.copy(), 1e-3)
+    assert status == fused.OK  # stepped by the fused kernel, not handed to the reference
     x_ref, v_ref = reference(s, "midpoint", 1e-3, 20)
     s.step(1e-3, "midpoint", steps=20)
     close(s.x, x_ref)
     close(s.v, v_ref)
 
 
-@pytest.mark.parametrize("seed", range(2))
-def test_the_step_without_the_rarer_elements_refuses_blocks_that_hold_them(seed):
-    # every_block has angular springs, mouse springs and fixed points: its pack asks for the
-    # fused step's version with their loops, and the version without them (extra None) hands
-    # such blocks to the reference instead of stepping without their forces and rows
-    s = every_block(seed)
+def _one_rare_element(kind: str) -> ParticleSystem:
+    """Four particles on springs and a rod, with one angular spring, one mouse spring or one
+    fixed point (the elements of the fused step's ``extra`` part) and nothing else rare."""
+    s = ParticleSystem()
+    s.add_particles([(0.0, 0.0), (0.5, 0.1), (1.0, -0.1), (1.4, 0.2)],
+                    [(0.1, 0.0), (0.0, 0.2), (-0.1, 0.1), (0.0, -0.3)], mass=[1.0, 0.5, 2.0, 1.0])
+    s.add(Gravity((0.0, -9.81)), DampedSpring([0, 1], [1, 2], ks=20.0, kd=0.2), Rod(2, 3))
+    s.add({"angular": AngularSpring([0], [1], [2], k=1.5, kd=0.05, rest=2.5),
+           "mouse": MouseSpring(3, anchor=(1.0, 1.0), ks=30.0, kd=0.5),
+           "fixed": FixedPoint(0)}[kind])
+    return s
+
+
+def _fused_call(s: ParticleSystem, variant: tuple) -> tuple[int, np.ndarray, np.ndarray]:
+    """One midpoint step of ``s`` by ``fused.fused_steps`` with the given variant flags; the
+    status and the outputs (filled with 7.0 before the call)."""
     p, start, settings = fused.prepare(s, s.constraint_solver.lam.copy(), 1e-3)
-    assert p.variant[2] is True
     code, rattle = fused.integrator_args("midpoint")
     x_out, v_out = np.full_like(s.x, 7.0), np.full_like(s.v, 7.0)
-    status, _ = fused.fused_steps(code, rattle, p.large, p.spring_runs, None, 1, 1e-3,
-                                  np.zeros(0), np.zeros(0, np.int64), tuple(start), x_out,
-                                  v_out, tuple(settings), p.refs.engine, None)
-    assert status == fused.FALLBACK and (x_out == 7.0).all() and (v_out == 7.0).all()
-    status, _ = fused.fused_steps(code, rattle, *p.variant, 1, 1e-3, np.zeros(0),
+    status, _ = fused.fused_steps(code, rattle, *variant, 1, 1e-3, np.zeros(0),
                                   np.zeros(0, np.int64), tuple(start), x_out, v_out,
                                   tuple(settings), p.refs.engine, None)
+    return int(status), x_out, v_out
+
+
+@pytest.mark.parametrize("kind", ["angular", "mouse", "fixed"])
+def test_the_step_without_the_rarer_elements_refuses_blocks_that_hold_them(kind):
+    # one angular spring, mouse spring or fixed point is enough for the pack to ask for the
+    # fused step's version with their loops; the version without them (extra None) hands the
+    # system to the reference (FALLBACK, outputs untouched) instead of dropping the element
+    s = _one_rare_element(kind)
+    p = fused.pack(s)
+    assert p.variant == (None, None, True)
+    status, x_out, v_out = _fused_call(s, p.variant)
     assert status == fused.OK
     x_ref, v_ref = reference(s, "midpoint", 1e-3, 1)
     close(x_out, x_ref)
     close(v_out, v_ref)
+    # (after that step the pack's workspace holds valid rows: a version that skipped the
+    # fixed point's rows would solve with them instead of failing on a zero row)
+    status, x_out, v_out = _fused_call(s, (None, None, None))
+    assert status == fused.FALLBACK and (x_out == 7.0).all() and (v_out == 7.0).all()
+
+
+def test_the_step_without_conjugate_gradients_hands_large_components_to_the_reference():
+    # a component of 14 rows with large None (the version without conjugate gradients):
+    # FALLBACK with the outputs untouched, never a step that skips the component's solve
+    s = scenes.angular_chain(links=14)
+    p = fused.pack(s)
+    assert p.variant[0] is True
+    status, x_out, v_out = _fused_call(s, (None, *p.variant[1:]))
+    assert status == fused.FALLBACK and (x_out == 7.0).all() and (v_out == 7.0).all()
+    assert _fused_call(s, p.variant)[0] == fused.OK
+
+
+def _env_cases() -> list[tuple[str, str]]:
+    import envs
+    from envs.train import ENV_ACTION_MODES
+    return [(env_id, mode) for env_id in envs.ENV_IDS for mode in ENV_ACTION_MODES[env_id]]
+
+
+@pytest.mark.parametrize("env_id, mode", _env_cases())
+def test_every_env_steps_on_the_fused_kernel(env_id, mode):
+    # a pack whose variant left out a part its system needs would fall back to the reference
+    # at every step (slow, not wrong): each env's system, in each action mode, steps on the
+    # fused kernel itself, with the variant its blocks call for
+    import gymnasium as gym
+
+    env = gym.make(env_id, action_mode=mode)
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    s = task.system
+    p = fused.pack(s)
+    b = p.blocks
+    rare = len(b.angular.a) + len(b.mouse.particle) + len(b.fixed.particles)
+    assert p.variant == (True if p.max_component > DIRECT_MAX else None,
+                         True if len(b.spring.runs) else None, True if rare else None)
+    status, *_ = fused.run(s.copy(), task.dt, task.integrator, 1,
+                           s.constraint_solver.lam.copy(), s.residual_limit)
+    assert status == fused.OK
+    env.close()
