@@ -26,7 +26,7 @@ write there could replace.
 Only the functions decorated here are affected; Numba's settings for other code stay as they are.
 
 When one of these functions starts compiling (its machine code is in no cache) and stderr is a
-terminal, one line says so, once per process: a first run spends a minute or more compiling, and
+terminal, one line says so, once per process: a first run spends tens of seconds compiling, and
 nothing else would tell the user why it waits. Output that is not a terminal (a pipe, a log file,
 the tests) stays silent, as the command line's progress bars do.
 """
@@ -167,7 +167,7 @@ class _CompileNotice(event.Listener):
             return
         where = cache_dir()
         kept = f"cached in {where}" if where is not None else "kept in memory"
-        print(f"constrained-particles: compiling kernels, first run only (a minute or two; "
+        print(f"constrained-particles: compiling kernels, first run only (tens of seconds; "
               f"{kept}) ...", file=stream, flush=True)
 
     def on_end(self, ev: event.Event) -> None:
