@@ -168,15 +168,15 @@ if kernels.ENABLED:
         xf, vf, Ff = x.reshape(-1), v.reshape(-1), F.reshape(-1)
         ws = np.empty((6, RUN_BLOCK))
         e = 0
-        runs = spring.runs
-        for r in range(runs.shape[0] + 1):
-            stop = runs[r, 0] if r < runs.shape[0] else k
+        spans = spring.runs  # (the runs themselves: ``runs`` is the flag)
+        for r in range(spans.shape[0] + 1):
+            stop = spans[r, 0] if r < spans.shape[0] else k
             if stop > e:
                 _scattered_springs(x, v, F, si[e:stop], sj[e:stop], srest[e:stop],
                                    sks[e:stop], skd[e:stop])
-            if r == runs.shape[0]:
+            if r == spans.shape[0]:
                 break
-            lo, hi = runs[r, 0], runs[r, 1]
+            lo, hi = spans[r, 0], spans[r, 1]
             a0, d = si[lo], sj[lo] - si[lo]
             for c in range(lo, hi, RUN_BLOCK):
                 m = min(RUN_BLOCK, hi - c)
