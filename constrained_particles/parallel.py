@@ -26,7 +26,7 @@ by range, a mouse spring on another range's particle) or the system is too small
 (fewer than :data:`MIN_PARTICLES` particles a range), the step runs whole on one thread.
 
 The threads are a :class:`Crew`: k - 1 daemon threads that wait for their next call spinning
-on a flag without the GIL for about :data:`SPINS` looks (2 ms) and then sleep on an event, the
+on a flag without the GIL for about :data:`WAIT_SECONDS` (2 ms) and then sleep on an event, the
 calling thread taking the first range. They start on the first threaded step, stop with
 ``ParticleSystem.close_threads()`` (or when the system is dropped) and start again in a
 forked child.
@@ -35,6 +35,7 @@ forked child.
 from __future__ import annotations
 
 import copy
+import math
 import os
 import threading
 import time
@@ -52,18 +53,23 @@ from .terms import frozen
 if TYPE_CHECKING:
     from .system import ParticleSystem
 
-__all__ = ["CLOSE_SECONDS", "MIN_PARTICLES", "POLL_SECONDS", "SETTLED", "SPINS", "Crew",
-           "Partition", "cuts"]
+__all__ = ["CLOSE_SECONDS", "MIN_PARTICLES", "POLL_SECONDS", "SETTLED", "WAIT_SECONDS", "Crew",
+           "Partition", "cuts", "wait_spins"]
 
 #: Fewest particles a range must have for a step to be cut into ranges at all: below it, handing
 #: the ranges to threads costs more than it saves.
 MIN_PARTICLES = 64
-#: How long a crew thread waits for its next call, spinning without the GIL, before it sleeps
-#: on an event (as spins of an atomic load, about 1.5 ns each on this class of machine: about
-#: 2 ms). Waking a sleeping thread costs this class of VM 50-150 us, a spin about nothing; a
-#: busy loop steps again well within it, an idle system costs no CPU after it.
-SPINS = 1_500_000
+#: How long (s) a crew thread waits for its next call, spinning without the GIL, before it
+#: sleeps on an event: waking a sleeping thread costs this class of VM 50-150 us, a spin about
+#: nothing; a training loop whose policy takes a millisecond between steps steps again within
+#: it, an idle system costs no CPU after it. The wait is counted in looks at a flag, as many as
+#: last this long on the machine (:func:`wait_spins`).
+WAIT_SECONDS = 0.002
 POLL_SECONDS = 0.002  #: the same wait where the compiled code is off (polling with the GIL)
+#: Looks timed (per run, fastest of :data:`_CALIBRATION_RUNS`) to find how long one lasts
+_CALIBRATION_SPINS = 50_000
+_CALIBRATION_RUNS = 5
+_seconds_per_spin: list[float] = []  # measured once per process (see wait_spins)
 #: Longest wait (s) of :meth:`Crew.close` for a run in progress, and for each thread to end.
 CLOSE_SECONDS = 5.0
 #: Calls a partition must serve before a new pack of the system is cut again at once: a system
@@ -119,6 +125,26 @@ if kernels.ENABLED:
         return False
 
 
+def wait_spins(seconds: float = WAIT_SECONDS) -> int:
+    """How many looks at a flag of the crew's compiled wait last about ``seconds`` (s) on this
+    machine: measured once per process (the fastest of a few timed runs of
+    :data:`_CALIBRATION_SPINS` looks at a flag that never flips, about 15 us each; a look
+    costs some 0.27 ns on this class of machine, where a fixed count of 1.5e6 once stood for
+    2 ms and lasted 0.4 ms). At least 1."""
+    if not kernels.ENABLED:  # (the polling wait counts seconds, not looks)
+        return 1
+    if not _seconds_per_spin:
+        never = np.zeros(1, np.int64)
+        _wait_for(never, 0, 1, 1)  # (compiled or loaded before it is timed)
+        best = math.inf
+        for _ in range(_CALIBRATION_RUNS):
+            start = time.perf_counter()
+            _wait_for(never, 0, 1, _CALIBRATION_SPINS)
+            best = min(best, time.perf_counter() - start)
+        _seconds_per_spin.append(max(best, 1e-9) / _CALIBRATION_SPINS)
+    return max(1, int(seconds / _seconds_per_spin[0]))
+
+
 class Crew:
     """``k`` daemon threads that each run one call per :meth:`run`, the calling thread running
     another.
@@ -127,8 +153,8 @@ class Crew:
     done), looked at in a compiled loop that holds no GIL (:func:`_wait_for`): the calling
     thread's Python runs undisturbed while a crew thread waits, and a call starts within about
     a microsecond of being handed over (a thread woken from an event would take 50-150 us on
-    this class of VM). A crew thread that has waited :data:`SPINS` looks sleeps on an event
-    until the next call.
+    this class of VM). A crew thread that has waited about :data:`WAIT_SECONDS` (as
+    :func:`wait_spins` looks) sleeps on an event until the next call.
 
     A crew serves one caller at a time: :meth:`run` while another thread is in it raises
     RuntimeError (so does a call that reaches :meth:`run` again from inside one). A run left
@@ -141,6 +167,7 @@ class Crew:
     _STOP = object()
 
     def __init__(self, k: int, name: str) -> None:
+        self._spins = wait_spins()  # (looks lasting WAIT_SECONDS)
         self._calls: list[Any] = [None] * k
         self._results: list[tuple[bool, Any] | None] = [None] * k
         self._posted = np.zeros(k, np.int64)  # the number of calls handed to thread i
@@ -177,10 +204,10 @@ class Crew:
         return not self._closed and self.pid == os.getpid()
 
     def _serve(self, i: int) -> None:
-        posted, done, wake = self._posted, self._done, self._wake[i]
+        posted, done, wake, spins = self._posted, self._done, self._wake[i], self._spins
         seq = 0
         while True:
-            if not _wait_for(posted, i, seq + 1, SPINS):
+            if not _wait_for(posted, i, seq + 1, spins):
                 self._sleeping[i] = True  # (then looked at again: run() may have posted
                 while posted[i] <= seq:  # before it saw this flag)
                     wake.wait()
@@ -234,7 +261,7 @@ class Crew:
         for i in range(len(others)):
             # a call of a run left by an exception may still be running (or not yet taken):
             # a slot is written only once its thread has done every call posted before
-            while not _wait_for(done, i, int(posted[i]), SPINS):
+            while not _wait_for(done, i, int(posted[i]), self._spins):
                 pass
         with self._post_lock:
             if self._closed:  # (closed meanwhile: a thread may have ended)
@@ -249,7 +276,7 @@ class Crew:
             mine = first()
         finally:
             for i, target in enumerate(targets):  # no call is still running when this returns
-                while not _wait_for(done, i, target, SPINS):
+                while not _wait_for(done, i, target, self._spins):
                     pass
         out = [mine]
         errors = []
@@ -290,7 +317,7 @@ class Crew:
         for i, t in enumerate(self._threads):
             if t is here or not t.is_alive() or self._calls[i] is self._STOP:
                 continue
-            while not _wait_for(self._done, i, int(self._posted[i]), SPINS):
+            while not _wait_for(self._done, i, int(self._posted[i]), self._spins):
                 if time.monotonic() > deadline:
                     break
             else:  # (idle: nothing posted is left undone, so the slot is free)
