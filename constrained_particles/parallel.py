@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
 import os
 import threading
 import time
@@ -130,7 +131,11 @@ def wait_spins(seconds: float = WAIT_SECONDS) -> int:
     machine: measured once per process (the fastest of a few timed runs of
     :data:`_CALIBRATION_SPINS` looks at a flag that never flips, about 15 us each; a look
     costs some 0.27 ns on this class of machine, where a fixed count of 1.5e6 once stood for
-    2 ms and lasted 0.4 ms). At least 1."""
+    2 ms and lasted 0.4 ms). At least 1. ValueError unless ``seconds`` is a finite number
+    >= 0."""
+    if not (isinstance(seconds, numbers.Real) and not isinstance(seconds, bool)
+            and math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"seconds must be a finite number >= 0, got {seconds!r}")
     if not kernels.ENABLED:  # (the polling wait counts seconds, not looks)
         return 1
     if not _seconds_per_spin:

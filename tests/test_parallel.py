@@ -533,3 +533,9 @@ def test_a_crew_thread_waits_about_wait_seconds_before_it_sleeps() -> None:
     crew = parallel.Crew(1, "test")
     assert crew._spins == parallel.wait_spins()
     crew.close()
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), "2 ms", True])
+def test_a_bad_wait_is_a_clear_error(bad: object) -> None:
+    with pytest.raises(ValueError, match="seconds"):
+        parallel.wait_spins(bad)  # type: ignore[arg-type]
