@@ -35,6 +35,7 @@ forked child.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import numbers
 import os
@@ -70,7 +71,6 @@ POLL_SECONDS = 0.002  #: the same wait where the compiled code is off (polling w
 #: Looks timed (per run, fastest of :data:`_CALIBRATION_RUNS`) to find how long one lasts
 _CALIBRATION_SPINS = 50_000
 _CALIBRATION_RUNS = 5
-_seconds_per_spin: list[float] = []  # measured once per process (see wait_spins)
 #: Longest wait (s) of :meth:`Crew.close` for a run in progress, and for each thread to end.
 CLOSE_SECONDS = 5.0
 #: Calls a partition must serve before a new pack of the system is cut again at once: a system
@@ -138,16 +138,21 @@ def wait_spins(seconds: float = WAIT_SECONDS) -> int:
         raise ValueError(f"seconds must be a finite number >= 0, got {seconds!r}")
     if not kernels.ENABLED:  # (the polling wait counts seconds, not looks)
         return 1
-    if not _seconds_per_spin:
-        never = np.zeros(1, np.int64)
-        _wait_for(never, 0, 1, 1)  # (compiled or loaded before it is timed)
-        best = math.inf
-        for _ in range(_CALIBRATION_RUNS):
-            start = time.perf_counter()
-            _wait_for(never, 0, 1, _CALIBRATION_SPINS)
-            best = min(best, time.perf_counter() - start)
-        _seconds_per_spin.append(max(best, 1e-9) / _CALIBRATION_SPINS)
-    return max(1, int(seconds / _seconds_per_spin[0]))
+    return max(1, int(seconds / _seconds_per_look()))
+
+
+@functools.cache
+def _seconds_per_look() -> float:
+    """How long (s) one look of the compiled :func:`_wait_for` lasts here (measured once per
+    process, see :func:`wait_spins`)."""
+    never = np.zeros(1, np.int64)
+    _wait_for(never, 0, 1, 1)  # (compiled or loaded before it is timed)
+    best = math.inf
+    for _ in range(_CALIBRATION_RUNS):
+        start = time.perf_counter()
+        _wait_for(never, 0, 1, _CALIBRATION_SPINS)
+        best = min(best, time.perf_counter() - start)
+    return max(best, 1e-9) / _CALIBRATION_SPINS
 
 
 class Crew:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import pickle
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -522,8 +523,6 @@ def test_a_crew_thread_waits_about_wait_seconds_before_it_sleeps() -> None:
     """The spinning wait lasts at least about the time asked for (a fixed count of looks once
     stood for 2 ms and lasted 0.4 ms on this class of machine). A lower bound: a busy machine
     makes the wait longer, not shorter."""
-    import time
-
     never = np.zeros(1, np.int64)
     spins = parallel.wait_spins(0.004)
     assert parallel.wait_spins(0.002) in (spins // 2, spins // 2 + 1)
