@@ -285,8 +285,9 @@ if kernels.ENABLED:
                 and el.fixed.shape[0] >= blocks.fixed.particles.shape[0])
 
     @njit(inline="always")
-    def _work_fits(ws, n, m):  # pragma: no cover - compiled
-        """True if the workspace has the shapes of ``n`` particles and ``m`` rows."""
+    def _work_fits(ws, rows, n, m):  # pragma: no cover - compiled
+        """True if the workspace has the shapes of ``n`` particles, ``m`` rows and the
+        sparse factors planned in ``rows``."""
         for a in (ws.spare_x, ws.spare_v, ws.a1, ws.a2, ws.a3, ws.a4, ws.xs, ws.vs, ws.vs2,
                   ws.vs3, ws.x_mid, ws.v_mid):
             if a.shape != (n, 2):
@@ -294,9 +295,11 @@ if kernels.ENABLED:
         for a in (ws.Jv, ws.Jdv, ws.J0):
             if a.shape != (m, 4):
                 return False
-        for a in (ws.C, ws.Cdot, ws.b, ws.dl):
+        for a in (ws.C, ws.Cdot, ws.b, ws.dl, ws.y):
             if a.shape[0] != m:
                 return False
+        if rows.lptr.shape[0] != m + 1 or ws.L.shape[0] != rows.lptr[m]:
+            return False
         return (ws.w2.shape[0] == 2 * n and ws.tmp.shape[0] == 2 * n
                 and ws.A.shape == (DIRECT_MAX, DIRECT_MAX) and ws.work.shape[0] == DIRECT_MAX)
 
@@ -452,7 +455,7 @@ if kernels.ENABLED:
             return FALLBACK, 0
         if not _check_inputs(blocks, rows, n, m, start.lam, b_counts, extra):
             return FALLBACK, 0
-        if not _work_fits(ws, n, m):
+        if not _work_fits(ws, rows, n, m):
             return FALLBACK, 0
         w2, tmp, inv_mass = ws.w2, ws.tmp, start.inv_mass
         if rattle is None:  # w2 and tmp are read only at the constraint rows' coordinates:
@@ -492,8 +495,9 @@ if kernels.ENABLED:
                             vo[q, 0], vo[q, 1] = v[q, 0], v[q, 1]
                 _gate(step, b_counts, rows, blocks, live)
             if rattle is not None:
+                # (a step after the first starts where the one before ended: fresh factors)
                 if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws, large, runs,
-                               extra):
+                               extra, step > 0):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live, large, runs,

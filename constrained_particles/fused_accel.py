@@ -34,6 +34,7 @@ from .records import (
     WALL,
     live_lists,
 )
+from .ordering import SPARSE
 from .solver import DIRECT_MAX
 
 #: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents
@@ -496,15 +497,81 @@ if kernels.ENABLED:
                         worst = d
         return worst
 
+    @njit
+    def _sparse_factor(rows, Jv, w2, L, k):  # pragma: no cover - compiled
+        """The Cholesky factor of ``J W J^T`` of the sparse-factorised component ``k`` (``J``
+        the values ``Jv``) into ``L``, by the plan in ``rows`` (:class:`~.ordering.FactorPlan`:
+        assembly from the products of J's values, then each column's left-looking updates from
+        earlier columns, its square root and scaling); False if a pivot is not above 1e-12 of
+        its diagonal entry (a singular or ill-posed component: the reference then solves it)."""
+        lptr, aptr, prod, uptr, upd, cols = (rows.lptr, rows.aptr, rows.prod, rows.uptr,
+                                             rows.upd, rows.cols)
+        start, stop = rows.comp_ptr[k], rows.comp_ptr[k + 1]
+        for e in range(lptr[start], lptr[stop]):
+            L[e] = 0.0
+        for q in range(aptr[start], aptr[stop]):
+            r1, k1, r2, k2 = prod[q, 1], prod[q, 2], prod[q, 3], prod[q, 4]
+            L[prod[q, 0]] += Jv[r1, k1] * w2[cols[r1, k1]] * Jv[r2, k2]
+        for p in range(start, stop):
+            e0 = lptr[p]
+            d0 = L[e0]
+            for u in range(uptr[p], uptr[p + 1]):
+                L[upd[u, 0]] -= L[upd[u, 1]] * L[upd[u, 2]]
+            d = L[e0]
+            if not d > 1e-12 * d0 or not d > 0.0:
+                return False
+            d = math.sqrt(d)
+            L[e0] = d
+            for e in range(e0 + 1, lptr[p + 1]):
+                L[e] /= d
+        return True
+
+    @njit
+    def _sparse_solve(rows, L, y, b, lam, k):  # pragma: no cover - compiled
+        """``lam`` of component ``k`` from its factor ``L`` (:func:`_sparse_factor`): the
+        right-hand side ``b`` in elimination order into ``y``, ``L z = b`` by columns,
+        ``L^T y = z`` by rows, and back into row order."""
+        lptr, lpos, comp_rows = rows.lptr, rows.lpos, rows.comp_rows
+        start, stop = rows.comp_ptr[k], rows.comp_ptr[k + 1]
+        for p in range(start, stop):
+            y[p] = b[comp_rows[p]]
+        for p in range(start, stop):
+            e0 = lptr[p]
+            yp = y[p] / L[e0]
+            y[p] = yp
+            for e in range(e0 + 1, lptr[p + 1]):
+                y[lpos[e]] -= L[e] * yp
+        for p in range(stop - 1, start - 1, -1):
+            e0 = lptr[p]
+            acc = y[p]
+            for e in range(e0 + 1, lptr[p + 1]):
+                acc -= L[e] * y[lpos[e]]
+            y[p] = acc / L[e0]
+        for p in range(start, stop):
+            lam[comp_rows[p]] = y[p]
+
+    @njit
+    def _factor_sparse(rows, Jv, w2, L):  # pragma: no cover - compiled
+        """:func:`_sparse_factor` of every sparse-factorised component (RATTLE's position
+        solve reuses the factors of ``J(x0)``); False if one fails."""
+        kind = rows.kind
+        for k in range(kind.shape[0]):
+            if kind[k] == SPARSE and not _sparse_factor(rows, Jv, w2, L, k):
+                return False
+        return True
+
     @njit_inline
-    def _solve_components(rows, ws, b, lam, tol, live, large):  # pragma: no cover - compiled
+    def _solve_components(rows, ws, b, lam, tol, live, large, factored):
+        # pragma: no cover - compiled
         """Solve ``J W J^T lam = b`` (``J`` the values ``ws.Jv`` on ``rows``) component by
         component (with ``live``, only those of live particles: see :func:`_gate`); False if
         any solve is singular, ill-posed or does not converge (the caller then uses the
-        reference solver). Components of more than ``DIRECT_MAX`` rows are solved by
-        conjugate gradients if ``large`` is not None (``Packed.large``: the pack has such a
-        component); with None, Numba drops that branch, so a system without them compiles no
-        conjugate gradients, and such a component (never there) would return False."""
+        reference solver). Components of more than ``DIRECT_MAX`` rows are solved by their
+        sparse Cholesky factorisation (``Rows.kind`` ``SPARSE``; with ``factored`` True by the
+        factors already in ``ws.L``, else factorised here) or by conjugate gradients
+        (``CG``), if ``large`` is not None (``Packed.large``: the pack has such a
+        component); with None, Numba drops that branch, so a system without them compiles
+        neither, and such a component (never there) would return False."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         cols, nnz, comp_rows, comp_ptr = rows.cols, rows.nnz, rows.comp_rows, rows.comp_ptr
         w2, Jv, work, A, tmp = ws.w2, ws.Jv, ws.work, ws.A, ws.tmp
@@ -554,6 +621,10 @@ if kernels.ENABLED:
                     lam[comp_rows[start + i]] = work[i]
             elif large is None:
                 return False
+            elif rows.kind[k] == SPARSE:
+                if not (factored or _sparse_factor(rows, Jv, w2, ws.L, k)):
+                    return False
+                _sparse_solve(rows, ws.L, ws.y, b, lam, k)
             elif not _cg_component(cols, nnz, comp_rows[start:stop], w2, Jv, b, lam, tol, tmp):
                 return False
         return True
@@ -650,7 +721,7 @@ if kernels.ENABLED:
                     q, axis = c // 2, c % 2
                     acc += Jdv[r, k] * v[q, axis] + Jv[r, k] * (w2[c] * out[q, axis])
                 b[r] = -acc - ks * C[r] - kd * Cdot[r]
-            if not _solve_components(rows, ws, b, lam, settings.tol, live, large):
+            if not _solve_components(rows, ws, b, lam, settings.tol, live, large, False):
                 return False
             for rr in range(_count(live, LIVE_ROWS, m)):  # Q += J^T lam
                 r = rr if live is None else lr[rr]
@@ -667,12 +738,20 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs, extra):
+    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs, extra, fresh):
         # pragma: no cover - compiled
         """One RATTLE step of ``h`` seconds from (x, v) into (xs, vs), as
         :func:`constrained_particles.rattle.rattle` does it; False where the reference must
         take over (it raises the errors). ``large``, ``runs``, ``extra``: see
-        :func:`_solve_components`, :func:`_springs`, :func:`_forces`."""
+        :func:`_solve_components`, :func:`_springs`, :func:`_forces`.
+
+        Sparse-factorised components take simplified Newton iterations in the position solve:
+        ``J(x0) W J(x0)^T``, factorised once, instead of the reference's ``J(x1) W J(x1)^T``
+        at every iteration (both err from the exact ``J(x1) W J(x0)^T`` by O(h |v| / L), so
+        they converge alike, to the same root). The velocity solve factorises ``J(x1) W
+        J(x1)^T``, which is the next step's ``J(x0) W J(x0)^T``: with ``fresh`` True (the
+        step before, in the same call, ended at ``x``) ``ws.L`` holds it already, and a step
+        costs one factorisation."""
         mass, inv_mass, tol = state.mass, state.inv_mass, settings.tol
         f0, f1 = ws.a1, ws.a2  # (stage buffers: RATTLE's force and predicted velocity)
         C, Cdot, Jv, Jdv, J0, b, dl = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.J0, ws.b, ws.dl
@@ -688,6 +767,8 @@ if kernels.ENABLED:
                 xs[q, d] = x[q, d] + h * vs[q, d]
         if m:
             _rows(x, v, blocks, C, Cdot, J0, Jdv, None, extra)
+            if large is not None and not fresh and not _factor_sparse(rows, J0, w2, ws.L):
+                return False
             # Newton on C(x1) = 0, convergence decided per component (as the reference does)
             ncomp = comp_ptr.shape[0] - 1
             done = np.zeros(ncomp, np.bool_)
@@ -727,7 +808,7 @@ if kernels.ENABLED:
                         r = comp_rows[i]
                         b[r] = 0.0 if done[k] else C[r]
                         dl[r] = 0.0
-                if not _solve_components(rows, ws, b, dl, tol, None, large):
+                if not _solve_components(rows, ws, b, dl, tol, None, large, True):
                     return False
                 for r in range(m):  # dq = W J(x0)^T dlam, accumulated in tmp
                     for k in range(nnz[r]):
@@ -754,7 +835,7 @@ if kernels.ENABLED:
                     acc += Jv[r, k] * vs[c // 2, c % 2]
                 b[r] = acc
                 dl[r] = 0.0
-            if not _solve_components(rows, ws, b, dl, tol, None, large):
+            if not _solve_components(rows, ws, b, dl, tol, None, large, False):
                 return False
             for r in range(m):
                 for k in range(nnz[r]):

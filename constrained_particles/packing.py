@@ -58,6 +58,7 @@ from .records import (
     workspace_ref,
     workspace_view,
 )
+from .ordering import CG, DENSE, SINGLE, SPARSE, factor_plan
 from .solver import DIRECT_MAX, row_components
 from .terms import frozen, is_frozen
 
@@ -166,6 +167,9 @@ class Packed:
         new index arrays, such as a drawn spring's, then cost no new row graph)."""
         n = system.n
         self.n = n
+        #: the system's multiplier solver (``"auto"`` or ``"cg"``: how components of more
+        #: than ``DIRECT_MAX`` rows are solved)
+        self.solver = getattr(system, "solver", "auto")
         self.forces = list(system.forces)
         self.constraints = list(system.constraints)
         self.zero_copy = True
@@ -293,7 +297,7 @@ class Packed:
             LineArrays(*join(line, (_I0, _F02, _F02, _I0), measured=True)),
             FixedArrays(*join(fixed, (_I0, _F02, _I0), measured=True)))
         if (previous is not None and previous.supported and previous.n == n
-                and previous.zero_copy and self.zero_copy
+                and previous.solver == self.solver and previous.zero_copy and self.zero_copy
                 and len(previous.constraints) == len(self.constraints)
                 and all(a is b for a, b in zip(previous.constraints, self.constraints,
                                                strict=True))
@@ -313,7 +317,7 @@ class Packed:
             self.large, self.spring_runs, self.extra)
         #: scratch space reused by every call: the backing arrays and the named
         #: :class:`~.records.Workspace` over them
-        self.backing = workspace(n, self.m, DIRECT_MAX)
+        self.backing = workspace(n, self.m, DIRECT_MAX, int(self.rows.lptr[-1]))
         self.work = workspace_view(self.backing)
         self._live: Live | None = None  # (made on first use: see live)
         self._live_ref: Any = None
@@ -340,10 +344,16 @@ class Packed:
             cols = np.minimum(cols, 2 * self.n - 1)
         r, k = np.nonzero(cols >= 0)
         comp_rows, comp_ptr = row_components(r, cols[r, k], m, 2 * self.n)
-        #: the constraint rows and their components (:class:`~.records.Rows`)
-        self.rows = Rows(_ro(cols), _ro((cols >= 0).sum(axis=1).astype(np.int64)),
-                         _ro(comp_rows), _ro(comp_ptr))
-        sizes = np.diff(self.rows.comp_ptr)
+        nnz = (cols >= 0).sum(axis=1).astype(np.int64)
+        sizes = np.diff(comp_ptr)
+        kind = np.where(sizes == 1, SINGLE, DENSE).astype(np.int64)
+        large = sizes > DIRECT_MAX
+        kind[large] = SPARSE if self.solver == "auto" else CG
+        comp_rows, plan = factor_plan(cols, nnz, comp_rows, comp_ptr, kind == SPARSE)
+        #: the constraint rows, their components and the sparse factorisation's plan
+        #: (:class:`~.records.Rows`)
+        self.rows = Rows(_ro(cols), _ro(nnz), _ro(comp_rows), _ro(comp_ptr), _ro(kind),
+                         *(_ro(a) for a in plan))
         self.max_component = int(sizes.max()) if len(sizes) else 0
 
     @property
@@ -401,7 +411,59 @@ class Packed:
                                                      blocks.line.row))
                 and inside(blocks.fixed.row, m - 1)
                 and bool(np.all((self.rows.nnz >= 1) & (self.rows.nnz <= 4)))
+                and self._plan_consistent()
                 and np.array_equal(spring.runs, spring_runs(spring.i, spring.j)))
+
+    def _plan_consistent(self) -> bool:
+        """True if the sparse factorisation's plan (:class:`~.ordering.FactorPlan`, in
+        ``rows``) indexes only within its arrays: pointers that start at 0 and never fall,
+        within their lists; entry numbers within L; each column's entries its own diagonal
+        first, then later positions of its component; products of existing nonzeros of rows
+        of one component that meet in a coordinate; updates of a column from earlier columns.
+        (Built here, so this holds; checked once, as the kernels index with it unchecked.)"""
+        rows, m = self.rows, self.m
+        ptr = rows.comp_ptr
+        if len(rows.comp_rows) != m or len(rows.kind) != len(ptr) - 1:
+            return False
+        nl = len(rows.lpos)
+        for p, top in ((rows.lptr, nl), (rows.aptr, len(rows.prod)), (rows.uptr, len(rows.upd))):
+            if len(p) != m + 1 or p[0] != 0 or p[-1] != top or np.any(np.diff(p) < 0):
+                return False
+        comp = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))  # component of each position
+        col = np.repeat(np.arange(m), np.diff(rows.lptr))  # column of each entry
+        lpos = rows.lpos
+        if nl and not (lpos.min() >= 0 and lpos.max() < m and np.all(lpos >= col)
+                       and np.all(comp[lpos] == comp[col])
+                       and np.all(lpos[rows.lptr[:-1][np.diff(rows.lptr) > 0]]
+                                  == np.flatnonzero(np.diff(rows.lptr) > 0))):
+            return False
+        planned = comp[np.flatnonzero(np.diff(rows.lptr) > 0)]
+        if not np.all(rows.kind[planned] == SPARSE):
+            return False
+        if np.count_nonzero(np.diff(rows.lptr) > 0) != int(
+                np.diff(ptr)[rows.kind == SPARSE].sum()):
+            return False
+        prod, upd = rows.prod, rows.upd
+        if len(prod):
+            e, r1, k1, r2, k2 = prod.T
+            if not (e.min() >= 0 and e.max() < nl and r1.min() >= 0 and r1.max() < m
+                    and r2.min() >= 0 and r2.max() < m and k1.min() >= 0 and k2.min() >= 0
+                    and np.all(k1 < rows.nnz[np.clip(r1, 0, m - 1)])
+                    and np.all(k2 < rows.nnz[np.clip(r2, 0, m - 1)])):
+                return False
+            if not np.array_equal(rows.cols[r1, k1], rows.cols[r2, k2]):
+                return False
+            owner = np.repeat(np.arange(m), np.diff(rows.aptr))
+            if not np.all(col[e] == owner):
+                return False
+        if len(upd):
+            if not (upd.min() >= 0 and upd.max() < nl):
+                return False
+            owner = np.repeat(np.arange(m), np.diff(rows.uptr))
+            if not (np.all(col[upd[:, 0]] == owner) and np.all(col[upd[:, 1]] < owner)
+                    and np.all(col[upd[:, 2]] < owner)):
+                return False
+        return True
 
     @property
     def refs(self) -> PackRefs:
@@ -512,7 +574,8 @@ class Packed:
         every grab; a lone mouse block's new array is taken over here without a rebuild when
         nothing else of the block changed."""
         if not (self.zero_copy and system.n == self.n and system.forces == self.forces
-                and system.constraints == self.constraints):
+                and system.constraints == self.constraints
+                and getattr(system, "solver", "auto") == self.solver):
             return False
         versions = self.versions
         for k, block in enumerate(self._terms):

@@ -387,10 +387,11 @@ class _Part:
     """The particle count and blocks of one range: what :class:`~.packing.Packed` reads of a
     system."""
 
-    def __init__(self, n: int, forces: list[Any], constraints: list[Any]) -> None:
+    def __init__(self, n: int, forces: list[Any], constraints: list[Any], solver: str) -> None:
         self.n = n
         self.forces = forces
         self.constraints = constraints
+        self.solver = solver
 
 
 def _element_ranges(block: Any, bounds: np.ndarray) -> np.ndarray | None:
@@ -511,7 +512,7 @@ class Partition:
         #: each range's first and end particle, as ints
         self.spans = spans
         #: each range's packed blocks
-        self.packs = tuple(Packed(_Part(hi - lo, forces[r], constraints[r]),
+        self.packs = tuple(Packed(_Part(hi - lo, forces[r], constraints[r], parent.solver),
                                   previous.packs[r] if same else None)
                            for r, (lo, hi) in enumerate(self.spans))
         #: the system's constraint rows of each range, in the system's order (which is the

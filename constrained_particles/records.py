@@ -155,12 +155,24 @@ class Blocks(NamedTuple):
 
 
 class Rows(NamedTuple):
-    """The constraint rows' sparsity and their connected components (fixed per topology)."""
+    """The constraint rows' sparsity, their connected components and how each component is
+    solved, with the sparse factorisation's plan (fixed per topology; the plan's fields are
+    those of :class:`~.ordering.FactorPlan`, over positions in ``comp_rows``)."""
 
     cols: np.ndarray  #: (m, 4) int64 coordinates (2 q + axis) of each row's nonzeros, -1 unused
     nnz: np.ndarray  #: (m,) int64 nonzeros per row, 1 to 4
-    comp_rows: np.ndarray  #: (m,) int64 rows grouped by component
+    #: (m,) int64 rows grouped by component (a sparse-factorised one's in elimination order)
+    comp_rows: np.ndarray
     comp_ptr: np.ndarray  #: (components + 1,) int64: component c is comp_rows[ptr[c]:ptr[c+1]]
+    #: (components,) int64: how each is solved (``ordering.SINGLE``, ``DENSE``, ``SPARSE``,
+    #: ``CG``)
+    kind: np.ndarray
+    lptr: np.ndarray  #: (m + 1,) int64, see :class:`~.ordering.FactorPlan`
+    lpos: np.ndarray  #: (nnz(L),) int64
+    aptr: np.ndarray  #: (m + 1,) int64
+    prod: np.ndarray  #: (products, 5) int64
+    uptr: np.ndarray  #: (m + 1,) int64
+    upd: np.ndarray  #: (updates, 3) int64
 
 
 class Engine(NamedTuple):
@@ -220,20 +232,26 @@ class Workspace(NamedTuple):
     tmp: np.ndarray  #: (2 n,) per-coordinate buffer, zero where read at the start of a call
     A: np.ndarray  #: (DIRECT_MAX, DIRECT_MAX) one dense component block
     work: np.ndarray  #: (DIRECT_MAX,) its solve's vector
+    #: (m,) a vector over the positions of ``Rows.comp_rows`` (a sparse solve's)
+    y: np.ndarray
+    #: (nnz(L),) the values of the sparse-factorised components' Cholesky factors
+    L: np.ndarray
 
 
-def workspace(n: int, m: int, direct_max: int) -> tuple[np.ndarray, ...]:
-    """The backing arrays of a zeroed :class:`Workspace` for ``n`` particles, ``m`` rows and
-    dense component blocks of up to ``direct_max`` rows: one array per kind of field, (12,
-    n, 2), (3, m, 4), (4, m), (2, 2 n) and (direct_max + 1, direct_max), whose slices are the
-    fields (:func:`workspace_ref` holds them by reference, :func:`workspace_view` names them in
+def workspace(n: int, m: int, direct_max: int, factor: int = 0) -> tuple[np.ndarray, ...]:
+    """The backing arrays of a zeroed :class:`Workspace` for ``n`` particles, ``m`` rows,
+    dense component blocks of up to ``direct_max`` rows and ``factor`` entries of sparse
+    Cholesky factors: one array per kind of field, (12, n, 2), (3, m, 4), (5, m), (2, 2 n),
+    (direct_max + 1, direct_max) and (factor,), whose slices are the fields
+    (:func:`workspace_ref` holds them by reference, :func:`workspace_view` names them in
     Python)."""
-    return (np.zeros((12, n, 2)), np.zeros((3, m, 4)), np.zeros((4, m)), np.zeros((2, 2 * n)),
-            np.zeros((direct_max + 1, direct_max)))
+    return (np.zeros((12, n, 2)), np.zeros((3, m, 4)), np.zeros((5, m)), np.zeros((2, 2 * n)),
+            np.zeros((direct_max + 1, direct_max)), np.zeros(factor))
 
 
 def _name_workspace(per_particle: np.ndarray, per_entry: np.ndarray, per_row: np.ndarray,
-                    per_coordinate: np.ndarray, dense: np.ndarray) -> Workspace:
+                    per_coordinate: np.ndarray, dense: np.ndarray, factor: np.ndarray
+                    ) -> Workspace:
     """The :class:`Workspace` whose fields are slices of the backing arrays (see
     :func:`workspace`), in field order."""
     d = dense.shape[1]
@@ -242,7 +260,7 @@ def _name_workspace(per_particle: np.ndarray, per_entry: np.ndarray, per_row: np
                      per_particle[8], per_particle[9], per_particle[10], per_particle[11],
                      per_entry[0], per_entry[1], per_entry[2], per_row[0], per_row[1],
                      per_row[2], per_row[3], per_coordinate[0], per_coordinate[1], dense[:d],
-                     dense[d])
+                     dense[d], per_row[4], factor)
 
 
 def workspace_view(backing: tuple[np.ndarray, ...]) -> Workspace:
@@ -421,10 +439,10 @@ if kernels.ENABLED:
     _workspace_named = njit(inline="always")(_name_workspace)
 
     @njit
-    def _workspace_ref(per_particle, per_entry, per_row, per_coordinate, dense):
+    def _workspace_ref(per_particle, per_entry, per_row, per_coordinate, dense, factor):
         # pragma: no cover - compiled
         return _by_reference(_workspace_named(per_particle, per_entry, per_row,
-                                              per_coordinate, dense))
+                                              per_coordinate, dense, factor))
 
     @njit(inline="always")
     def _live_record(t):  # pragma: no cover - compiled

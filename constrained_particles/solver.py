@@ -10,6 +10,12 @@ with ``W = M^-1`` (0 for fixed particles), either by conjugate gradients on the 
 (``method="cg"``), or by a sparse LU factorisation (``method="direct"``). When ``J W J^T`` is
 diagonal (no particle shared between rows, e.g. a cloth's top row on a wire) the solve is a
 division. A singular but consistent system (two identical rods) gets the least-norm answer.
+
+``method="auto"`` (the default) solves each connected component of the constraint graph on its
+own: one row by a division, up to :data:`DIRECT_MAX` rows by a dense factorisation, larger ones
+by a sparse Cholesky factorisation in the fill-reducing order of :mod:`.ordering` (linear time
+on chains and trees of rods); ``method="cg"`` takes conjugate gradients for those instead
+(docs/physics.md, "Which solve runs where").
 """
 
 from __future__ import annotations
@@ -22,8 +28,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .constraints import Constraint
+from .ordering import factor_plan
 
-SOLVER_METHODS = ("cg", "direct")
+SOLVER_METHODS = ("auto", "cg", "direct")
 #: Connected components of the constraint graph with at most this many rows are solved
 #: directly (dense, batched over components); larger ones iteratively.
 DIRECT_MAX = 8
@@ -88,11 +95,11 @@ class ConstraintSolver:
     ----------
     constraints : the constraint blocks, in row order.
     n : number of particles.
-    method : ``"cg"`` (default) or ``"direct"``.
+    method : ``"auto"`` (default), ``"cg"`` or ``"direct"`` (see the module docstring).
     tol : relative residual tolerance of the iterative solves.
     """
 
-    def __init__(self, constraints: Sequence[Constraint], n: int, method: str = "cg",
+    def __init__(self, constraints: Sequence[Constraint], n: int, method: str = "auto",
                  tol: float = 1e-10) -> None:
         if method not in SOLVER_METHODS:
             raise ValueError(f"solver must be one of {SOLVER_METHODS}, got {method!r}")
@@ -134,8 +141,10 @@ class ConstraintSolver:
     def _plan_components(self) -> None:
         """Group the rows into connected components, once per topology: each group of small
         components of one size is solved as a batch of dense systems (the nonzero pairs that
-        meet in a column, and where their products land, are listed here), the rows of larger
-        components by conjugate gradients together."""
+        meet in a column, and where their products land, are listed here), each larger
+        component by a sparse Cholesky factorisation with its rows in elimination order
+        (``method="auto"``), or the rows of all larger components by conjugate gradients
+        together (``method="cg"``)."""
         comp_rows, comp_ptr = row_components(self._rows, self._cols, self.m, 2 * self.n)
         sizes = np.diff(comp_ptr)
         # nonzeros sorted by column: every pair within a column meets in J W J^T
@@ -169,6 +178,17 @@ class ConstraintSolver:
         single = comp_rows[comp_ptr[:-1][sizes == 1]]
         self._single = single
         large = sizes > DIRECT_MAX
+        #: the rows of each sparse-factorised component, in elimination order
+        self._sparse: list[np.ndarray] = []
+        if self.method == "auto" and large.any():
+            cols = np.full((self.m, 4), -1, np.int64)
+            nnz = np.bincount(self._rows, minlength=self.m)
+            slot = np.arange(len(self._rows)) - np.repeat(np.cumsum(nnz) - nnz, nnz)
+            cols[self._rows, slot] = self._cols
+            comp_rows, _ = factor_plan(cols, nnz, comp_rows, comp_ptr, large)
+            self._sparse = [comp_rows[comp_ptr[k]:comp_ptr[k + 1]]
+                            for k in np.flatnonzero(large)]
+            large = np.zeros_like(large)
         self._large = (np.concatenate([comp_rows[comp_ptr[k]:comp_ptr[k + 1]]
                                        for k in np.flatnonzero(large)])
                        if large.any() else np.zeros(0, np.int64))
@@ -188,6 +208,21 @@ class ConstraintSolver:
                 y[rows] = np.linalg.solve(A, b[rows][..., None])[..., 0]
             except np.linalg.LinAlgError:
                 return None
+            if not np.all(np.isfinite(y[rows])):
+                return None
+        for rows in self._sparse:
+            Jc = self.J[rows]
+            A = (Jc.multiply(w2) @ Jc.T).tocsc()
+            try:
+                # rows in elimination order, factorised in that order without pivoting: the
+                # Cholesky factor's pattern, as L D L^T (a pivot is L's squared diagonal)
+                lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                               options={"SymmetricMode": True})
+            except RuntimeError:  # exactly singular
+                return None
+            if not np.all(lu.U.diagonal() > 1e-12 * A.diagonal()):
+                return None  # (numerically) singular: the least-squares path
+            y[rows] = lu.solve(b[rows])
             if not np.all(np.isfinite(y[rows])):
                 return None
         large = self._large

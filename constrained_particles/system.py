@@ -29,6 +29,8 @@ class SimulationDiverged(RuntimeError):
 
 #: Linear solvers of an ``implicit_euler`` step (see :mod:`constrained_particles.implicit`).
 IMPLICIT_SOLVERS = ("auto", "cg", "direct")
+#: The multiplier solvers the fused compiled step runs.
+_FUSED_SOLVERS = ("auto", "cg")
 
 #: Shortest accepted time step (s): below it ``t + dt`` and ``1 / dt`` stop being meaningful.
 MIN_DT = 1e-9
@@ -79,7 +81,11 @@ class ParticleSystem:
 
     Parameters
     ----------
-    solver : ``"cg"`` (conjugate gradients, Jacobi preconditioner, warm start) or ``"direct"``.
+    solver : how the multipliers are solved for: ``"auto"`` (default: each connected component
+        of the constraint graph on its own, directly; a sparse Cholesky factorisation in a
+        fill-reducing order for components of more than 8 rows, linear time on chains and trees
+        of rods), ``"cg"`` (conjugate gradients, Jacobi preconditioner, warm start, for
+        components of more than 8 rows) or ``"direct"`` (one sparse LU of the whole system).
     tol : relative residual tolerance of the multiplier solve (default 1e-10).
     ks, kd : constraint feedback gains in 1/s^2 and 1/s (report eq. 2). The defaults pull drift
         back critically damped with a 0.1 s time constant.
@@ -112,7 +118,7 @@ class ParticleSystem:
     1.0
     """
 
-    def __init__(self, *, solver: str = "cg", tol: float = 1e-10, ks: float = 100.0,
+    def __init__(self, *, solver: str = "auto", tol: float = 1e-10, ks: float = 100.0,
                  kd: float = 20.0, project: bool = False, divergence_limit: float = 1e6,
                  drift_correction: float = 1.0, compliance: float = 0.0,
                  residual_limit: float = np.inf, implicit_solver: str = "auto") -> None:
@@ -400,8 +406,9 @@ class ParticleSystem:
 
         Systems made of the standard blocks step through the fused compiled kernel
         (:mod:`constrained_particles.fused`) for ``euler``, ``midpoint``, ``rk4``,
-        ``symplectic_euler`` and ``rattle`` with the default ``"cg"`` solver; everything else, and
-        ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the same formulas.
+        ``symplectic_euler`` and ``rattle`` with the ``"auto"`` (default) or ``"cg"`` solver;
+        everything else, and ``CPARTICLES_NUMBA=0``, takes the reference path. Both compute the
+        same formulas.
 
         A call reads each state attribute (``x``, ``v``, ``mass``, ``inv_mass``, ``t``) once and
         steps from what it read, so another thread replacing one meanwhile cannot make it read
@@ -471,7 +478,7 @@ class ParticleSystem:
         self.x, self.v, self.t = x, v, t
 
     def _fusable(self, method: str) -> bool:
-        return (self.solver == "cg" and method in fused.METHOD_CODES
+        return (self.solver in _FUSED_SOLVERS and method in fused.METHOD_CODES
                 and "acceleration" not in self.__dict__
                 and type(self).acceleration is ParticleSystem.acceleration)
 
