@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from . import kernels
+from .ordering import SPARSE
 from .records import (
     ANGULAR,
     CIRCLE,
@@ -34,7 +35,6 @@ from .records import (
     WALL,
     live_lists,
 )
-from .ordering import SPARSE
 from .solver import DIRECT_MAX
 
 #: RATTLE's position solve (the values of :mod:`constrained_particles.rattle`, which documents

@@ -31,6 +31,7 @@ from . import kernels
 from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
 from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
 from .fused_accel import RUN_MIN
+from .ordering import CG, DENSE, SINGLE, SPARSE, factor_plan
 from .records import (
     LIVE_ELEMENTS,
     AngularArrays,
@@ -58,7 +59,6 @@ from .records import (
     workspace_ref,
     workspace_view,
 )
-from .ordering import CG, DENSE, SINGLE, SPARSE, factor_plan
 from .solver import DIRECT_MAX, row_components
 from .terms import frozen, is_frozen
 
