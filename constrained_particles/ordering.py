@@ -109,7 +109,8 @@ class FactorPlan(NamedTuple):
     components list their rows in elimination order; ``L`` is stored by columns, one column
     per position, its diagonal first. ``A = J W J^T`` of a component is assembled into ``L``'s
     storage from products of the values of J; the left-looking factorisation then applies the
-    updates of each column and scales it."""
+    updates of each column and scales it. A column's diagonal entry ends as the inverse of
+    the factor's diagonal (the solves multiply by it)."""
 
     #: (m + 1,) int64: column p of L is entries ``lptr[p]:lptr[p + 1]``, the diagonal first
     lptr: np.ndarray
@@ -117,8 +118,9 @@ class FactorPlan(NamedTuple):
     lpos: np.ndarray
     #: (m + 1,) int64: the products of column p are ``prod[aptr[p]:aptr[p + 1]]``
     aptr: np.ndarray
-    #: (products, 5) int64: ``L[e] += Jv[r1, k1] * w2[cols[r1, k1]] * Jv[r2, k2]`` for rows
-    #: ``(e, r1, k1, r2, k2)``, where ``cols[r1, k1] == cols[r2, k2]``
+    #: (products, 4) int64: ``L[e] += Jv.flat[j1] * w2[c] * Jv.flat[j2]`` for rows
+    #: ``(e, j1, j2, c)``, with ``j = 4 r + k`` the k-th nonzero of row r (Jv (m, 4)) and c
+    #: the coordinate both nonzeros sit in; sorted by ``e``
     prod: np.ndarray
     #: (m + 1,) int64: the updates of column p are ``upd[uptr[p]:uptr[p + 1]]``
     uptr: np.ndarray
@@ -150,10 +152,10 @@ def factor_plan(cols: np.ndarray, nnz: np.ndarray, comp_rows: np.ndarray, comp_p
     aptr = np.zeros(m + 1, np.int64)
     uptr = np.zeros(m + 1, np.int64)
     lpos: list[int] = []
-    prod: list[tuple[int, int, int, int, int]] = []
+    prod: list[tuple[int, int, int, int]] = []
     upd: list[tuple[int, int, int]] = []
     per_col_l: list[list[int]] = [[] for _ in range(m)]  # (entries' positions, per column)
-    col_prod: list[list[tuple[int, int, int, int, int]]] = [[] for _ in range(m)]
+    col_prod: list[list[tuple[int, int, int, int]]] = [[] for _ in range(m)]
     col_upd: list[list[tuple[int, int, int]]] = [[] for _ in range(m)]
     for k in np.flatnonzero(planned):
         start, stop = int(comp_ptr[k]), int(comp_ptr[k + 1])
@@ -179,7 +181,7 @@ def factor_plan(cols: np.ndarray, nnz: np.ndarray, comp_rows: np.ndarray, comp_p
                 for b, sb in members:
                     pa, pb = pos[a], pos[b]
                     if pa > pb or a == b:  # (every pair of slots of one row: its diagonal)
-                        col_prod[pb].append((pa, a, sa, b, sb))
+                        col_prod[pb].append((pa, 4 * a + sa, 4 * b + sb, int(cols[a, sa])))
     # entry numbers
     entry: list[dict[int, int]] = [{} for _ in range(m)]
     e = 0
@@ -199,12 +201,12 @@ def factor_plan(cols: np.ndarray, nnz: np.ndarray, comp_rows: np.ndarray, comp_p
                 col_upd[p].append((entry[p][i], entry[k][i], pk))
     for p in range(m):
         aptr[p] = len(prod)
-        prod.extend((entry[p][row], r1, k1, r2, k2) for row, r1, k1, r2, k2 in col_prod[p])
+        prod.extend(sorted((entry[p][row], j1, j2, c) for row, j1, j2, c in col_prod[p]))
         uptr[p] = len(upd)
         upd.extend(col_upd[p])
     aptr[m], uptr[m] = len(prod), len(upd)
     plan = FactorPlan(lptr, np.array(lpos, np.int64).reshape(-1),
-                      aptr, np.array(prod, np.int64).reshape(-1, 5),
+                      aptr, np.array(prod, np.int64).reshape(-1, 4),
                       uptr, np.array(upd, np.int64).reshape(-1, 3))
     return comp_rows, plan
 

@@ -445,13 +445,15 @@ class Packed:
             return False
         prod, upd = rows.prod, rows.upd
         if len(prod):
-            e, r1, k1, r2, k2 = prod.T
-            if not (e.min() >= 0 and e.max() < nl and r1.min() >= 0 and r1.max() < m
-                    and r2.min() >= 0 and r2.max() < m and k1.min() >= 0 and k2.min() >= 0
-                    and np.all(k1 < rows.nnz[np.clip(r1, 0, m - 1)])
-                    and np.all(k2 < rows.nnz[np.clip(r2, 0, m - 1)])):
+            e, j1, j2, c = prod.T
+            r1, r2 = j1 // 4, j2 // 4
+            if not (e.min() >= 0 and e.max() < nl and j1.min() >= 0 and j1.max() < 4 * m
+                    and j2.min() >= 0 and j2.max() < 4 * m
+                    and np.all(j1 % 4 < rows.nnz[r1]) and np.all(j2 % 4 < rows.nnz[r2])
+                    and np.all(np.diff(e) >= 0)):
                 return False
-            if not np.array_equal(rows.cols[r1, k1], rows.cols[r2, k2]):
+            flat = rows.cols.reshape(-1)
+            if not (np.array_equal(flat[j1], c) and np.array_equal(flat[j2], c)):
                 return False
             owner = np.repeat(np.arange(m), np.diff(rows.aptr))
             if not np.all(col[e] == owner):
