@@ -54,7 +54,42 @@ import numba
 from numba.core import caching, event
 from numba.core.dispatcher import Dispatcher
 
-__all__ = ["cache_dir", "default_cache_dir", "njit", "source_stamp"]
+__all__ = ["NUMBA_INTERNALS", "cache_dir", "default_cache_dir", "njit", "source_stamp"]
+
+#: The parts of Numba this project uses that are not its documented public API, by dotted
+#: name, with where and how: a Numba release may change them, so ``pyproject.toml`` bounds
+#: Numba to the versions CI tests (the oldest and the newest allowed), and
+#: ``tests/test_numba_internals.py`` checks each one, by name and by what the project needs of
+#: it.
+NUMBA_INTERNALS: dict[str, str] = {
+    "numba.core.caching._CacheLocator": "jit: the base of the locator into the user's cache",
+    "numba.core.caching._SourceFileBackedLocatorMixin":
+        "jit: get_suitable_cache_subpath names a source folder's sub-folder",
+    "numba.core.caching.CompileResultCacheImpl": "jit: _locator_classes takes this locator",
+    "numba.core.caching.FunctionCache":
+        "jit: load_overload/save_overload overridden to heal; _cache_path, "
+        "_impl.filename_base name the files of an entry (<base>.nbi, <base>.<n>.nbc)",
+    "numba.core.caching.IndexDataCacheFile":
+        "jit: the index and data files an entry is made of (_save_index, _save_data)",
+    "numba.core.dispatcher.Dispatcher._cache":
+        "jit: set to the project's cache (what Dispatcher.enable_caching does)",
+    "numba.core.event.register": "jit: a listener of numba:compile events",
+    "numba.core.event.Listener": "jit: on_start gets ev.data['dispatcher']",
+    "numba.config.CACHE_DIR": "jit: NUMBA_CACHE_DIR as Numba read it",
+    "numba.extending.intrinsic":
+        "parallel._load_acquire (an atomic load), records._borrowed (arrays without "
+        "reference counts)",
+    "numba.core.cgutils.get_item_pointer": "parallel._load_acquire: the address of flags[i]",
+    "numba.core.cgutils.get_null_value": "records._strip: a null meminfo and parent",
+    "numba.np.arrayobj.make_array":
+        "records._strip: an array's struct, with the fields meminfo and parent",
+    "numba.experimental.structref.register": "records: RecordRefType, records by reference",
+    "numba.experimental.structref.StructRefProxy": "records: RecordRef, its ._type",
+    "numba.experimental.structref.define_boxing": "records: RecordRef boxing",
+    "numba.experimental.structref.new": "records._by_reference",
+    "numba.extending.typeof_impl": "records: typeof of a RecordRef reads its ._type",
+    "numba.extending.overload": "records: _by_reference, _live_lists (inline='always')",
+}
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
 #: A tag in the name of each cache folder, changed when the options given to :func:`njit` change
