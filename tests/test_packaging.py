@@ -408,3 +408,26 @@ def test_a_cache_on_a_full_disk_keeps_the_kernels_in_memory_with_one_line(tmp_pa
     lines = out.stderr.splitlines()
     assert len(lines) == 1 and "could not be written to the cache" in lines[0], out.stderr
     assert "No space left on device" in lines[0]
+
+
+def test_ci_tests_the_oldest_numba_and_numpy_pyproject_allows():
+    """The lower bounds of numba and numpy in pyproject.toml are the versions .ci/oldest.txt
+    pins for the oldest Pythons (CI runs the suite on them), and numba has an upper bound
+    (its internals: constrained_particles.jit.NUMBA_INTERNALS)."""
+    text = (ROOT / "pyproject.toml").read_text()
+    numba = re.search(r'"numba>=([\d.]+),<([\d.]+)"', text)
+    numpy = re.search(r'"numpy>=([\d.]+)', text)
+    assert numba and numpy, "numba must be bounded on both sides"
+    pins = {}
+    for line in (ROOT / ".ci" / "oldest.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            py, *reqs = line.split()
+            pins[py] = dict(r.split("==") for r in reqs)
+    assert pins["3.10"]["numba"].startswith(numba.group(1))
+    assert pins["3.10"]["numpy"].startswith(numpy.group(1))
+    def version(text: str) -> tuple[int, ...]:
+        return tuple(int(part) for part in text.split("."))
+
+    assert all(version(p["numba"]) < version(numba.group(2)) for p in pins.values())
+    assert f"{sys.version_info[0]}.{sys.version_info[1]}" in pins  # (this Python has a line)
+    assert ".ci/oldest.txt" in (ROOT / ".ci" / "run").read_text()
