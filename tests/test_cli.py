@@ -595,3 +595,58 @@ def test_verify_orders_json_is_one_object_on_one_line(capsys):
         assert set(per) == set(METHODS)
         assert all(isinstance(v, float) for v in per.values())
         assert abs(per["rk4"] - 4) < 0.5
+
+
+# ------------------------------------------------------------------ the system says no
+def test_out_naming_a_dangling_symlink_or_a_device_is_an_argument_error(tmp_path, capsys):
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "nowhere")
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", str(link)], capsys)
+    assert "--out" in err and "dangling" in err
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", "/dev/null"], capsys)
+    assert "--out" in err and "not a directory" in err
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", str(busy)], capsys)
+    assert "already holds files" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["busy", "link"]
+
+
+def test_a_gif_on_a_full_disk_is_one_line_and_leaves_no_file(tmp_path, capsys, monkeypatch):
+    """Writing the GIF fails with ENOSPC half-way: exit status 1, one error line, no
+    traceback, and neither the GIF nor its partial file is left."""
+    pytest.importorskip("PIL")
+    import errno
+
+    from PIL import Image
+
+    def full(self, fp, *args, **kwargs):
+        with open(fp, "wb") as f:
+            f.write(b"GIF89a")  # (a start, then the disk is full)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    gif = tmp_path / "x.gif"
+    code = cli.main(["demo", "--env", "SliderCrank-v0", "--episodes", "1", "--save-gif",
+                     str(gif)])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == ["cparticles demo: error: No space left on device"]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("exc, words", [
+    (OSError(28, "No space left on device", "/data/run/x"),
+     "No space left on device: /data/run/x"),
+    (PermissionError(13, "Permission denied", "/etc/x"), "Permission denied: /etc/x"),
+    (IsADirectoryError(21, "Is a directory", "/tmp"), "Is a directory: /tmp"),
+])
+def test_an_os_error_of_a_command_is_one_line_and_status_1(exc, words, capsys):
+    from constrained_particles.arguments import run_command
+
+    def fail():
+        raise exc
+
+    assert run_command("cparticles x", fail) == 1
+    assert capsys.readouterr().err == f"cparticles x: error: {words}\n"
