@@ -102,7 +102,7 @@ MAX_CONFIG_BYTES = 1_000_000
 #: Policies a run directory may name (Stable-Baselines3's aliases).
 POLICIES = ("MlpPolicy",)
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
-POLICY_KWARGS = ("net_arch", "log_std_init")
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
 MAX_LAYER = 4096
 
 
@@ -408,7 +408,8 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     venv = None
     try:
         venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
-        kwargs = {k: v for k, v in hp.items() if k not in OWN_KEYS}
+        # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
+        kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
         if hp.get("normalize", False):
             venv = VecNormalize(venv, norm_obs=True,
                                 norm_reward=hp.get("normalize_reward", True),
@@ -481,6 +482,9 @@ def _check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
             and all(type(n) is int and 1 <= n <= MAX_LAYER for n in arch)):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.net_arch must be a list of "
                          f"at most 16 layer widths in [1, {MAX_LAYER}]")
+    if not isinstance(pk.get("use_sde", False), bool):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
+                         "false")
     log_std = pk.get("log_std_init", 0.0)
     if type(log_std) not in (int, float) or not np.isfinite(log_std):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.log_std_init must be a "
@@ -539,6 +543,8 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
                          f"({exc})") from None
     spaces = {"observation": env.observation_space, "action": env.action_space}
     env.close()
+    if not isinstance(config.get("normalized", False), bool):
+        raise ValueError(f"{config_path}: field 'normalized' must be true or false")
     recorded = config.get("spaces")
     for name, space in spaces.items():
         mine = recorded.get(name) if isinstance(recorded, dict) else None

@@ -161,6 +161,7 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]  # (no partial directory left)
     config = json.loads((out / "config.json").read_text())
     assert config["format"] == 2 and config["normalized"] is True
+    assert config["hyperparams"] == load_hyperparams("ppo", "SliderCrank-v0", "force")
     assert config["spaces"]["observation"]["shape"] == [9]
     assert config["timesteps"] == 2048 and config["seed"] == 3 and config["wall_seconds"] > 0
     capsys.readouterr()
@@ -281,3 +282,37 @@ def test_a_train_that_fails_leaves_no_run_directory(tmp_path, capsys, monkeypatc
     assert [line for line in err.splitlines() if "error" in line] == [
         f"cparticles train: error: No space left on device: {tmp_path / 'x'}"], err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_sac_policy_is_rebuilt_from_its_settings(tmp_path):
+    """SAC (whose constructor writes use_sde into policy_kwargs): weights saved as train saves
+    them evaluate as the model itself does, and train records the settings it was given."""
+    from stable_baselines3 import SAC
+
+    from envs.train import (
+        FORMAT,
+        evaluate,
+        run_episodes,
+        save_policy,
+        sb3_policy,
+        space_record,
+        summarize,
+    )
+
+    hp = load_hyperparams("sac", "SliderCrank-v0", "force")
+    env = gym.make("SliderCrank-v0")
+    model = SAC("MlpPolicy", env, seed=1, device="cpu", **{
+        k: v for k, v in json.loads(json.dumps(hp)).items()
+        if k in ("policy_kwargs", "learning_rate", "buffer_size", "gamma")})
+    run = tmp_path / "run"
+    run.mkdir()
+    save_policy(model, run / "policy.pt")
+    config = {"format": FORMAT, "env": "SliderCrank-v0", "action_mode": "force", "algo": "sac",
+              "seed": 1, "timesteps": 0, "hyperparams": {**hp, "policy_kwargs": {
+                  **hp["policy_kwargs"], "use_sde": False}},
+              "spaces": {"observation": space_record(env.observation_space),
+                         "action": space_record(env.action_space)}, "normalized": False}
+    (run / "config.json").write_text(json.dumps(config))
+    res = evaluate(run, episodes=3)
+    want = summarize(run_episodes(sb3_policy(model), "SliderCrank-v0", 3, 2_000_000))
+    assert {k: res[k] for k in want} == want
