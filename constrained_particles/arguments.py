@@ -20,7 +20,8 @@ import math
 import os
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from .extras import MissingExtra
 
@@ -139,12 +140,14 @@ def new_directory(text: str) -> str:
     if not text:
         raise argparse.ArgumentTypeError("must not be empty")
     path = os.path.abspath(text)
+    if os.path.lexists(path) and not os.path.exists(path):
+        raise argparse.ArgumentTypeError(f"{text!r} is a symbolic link to nothing (dangling)")
     if os.path.exists(path) and not os.path.isdir(path):
         raise argparse.ArgumentTypeError(f"{text!r} exists and is not a directory")
     existing = path
     while not os.path.isdir(existing):
         parent = os.path.dirname(existing)
-        if os.path.exists(existing) or parent == existing:
+        if os.path.lexists(existing) or parent == existing:
             # a file where a parent directory should be
             raise argparse.ArgumentTypeError(
                 f"cannot create {text!r}: {existing!r} is not a directory")
@@ -178,15 +181,48 @@ def progress_enabled(args: argparse.Namespace) -> bool:
     return bool(getattr(args, "progress", False)) or sys.stderr.isatty()
 
 
+def os_error_words(exc: OSError) -> str:
+    """An OSError in a few words: the system's reason and the file(s) it names."""
+    words = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+    files = [f for f in (exc.filename, exc.filename2) if f is not None]
+    return words + "".join(f": {os.fsdecode(f)}" for f in files)
+
+
 def run_command(prog: str, call: Callable[[], int | None]) -> int:
     """``call()``'s exit status; a :class:`~constrained_particles.extras.MissingExtra` (whose
     message names the command) or a ValueError becomes one ``error:`` line on stderr and exit
-    status 2."""
+    status 2 (a mistake in the arguments or the files given), an OSError (a full disk, a
+    permission denied while working) one ``error:`` line and exit status 1."""
     try:
         return int(call() or 0)
     except MissingExtra as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except ValueError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {' '.join(str(exc).splitlines())}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"{prog}: error: {os_error_words(exc)}", file=sys.stderr)
+        return 1
+
+
+@contextmanager
+def written_whole(path: str | os.PathLike[str]) -> Iterator[str]:
+    """The name of a temporary file beside ``path`` to write, renamed to ``path`` when the
+    block ends without an error and removed otherwise: a full disk or an interrupt never
+    leaves a truncated ``path`` (nor replaces the file that was there)."""
+    path = os.fspath(path)
+    folder, name = os.path.split(os.path.abspath(path))
+    while True:  # (created with the permissions a new file gets: the umask's)
+        partial = os.path.join(folder, f".{name}.partial-{os.getpid()}-{os.urandom(4).hex()}")
+        try:
+            open(partial, "xb").close()
+            break
+        except FileExistsError:
+            continue
+    try:
+        yield partial
+        os.replace(partial, path)
+    finally:
+        if os.path.lexists(partial):
+            os.unlink(partial)

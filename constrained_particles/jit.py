@@ -23,6 +23,13 @@ instead: everything works, each new process compiles again, and one line on stde
 A shared temporary directory is never used: the cache files are pickles, which anyone who can
 write there could replace.
 
+**A damaged cache heals itself.** A cache entry that cannot be loaded (an index or data file
+truncated by a full disk or a killed process, garbled, empty, written by another Python, data
+files left without their index) is set aside: its files are renamed with the suffix
+``.unreadable`` in their folder, the kernel compiles again and is written afresh, and one line
+on stderr (once per process) says what was found and where. A cache that cannot be written (a
+full disk) keeps the compiled kernels in memory for the run, with one line too.
+
 Only the functions decorated here are affected; Numba's settings for other code stay as they are.
 
 When one of these functions starts compiling (its machine code is in no cache) and stderr is a
@@ -34,6 +41,7 @@ the tests) stays silent, as the command line's progress bars do.
 from __future__ import annotations
 
 import functools
+import glob
 import hashlib
 import os
 import sys
@@ -46,7 +54,42 @@ import numba
 from numba.core import caching, event
 from numba.core.dispatcher import Dispatcher
 
-__all__ = ["cache_dir", "default_cache_dir", "njit", "source_stamp"]
+__all__ = ["NUMBA_INTERNALS", "cache_dir", "default_cache_dir", "njit", "source_stamp"]
+
+#: The parts of Numba this project uses that are not its documented public API, by dotted
+#: name, with where and how: a Numba release may change them, so ``pyproject.toml`` bounds
+#: Numba to the versions CI tests (the oldest and the newest allowed), and
+#: ``tests/test_numba_internals.py`` checks each one, by name and by what the project needs of
+#: it.
+NUMBA_INTERNALS: dict[str, str] = {
+    "numba.core.caching._CacheLocator": "jit: the base of the locator into the user's cache",
+    "numba.core.caching._SourceFileBackedLocatorMixin":
+        "jit: get_suitable_cache_subpath names a source folder's sub-folder",
+    "numba.core.caching.CompileResultCacheImpl": "jit: _locator_classes takes this locator",
+    "numba.core.caching.FunctionCache":
+        "jit: load_overload/save_overload overridden to heal; _cache_path, "
+        "_impl.filename_base name the files of an entry (<base>.nbi, <base>.<n>.nbc)",
+    "numba.core.caching.IndexDataCacheFile":
+        "jit: the index and data files an entry is made of (_save_index, _save_data)",
+    "numba.core.dispatcher.Dispatcher._cache":
+        "jit: set to the project's cache (what Dispatcher.enable_caching does)",
+    "numba.core.event.register": "jit: a listener of numba:compile events",
+    "numba.core.event.Listener": "jit: on_start gets ev.data['dispatcher']",
+    "numba.config.CACHE_DIR": "jit: NUMBA_CACHE_DIR as Numba read it",
+    "numba.extending.intrinsic":
+        "parallel._load_acquire (an atomic load), records._borrowed (arrays without "
+        "reference counts)",
+    "numba.core.cgutils.get_item_pointer": "parallel._load_acquire: the address of flags[i]",
+    "numba.core.cgutils.get_null_value": "records._strip: a null meminfo and parent",
+    "numba.np.arrayobj.make_array":
+        "records._strip: an array's struct, with the fields meminfo and parent",
+    "numba.experimental.structref.register": "records: RecordRefType, records by reference",
+    "numba.experimental.structref.StructRefProxy": "records: RecordRef, its ._type",
+    "numba.experimental.structref.define_boxing": "records: RecordRef boxing",
+    "numba.experimental.structref.new": "records._by_reference",
+    "numba.extending.typeof_impl": "records: typeof of a RecordRef reads its ._type",
+    "numba.extending.overload": "records: _by_reference, _live_lists (inline='always')",
+}
 
 APP = "constrained-particles"  #: the folder name inside the user's cache directory
 #: A tag in the name of each cache folder, changed when the options given to :func:`njit` change
@@ -142,8 +185,81 @@ class _Impl(caching.CompileResultCacheImpl):
     _locator_classes = [_Locator]
 
 
+#: the suffix a cache file that could not be loaded is renamed with (:func:`_set_aside`)
+SET_ASIDE = ".unreadable"
+#: what this process has said on stderr about the cache (each said once per process)
+_SAID: set[str] = set()
+
+
+def _say_once(topic: str, line: str) -> None:
+    """Print ``line`` (one line) to stderr, the first time ``topic`` comes up in this process."""
+    if topic in _SAID:
+        return
+    _SAID.add(topic)
+    if sys.stderr is not None:
+        print(" ".join(line.split()), file=sys.stderr, flush=True)
+
+
+def _entry_files(cache: caching.FunctionCache) -> list[Path]:
+    """The files of ``cache``'s entry: its index and every data file of the function."""
+    base = cache._impl.filename_base
+    folder = Path(cache._cache_path)
+    return [folder / f"{base}.nbi", *sorted(folder.glob(f"{glob.escape(base)}.*.nbc"))]
+
+
+def _set_aside(cache: caching.FunctionCache, exc: BaseException) -> None:
+    """Rename the files of ``cache``'s entry (an index or data file that could not be loaded)
+    with the suffix :data:`SET_ASIDE`, so that Numba compiles and writes the entry again, and
+    say so on stderr, once per process. A file another process renamed or rewrote meanwhile
+    is left to it."""
+    moved = []
+    for path in _entry_files(cache):
+        try:
+            os.replace(path, path.with_name(path.name + SET_ASIDE))
+            moved.append(path.name)
+        except OSError:
+            pass
+    what = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    _say_once("unreadable", f"constrained-particles: a compiled kernel in the cache could not be "
+              f"loaded ({what[:200]}); its files in {cache._cache_path} were set aside as "
+              f"*{SET_ASIDE} and it is compiled again (later ones in this run silently)")
+
+
 class _Cache(caching.FunctionCache):
+    """Numba's function cache with this module's locator, healing itself: an entry that cannot
+    be loaded (a truncated, garbled or empty index or data file, files of another Numba or
+    Python) is set aside (:func:`_set_aside`) and compiled again instead of failing the call;
+    a cache that cannot be written (a full disk) leaves the compiled code in memory."""
+
     _impl_class = _Impl
+
+    def load_overload(self, sig: Any, target_context: Any) -> Any:
+        try:
+            loaded = super().load_overload(sig, target_context)
+        except Exception as exc:  # (any damage: pickle, EOF, value, type, import errors...)
+            _set_aside(self, exc)
+            return None
+        if loaded is None:
+            files = _entry_files(self)
+            if not files[0].exists() and len(files) > 1:  # data files left without an index
+                _set_aside(self, FileNotFoundError(f"data files without their index "
+                                                   f"{files[0].name}"))
+        return loaded
+
+    def save_overload(self, sig: Any, data: Any) -> None:
+        for attempt in (1, 2):
+            try:
+                super().save_overload(sig, data)
+                return
+            except OSError as exc:  # (a full disk, a folder gone read-only: kept in memory)
+                _say_once("unwritable", f"constrained-particles: a compiled kernel could not "
+                          f"be written to the cache in {self._cache_path} "
+                          f"({exc.strerror or exc}); it is kept in memory for this run")
+                return
+            except Exception as exc:  # the index read before writing was damaged meanwhile
+                _set_aside(self, exc)
+                if attempt == 2:
+                    return
 
 
 #: ``id`` of every dispatcher made by :func:`njit` (they live as long as their modules)
@@ -160,6 +276,9 @@ class _CompileNotice(event.Listener):
     def on_start(self, ev: event.Event) -> None:
         data = ev.data if isinstance(ev.data, dict) else {}
         if self.said or id(data.get("dispatcher")) not in _OURS:
+            return
+        if "unreadable" in _SAID:  # (that line said it compiles again)
+            self.said = True
             return
         self.said = True
         stream = sys.stderr

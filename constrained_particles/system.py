@@ -5,7 +5,9 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+import os
 import threading
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any, NoReturn
@@ -37,6 +39,24 @@ MIN_DT = 1e-9
 #: Most threads a system may be given (:attr:`ParticleSystem.threads`)
 MAX_THREADS = 1024
 _F64 = np.dtype(np.float64)  #: NumPy's float64 dtype (one object: compared by identity)
+
+
+#: every system that has a step lock (see :func:`_fresh_locks_after_fork`)
+_LOCKED: weakref.WeakSet[Any] = weakref.WeakSet()
+
+
+def _fresh_locks_after_fork() -> None:
+    """In a child process just forked: a fresh step lock for every system. A child forked
+    while a thread of its parent was inside a step inherits that lock held, by a thread the
+    child does not have: without a fresh one the child could never step its copy. (The
+    threads of threaded steps start again in the child by themselves:
+    :mod:`constrained_particles.parallel`.)"""
+    for system in list(_LOCKED):
+        system.__dict__["_stepping"] = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):  # (not on Windows, which does not fork)
+    os.register_at_fork(after_in_child=_fresh_locks_after_fork)
 
 
 def _flag(name: str, value: Any) -> bool:
@@ -450,8 +470,11 @@ class ParticleSystem:
     def _step_lock(self) -> threading.Lock:
         """This system's step lock (not acquired: the caller acquires it without blocking,
         right before its ``try``, and calls :func:`_busy` if that fails)."""
-        return (self.__dict__.get("_stepping")
-                or self.__dict__.setdefault("_stepping", threading.Lock()))
+        lock = self.__dict__.get("_stepping")
+        if lock is None:
+            lock = self.__dict__.setdefault("_stepping", threading.Lock())
+            _LOCKED.add(self)  # (a forked child gives it a fresh one)
+        return lock
 
     def _step(self, h: float, integrate: Any, method: str, steps: int, project: bool) -> None:
         """The body of :meth:`step` (arguments checked, the step lock held)."""

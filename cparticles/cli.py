@@ -50,9 +50,13 @@ SUBCOMMANDS: dict[str, Command] = {
                      "hyperparameters (rl extra)", add="add_train_arguments",
                      check="check_train_arguments", main="main_train"),
     "evaluate": Command("envs.train", "evaluate a run directory that train wrote, on held-out "
-                        "episodes (rl extra; loads pickles: trusted directories only)",
+                        "episodes (rl extra)",
                         add="add_evaluate_arguments", check="check_evaluate_arguments",
                         main="main_evaluate"),
+    "convert-run": Command("envs.train", "convert a run directory of an older train (pickles) "
+                           "for evaluate; loads its pickles: trusted directories only (rl "
+                           "extra)", add="add_convert_arguments",
+                           check="check_convert_arguments", main="main_convert"),
     "verify": Command("verification.__main__", "measure convergence orders and cross-check "
                       "pymunk", check=None),
     "view": Command("constrained_particles.viewer", "interactive viewer (pygame-ce)"),

@@ -37,6 +37,35 @@ def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: 
     return int(value) if integer else float(value)
 
 
+def check_seed(seed: Any, name: str = "seed") -> int | None:
+    """``seed`` as a Python int (a Python or numpy integer >= 0) or None, else ValueError
+    naming ``name`` (ArgumentTypeError, also a ValueError, for a non-integer): Python and numpy
+    integers seed alike."""
+    if seed is None:
+        return None
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise ArgumentTypeError(f"{name} must be an integer >= 0 or None, got {seed!r}")
+    if seed < 0:
+        raise ValueError(f"{name} must be an integer >= 0 or None, got {seed!r}")
+    return int(seed)
+
+
+def check_options(options: Any, valid: tuple[str, ...]) -> dict[str, Any]:
+    """``reset``'s ``options`` (None: none) as a dict, else ValueError naming ``options``: a
+    mapping whose keys are all in ``valid`` (a misspelt key is an error, not ignored)."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise ArgumentTypeError(f"options must be a dict or None, got {options!r}")
+    unknown = [k for k in options if k not in valid]
+    if unknown:
+        takes = f"the valid keys are {', '.join(map(repr, valid))}" if valid else \
+            "this env takes no options (pass None or {})"
+        raise ValueError(f"options: unknown key{'s' if len(unknown) > 1 else ''} "
+                         f"{', '.join(map(repr, unknown))}; {takes}")
+    return options
+
+
 def check_range(name: str, value: Any) -> tuple[float, float]:
     """``value`` as a finite ``(low, high)`` pair with ``low <= high``, else ValueError."""
     try:

@@ -18,7 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from constrained_particles.arguments import int_at_least, output_file, time_step
+from constrained_particles.arguments import int_at_least, output_file, time_step, written_whole
 from constrained_particles.integrators import METHODS
 
 from . import ENV_IDS
@@ -137,8 +137,9 @@ def save_gif(path: str, frames: list[np.ndarray], fps: float) -> None:
     from PIL import Image
 
     images = [Image.fromarray(f) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], loop=0,
-                   duration=int(round(1000 / fps)), optimize=True)
+    with written_whole(path) as partial:  # (a full disk leaves no truncated GIF)
+        images[0].save(partial, format="GIF", save_all=True, append_images=images[1:], loop=0,
+                       duration=int(round(1000 / fps)), optimize=True)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from .base import FRAME_SIZE, ParticleTask
+from .checks import check_options, check_seed
 
 
 def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
@@ -68,8 +69,11 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``."""
-        super().reset(seed=seed)
+        """Start a new episode (randomness from ``self.np_random``); returns ``(obs, info)``.
+        ``seed``: a Python or numpy integer >= 0, or None; ``options``: none are taken (a key
+        is a ValueError)."""
+        check_options(options, ())
+        super().reset(seed=check_seed(seed))
         self.task.reset_envs([0], [self.np_random])
         self.task.system.t = 0.0  # the episode's time (a vector env's copies share one clock)
         obs, info = self._result(np.zeros(1, bool))
@@ -138,8 +142,9 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         return None
 
     def close(self) -> None:
-        """Close the pygame window, if any (safe to call twice)."""
-        if self._window is not None:
+        """Close the pygame window, if any (safe to call twice, and on an env whose
+        constructor failed)."""
+        if getattr(self, "_window", None) is not None:
             import pygame
 
             pygame.display.quit()

@@ -1,4 +1,4 @@
-"""``cparticles train`` and ``cparticles evaluate``: Stable-Baselines3 baselines on the envs.
+"""``cparticles train``, ``evaluate`` and ``convert-run``: Stable-Baselines3 baselines on the envs.
 
     cparticles train ClothSlide-v0 --algo ppo --seed 0 --out runs/cloth-ppo-0
     cparticles evaluate runs/cloth-ppo-0 --episodes 100 --seed-start 2000000 --json
@@ -8,26 +8,36 @@
 native vector env through :func:`envs.sb3.to_sb3` when ``n_envs > 1``, as PPO wants; a single
 env otherwise, as SAC wants), optionally wraps it in ``VecNormalize``, and trains with a progress
 bar. Every ``--eval-freq`` steps it runs deterministic evaluation episodes on seeds from
-``EVAL_SEED_START`` and appends them to ``DIR/evaluations.json``; it saves ``DIR/model.zip``,
-``DIR/vecnormalize.pkl`` (if used), ``DIR/best_model.zip`` (best periodic evaluation) and
-``DIR/config.json`` (what was run, how long it took).
+``EVAL_SEED_START`` and appends them to ``DIR/evaluations.json``. The run is written into a
+hidden directory beside ``DIR`` and renamed to ``DIR`` once complete, so a failed run (a full
+disk, an interrupt) leaves no directory that looks like a run.
 
-``evaluate`` loads a run directory and plays ``--episodes`` episodes with seeds ``--seed-start``,
+**A run directory holds data, not code** (format 2, ``config.json``'s ``"format"``):
+
+- ``config.json``: what was run (env, action mode, algorithm, seed, steps, the hyperparameters
+  with the policy settings), the observation and action spaces (shape, dtype, bounds), whether
+  observations were normalized, how long it took;
+- ``policy.pt`` and ``best_policy.pt`` (best periodic evaluation): the policy's weights, a
+  PyTorch state dict of tensors, read back with ``torch.load(..., weights_only=True)``;
+- ``normalization.npz`` and ``best_normalization.npz`` (when the hyperparameters normalize):
+  the observation statistics of ``VecNormalize`` as plain arrays (``mean``, ``var``, ``count``,
+  ``clip_obs``, ``epsilon``, ``norm_obs``), read with ``allow_pickle=False``;
+- ``evaluations.json``: the periodic evaluations.
+
+``evaluate`` checks ``config.json``, rebuilds the policy from its settings and the env's spaces,
+loads the weights and statistics from those files, and never unpickles anything stored, so a
+crafted run directory runs no code: a bad file is one ``error:`` line. Directories of an older
+``train`` hold pickles (``model.zip``, ``vecnormalize.pkl``); ``evaluate`` refuses them and
+names ``cparticles convert-run DIR``, which loads those pickles (running whatever they hold:
+only for directories you trust) and writes the files above beside them.
+
+``evaluate`` plays ``--episodes`` episodes with seeds ``--seed-start``,
 ``--seed-start + 1``, ... (keep them away from the training and periodic-evaluation seeds:
 ``HELD_OUT_SEED_START`` is the convention of ``docs/baselines``), deterministic unless
 ``--stochastic``, and prints a summary; the last line of the output is one JSON object with
 ``success_rate``, ``mean_return``, ``mean_length``, ``episodes`` and diagnostics (for
 ClothSlide: the mean |squeeze| of the actions, the RMS speed near the goal, final distances and
 speeds of failed episodes).
-
-**A run directory holds pickles.** ``model.zip`` and ``best_model.zip`` (Stable-Baselines3
-archives, which hold cloudpickled objects) and ``vecnormalize.pkl`` run code when they are
-loaded, so a crafted run directory can run any program. ``evaluate`` loads only what looks like
-a directory ``train`` wrote: it reads ``config.json`` first (no pickle involved) and refuses a
-directory without one, with an unknown env, action mode or algorithm, without the model file, or
-whose recorded observation shape does not match its env, all before unpickling anything. That
-check stops mistakes, not an attacker who writes a matching ``config.json``: evaluate only run
-directories you made yourself or otherwise trust.
 
 Requires the ``rl`` extra (stable-baselines3, torch).
 """
@@ -36,9 +46,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
+import os
+import shutil
 import sys
+import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -75,6 +88,22 @@ MAX_SEED = 2**31 - 1
 CONFIG_FIELDS: dict[str, type] = {
     "env": str, "action_mode": str, "algo": str, "seed": int, "timesteps": int,
     "hyperparams": dict}
+#: The version of the run directory format ``train`` writes (``config.json``'s ``"format"``):
+#: 2 holds data only (weights, statistics, JSON); 1 (no ``"format"``) held pickles.
+FORMAT = 2
+#: The policy weights of the final and the best model (a PyTorch state dict of tensors).
+POLICY_FILES = {"final": "policy.pt", "best": "best_policy.pt"}
+#: The observation statistics of the final and the best model (plain arrays), when normalized.
+NORMALIZATION_FILES = {"final": "normalization.npz", "best": "best_normalization.npz"}
+#: The pickles a run directory of format 1 held (never loaded by ``evaluate``).
+OLD_FILES = ("model.zip", "best_model.zip", "vecnormalize.pkl", "best_vecnormalize.pkl")
+#: Largest ``config.json`` ``evaluate`` reads (bytes); one that ``train`` writes has a few kB.
+MAX_CONFIG_BYTES = 1_000_000
+#: Policies a run directory may name (Stable-Baselines3's aliases).
+POLICIES = ("MlpPolicy",)
+#: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
+MAX_LAYER = 4096
 
 
 def _algo_class(algo: str) -> type:
@@ -202,8 +231,9 @@ def summarize(res: dict[str, Any]) -> dict[str, Any]:
 
 
 def sb3_policy(model: Any, obs_normalizer: Any = None, deterministic: bool = True) -> Policy:
-    """A batched policy from an SB3 model and (optionally) a ``VecNormalize`` whose observation
-    statistics it applies."""
+    """A batched policy from an SB3 model or policy (anything with ``predict``) and
+    (optionally) a ``VecNormalize`` or :class:`ObsNormalizer` whose observation statistics it
+    applies."""
     def policy(obs: np.ndarray) -> np.ndarray:
         o = obs if obs_normalizer is None else obs_normalizer.normalize_obs(obs)
         action, _ = model.predict(o, deterministic=deterministic)
@@ -239,9 +269,9 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
             key = (s["success_rate"], s["mean_return"])
             if self.best is None or key > self.best:
                 self.best = key
-                self.model.save(out / "best_model.zip")
+                save_policy(self.model, out / POLICY_FILES["best"])
                 if vn is not None:
-                    vn.save(str(out / "best_vecnormalize.pkl"))
+                    save_normalization(vn, out / NORMALIZATION_FILES["best"])
             print(f"eval @ {rec['timesteps']} steps: success {s['success_rate']:.0%}, "
                   f"return {s['mean_return']:.2f}, length {s['mean_length']:.0f} "
                   f"({rec['seconds']:.0f} s)", file=sys.stderr, flush=True)
@@ -255,6 +285,87 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
     return PeriodicEvaluation()
 
 
+def save_policy(model: Any, path: Path) -> None:
+    """Write the weights of ``model``'s policy to ``path``: a PyTorch state dict of CPU
+    tensors, which :func:`load_policy` reads with ``weights_only`` (no code runs)."""
+    import torch
+
+    state = {k: v.detach().cpu().clone() for k, v in model.policy.state_dict().items()}
+    with open(path, "wb") as f:
+        torch.save(state, f)
+
+
+def save_normalization(normalizer: Any, path: Path) -> None:
+    """Write the observation statistics of a ``VecNormalize`` to ``path`` as plain arrays
+    (``.npz``; :class:`ObsNormalizer` reads them back without pickles)."""
+    rms = normalizer.obs_rms
+    with open(path, "wb") as f:
+        np.savez(f, mean=np.asarray(rms.mean, np.float64), var=np.asarray(rms.var, np.float64),
+                 count=np.float64(rms.count), clip_obs=np.float64(normalizer.clip_obs),
+                 epsilon=np.float64(normalizer.epsilon), norm_obs=np.bool_(normalizer.norm_obs))
+
+
+class ObsNormalizer:
+    """The observation normalization of a ``VecNormalize`` (its ``normalize_obs``, the same
+    bits), from statistics stored as plain arrays by :func:`save_normalization`."""
+
+    def __init__(self, mean: np.ndarray, var: np.ndarray, clip_obs: float, epsilon: float,
+                 norm_obs: bool = True) -> None:
+        self.mean, self.var = np.asarray(mean, np.float64), np.asarray(var, np.float64)
+        self.clip_obs, self.epsilon, self.norm_obs = float(clip_obs), float(epsilon), norm_obs
+
+    @classmethod
+    def load(cls, path: Path, shape: tuple[int, ...]) -> ObsNormalizer:
+        """Read ``path`` (no pickles allowed); ValueError naming the file unless it holds the
+        arrays :func:`save_normalization` writes, finite, for observations of ``shape``."""
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                data = {k: f[k] for k in ("mean", "var", "clip_obs", "epsilon", "norm_obs")}
+        except (OSError, ValueError, KeyError, EOFError) as exc:
+            raise ValueError(f"{path} is not a normalization file of cparticles train "
+                             f"({exc})") from None
+        for name in ("mean", "var"):
+            a = data[name]
+            if a.dtype.kind != "f" or a.shape != shape or not np.isfinite(a).all():
+                raise ValueError(f"{path}: {name} must be finite floats of shape {shape}, "
+                                 f"got {a.dtype} {a.shape}")
+        scalars = [data[k] for k in ("clip_obs", "epsilon")]
+        if any(a.shape != () or a.dtype.kind != "f" or not np.isfinite(a) or a <= 0
+               for a in scalars) or (data["var"] < 0).any() \
+                or data["norm_obs"].shape != () or data["norm_obs"].dtype != bool:
+            raise ValueError(f"{path}: clip_obs and epsilon must be finite numbers > 0, var "
+                             ">= 0 and norm_obs a bool")
+        return cls(data["mean"], data["var"], float(data["clip_obs"]), float(data["epsilon"]),
+                   bool(data["norm_obs"]))
+
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
+        """``obs`` normalized and clipped, float32 (as ``VecNormalize.normalize_obs``)."""
+        if not self.norm_obs:
+            return obs
+        return np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip_obs,
+                       self.clip_obs).astype(np.float32)
+
+
+def space_record(space: gym.spaces.Box) -> dict[str, Any]:
+    """A Box space as JSON data: shape, dtype, low and high (``config.json``'s ``spaces``)."""
+    return {"shape": list(space.shape), "dtype": str(space.dtype),
+            "low": space.low.tolist(), "high": space.high.tolist()}
+
+
+def _partial_directory(out: Path) -> Path:
+    """A new hidden directory beside ``out`` that a run is written into before it is renamed
+    to ``out`` (so a failed run leaves nothing that looks like one)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+
+
+def _finish(partial: Path, out: Path) -> None:
+    """Rename the complete run ``partial`` to ``out`` (which may exist as an empty directory)."""
+    if out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+    os.rename(partial, out)
+
+
 def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str | None = None,
           timesteps: int | None = None, eval_freq: int | None = None, eval_episodes: int = 50,
           progress_bar: bool = True, threads: int = 1, verbose: int = 0) -> dict[str, Any]:
@@ -263,7 +374,9 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     ``action_mode`` None takes the env's default. ``timesteps`` overrides the file's
     ``n_timesteps``; ``eval_freq`` (env steps, default a tenth of the budget) and
     ``eval_episodes`` set the periodic evaluation. ``threads`` caps torch's CPU threads.
-    Returns the contents of ``out/config.json``.
+    ``out`` must not exist or be an empty directory: the run is written into a hidden
+    directory beside it and renamed to ``out`` only once complete (a failure, a full disk or
+    an interrupt leaves no ``out``). Returns the contents of ``out/config.json``.
     """
     import stable_baselines3
     import torch
@@ -285,46 +398,106 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         raise ValueError(f"seed must be in [0, {MAX_SEED}], got {seed}")
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    torch.set_num_threads(threads)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if os.path.lexists(out) and not (out.is_dir() and not any(out.iterdir())):
+        raise ValueError(f"out: {str(out)!r} exists and is not an empty directory")
+    torch.set_num_threads(threads)
     env_kwargs = dict(hp.get("env_kwargs", {}))
     n_envs = int(hp.get("n_envs", 1))
-    venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
-    kwargs = {k: v for k, v in hp.items() if k not in OWN_KEYS}
-    if hp.get("normalize", False):
-        venv = VecNormalize(venv, norm_obs=True, norm_reward=hp.get("normalize_reward", True),
-                            gamma=kwargs.get("gamma", 0.99))
-    started = time.perf_counter()
-    cls = _algo_class(algo)
-    model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose, **kwargs)
-    callback = _callback(out, env_id, action_mode, env_kwargs, eval_freq, eval_episodes, started)
-    model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
-    if not callback.records or callback.records[-1]["timesteps"] < timesteps:
-        callback.evaluate_now()
-    seconds = time.perf_counter() - started
-    model.save(out / "model.zip")
-    vn = model.get_vec_normalize_env()
-    if vn is not None:
-        vn.save(str(out / "vecnormalize.pkl"))
-    config = {"env": env_id, "action_mode": action_mode, "algo": algo, "seed": seed,
-              "timesteps": int(model.num_timesteps), "hyperparams": hp,
-              "observation_shape": list(venv.observation_space.shape),
-              "action_shape": list(venv.action_space.shape),
-              "wall_seconds": round(seconds, 1), "threads": threads,
-              "versions": {"stable_baselines3": stable_baselines3.__version__,
-                           "torch": torch.__version__, "gymnasium": gym.__version__}}
-    (out / "config.json").write_text(json.dumps(config, indent=1))
-    venv.close()
+    partial = _partial_directory(out)
+    venv = None
+    try:
+        venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
+        # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
+        kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
+        if hp.get("normalize", False):
+            venv = VecNormalize(venv, norm_obs=True,
+                                norm_reward=hp.get("normalize_reward", True),
+                                gamma=kwargs.get("gamma", 0.99))
+        started = time.perf_counter()
+        cls = _algo_class(algo)
+        model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose, **kwargs)
+        callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
+                             eval_episodes, started)
+        model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
+        if not callback.records or callback.records[-1]["timesteps"] < timesteps:
+            callback.evaluate_now()
+        seconds = time.perf_counter() - started
+        save_policy(model, partial / POLICY_FILES["final"])
+        vn = model.get_vec_normalize_env()
+        if vn is not None:
+            save_normalization(vn, partial / NORMALIZATION_FILES["final"])
+        config = {"format": FORMAT, "env": env_id, "action_mode": action_mode, "algo": algo,
+                  "seed": seed, "timesteps": int(model.num_timesteps), "hyperparams": hp,
+                  "observation_shape": list(venv.observation_space.shape),
+                  "action_shape": list(venv.action_space.shape),
+                  "spaces": {"observation": space_record(venv.observation_space),
+                             "action": space_record(venv.action_space)},
+                  "normalized": vn is not None,
+                  "wall_seconds": round(seconds, 1), "threads": threads,
+                  "versions": {"stable_baselines3": stable_baselines3.__version__,
+                               "torch": torch.__version__, "gymnasium": gym.__version__}}
+        (partial / "config.json").write_text(json.dumps(config, indent=1))
+        _finish(partial, out)
+    finally:
+        if venv is not None:
+            venv.close()
+        shutil.rmtree(partial, ignore_errors=True)  # (gone already when renamed)
     return config
 
 
+def _read_config(config_path: Path) -> Any:
+    """The JSON in ``config_path``; ValueError for a file that cannot be read, is too big
+    (:data:`MAX_CONFIG_BYTES`), is not JSON, or nests too deeply to parse."""
+    try:
+        with open(config_path, "rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise ValueError(f"cannot read {config_path} ({exc.strerror or exc})") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ValueError(f"{config_path} is larger than {MAX_CONFIG_BYTES} bytes (a config.json "
+                         "of cparticles train has a few kB)")
+    try:
+        return json.loads(data)
+    except ValueError as exc:  # also UnicodeDecodeError
+        raise ValueError(f"{config_path} is not valid JSON ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{config_path} is not a config.json of cparticles train (nested too "
+                         "deeply to read)") from None
+
+
+def _check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
+    """ValueError unless the policy settings of ``hp`` are ones ``evaluate`` can rebuild: a
+    policy of :data:`POLICIES` and ``policy_kwargs`` of :data:`POLICY_KWARGS` with layers of
+    1 to :data:`MAX_LAYER` units."""
+    if hp.get("policy", "MlpPolicy") not in POLICIES:
+        raise ValueError(f"{config_path}: hyperparams.policy must be one of {POLICIES}, got "
+                         f"{hp.get('policy')!r}")
+    pk = hp.get("policy_kwargs", {})
+    if not isinstance(pk, dict) or set(pk) - set(POLICY_KWARGS):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs may hold only "
+                         f"{', '.join(POLICY_KWARGS)}")
+    arch = pk.get("net_arch", [64, 64])
+    if not (isinstance(arch, list) and len(arch) <= 16
+            and all(type(n) is int and 1 <= n <= MAX_LAYER for n in arch)):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.net_arch must be a list of "
+                         f"at most 16 layer widths in [1, {MAX_LAYER}]")
+    if not isinstance(pk.get("use_sde", False), bool):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
+                         "false")
+    log_std = pk.get("log_std_init", 0.0)
+    if type(log_std) not in (int, float) or not np.isfinite(log_std):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.log_std_init must be a "
+                         "finite number")
+
+
 def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
-    """The ``config.json`` of a run directory that ``train`` wrote, checked before anything in
-    the directory is unpickled: ValueError unless ``out`` holds a config.json with the fields
-    ``train`` writes, a registered env with an action mode it takes, a known algorithm, the
-    model file of ``which`` (``"final"``: model.zip, ``"best"``: best_model.zip), and (when
-    recorded) the observation and action shapes that env gives."""
+    """The ``config.json`` of a run directory that ``train`` wrote, checked: ValueError unless
+    ``out`` holds a config.json (JSON data only, nothing else is read) with the fields
+    ``train`` writes, of the current :data:`FORMAT`, a registered env with an action mode it
+    takes, a known algorithm, policy settings ``evaluate`` can rebuild, the policy file of
+    ``which`` (``"final"`` or ``"best"``), and the observation and action spaces that env
+    gives. A directory of an older ``train`` (pickles) is refused with how to convert it."""
     out = Path(out)
     if which not in ("final", "best"):
         raise ValueError(f"which must be 'final' or 'best', got {which!r}")
@@ -334,14 +507,17 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
     if not config_path.is_file():
         raise ValueError(f"{str(out)!r} is not a run directory of cparticles train "
                          "(no config.json)")
-    try:
-        config = json.loads(config_path.read_text())
-    except OSError as exc:
-        raise ValueError(f"cannot read {config_path} ({exc.strerror or exc})") from None
-    except ValueError as exc:  # also UnicodeDecodeError
-        raise ValueError(f"{config_path} is not valid JSON ({exc})") from None
+    config = _read_config(config_path)
     if not isinstance(config, dict):
         raise ValueError(f"{config_path} is not a JSON object")
+    if "format" not in config and any((out / name).exists() for name in OLD_FILES):
+        raise ValueError(f"{str(out)!r} was written by an older cparticles train: its model is "
+                         "a pickle, which runs code when loaded, and evaluate loads no "
+                         "pickles. If you made it yourself or otherwise trust it, convert it "
+                         f"with: cparticles convert-run {out}")
+    if config.get("format") != FORMAT or isinstance(config.get("format"), bool):
+        raise ValueError(f"{config_path}: field 'format' must be {FORMAT} (a run directory of "
+                         f"this cparticles train), got {config.get('format')!r}")
     for name, kind in CONFIG_FIELDS.items():
         if not isinstance(config.get(name), kind) or isinstance(config.get(name), bool):
             raise ValueError(f"{config_path}: field {name!r} missing or not a "
@@ -355,47 +531,86 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
     env_kwargs = config["hyperparams"].get("env_kwargs", {})
     if not isinstance(env_kwargs, dict):
         raise ValueError(f"{config_path}: hyperparams.env_kwargs must be an object")
-    model = out / ("model.zip" if which == "final" else "best_model.zip")
-    if not model.is_file():
-        raise ValueError(f"{str(out)!r} has no {model.name} (train writes it when a run "
-                         "finishes; was it interrupted?)")
+    _check_policy_settings(config_path, config["hyperparams"])
+    policy = out / POLICY_FILES[which]
+    if not policy.is_file():
+        raise ValueError(f"{str(out)!r} has no {policy.name} (train writes it when a run "
+                         "finishes)")
     try:
         env = gym.make(config["env"], action_mode=config["action_mode"], **env_kwargs)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{config_path}: {config['env']} does not accept its env_kwargs "
                          f"({exc})") from None
-    shapes = {"observation_shape": env.observation_space.shape,
-              "action_shape": env.action_space.shape}
+    spaces = {"observation": env.observation_space, "action": env.action_space}
     env.close()
-    for name, shape in shapes.items():
-        if name in config and tuple(config[name]) != shape:
-            raise ValueError(f"{config_path}: the run's {name.replace('_', ' ')} is "
-                             f"{tuple(config[name])}, but {config['env']} "
-                             f"({config['action_mode']}) gives {shape}")
-    return {**config, **shapes}
+    if not isinstance(config.get("normalized", False), bool):
+        raise ValueError(f"{config_path}: field 'normalized' must be true or false")
+    recorded = config.get("spaces")
+    for name, space in spaces.items():
+        mine = recorded.get(name) if isinstance(recorded, dict) else None
+        if mine != space_record(space):
+            shape = mine.get("shape") if isinstance(mine, dict) else None
+            was = (f"shape {tuple(shape)}" if isinstance(shape, list) and len(shape) < 9
+                   else "missing or malformed")
+            raise ValueError(f"{config_path}: the run's {name} space ({was}) is not the one "
+                             f"{config['env']} ({config['action_mode']}) gives: shape "
+                             f"{space.shape}, {space.dtype}, its bounds")
+    return {**config, "observation_shape": spaces["observation"].shape,
+            "action_shape": spaces["action"].shape, "_spaces": spaces}
 
 
-def _check_spaces(config: dict[str, Any], model: Any, normalizer: Any) -> None:
-    """ValueError if the loaded model or normalizer was made for other observations or actions
-    than the env of ``config`` (a run directory assembled from different runs)."""
-    for what, space, shape in (("model", model.observation_space, config["observation_shape"]),
-                               ("model", model.action_space, config["action_shape"]),
-                               ("vecnormalize.pkl",
-                                getattr(normalizer, "observation_space", None),
-                                config["observation_shape"])):
-        if space is not None and tuple(space.shape) != tuple(shape):
-            raise ValueError(f"the run's {what} expects shape {tuple(space.shape)}, but "
-                             f"{config['env']} ({config['action_mode']}) gives {tuple(shape)}")
+def load_policy(config: dict[str, Any], path: Path) -> Any:
+    """The SB3 policy of a run (``config`` from :func:`read_run`), rebuilt from its settings
+    and spaces, with the weights in ``path`` read by PyTorch's ``weights_only`` loading (no
+    code runs); ValueError naming the file if they are not weights of that policy."""
+    import torch
+
+    hp = config["hyperparams"]
+    policy_class = _algo_class(config["algo"]).policy_aliases[hp.get("policy", "MlpPolicy")]
+    spaces = config["_spaces"]
+    policy = policy_class(spaces["observation"], spaces["action"], lambda _: 0.0,
+                          **hp.get("policy_kwargs", {}))
+    try:
+        with warnings.catch_warnings():  # (torch's notes on a file it then refuses)
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # (weights_only refuses anything but tensors and containers)
+        words = " ".join(str(exc).split())[:300]
+        raise ValueError(f"{path} is not a weights file of cparticles train ({words})") from None
+    if not (isinstance(state, dict)
+            and all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                    for k, v in state.items())):
+        raise ValueError(f"{path} is not a weights file of cparticles train (not a dict of "
+                         "tensors)")
+    expected = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
+    given = {k: tuple(v.shape) for k, v in state.items()}
+    wrong = ([f"{k} missing" for k in expected if k not in given]
+             + [f"{k} unknown" for k in given if k not in expected]
+             + [f"{k} has shape {given[k]}, the policy's {shape}"
+                for k, shape in expected.items() if k in given and given[k] != shape])
+    if wrong:
+        raise ValueError(f"{path} does not hold the weights of the run's policy "
+                         f"({'; '.join(wrong[:3])}{'; ...' if len(wrong) > 3 else ''})")
+    try:
+        policy.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        words = " ".join(str(exc).split())[:300]
+        raise ValueError(f"{path} does not hold the weights of the run's policy "
+                         f"({words})") from None
+    policy.set_training_mode(False)
+    return policy
 
 
 def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SEED_START,
              deterministic: bool = True, which: str = "final") -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds from ``seed_start``) with the run in ``out``
-    (``which``: ``"final"`` model.zip or ``"best"`` best_model.zip). Returns :func:`summarize`
-    plus the run's identity (env, action_mode, algo, seed, timesteps).
+    (``which``: ``"final"`` or ``"best"`` model). Returns :func:`summarize` plus the run's
+    identity (env, action_mode, algo, seed, timesteps).
 
-    The run's files are pickles that run code when loaded: :func:`read_run` checks
-    ``config.json`` first, but only load directories you trust (see the module docstring).
+    Nothing stored in the directory can run code: :func:`read_run` checks ``config.json``
+    (JSON), the policy is rebuilt from its settings and the weights read with ``weights_only``
+    (:func:`load_policy`), the observation statistics read as plain arrays
+    (:class:`ObsNormalizer`); the pickles an older ``train`` wrote are never opened.
     """
     config = read_run(out, which)
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
@@ -403,15 +618,15 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
     if seed_start < 0:
         raise ValueError(f"seed_start must be >= 0, got {seed_start}")
     out = Path(out)
-    prefix = "" if which == "final" else "best_"
-    model = _algo_class(config["algo"]).load(out / f"{prefix}model.zip", device="cpu")
+    policy = load_policy(config, out / POLICY_FILES[which])
     normalizer = None
-    vn_path = out / f"{prefix}vecnormalize.pkl"
-    if vn_path.is_file():
-        with open(vn_path, "rb") as f:
-            normalizer = pickle.load(f)
-    _check_spaces(config, model, normalizer)
-    res = run_episodes(sb3_policy(model, normalizer, deterministic), config["env"], episodes,
+    norm_path = out / NORMALIZATION_FILES[which]
+    if config.get("normalized", norm_path.exists()):
+        if not norm_path.is_file():
+            raise ValueError(f"{str(out)!r} has no {norm_path.name} (its config.json says the "
+                             "observations were normalized)")
+        normalizer = ObsNormalizer.load(norm_path, tuple(config["observation_shape"]))
+    res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
                        seed_start, config["action_mode"],
                        config["hyperparams"].get("env_kwargs", {}))
     return {"env": config["env"], "action_mode": config["action_mode"],
@@ -420,10 +635,66 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
             **summarize(res)}
 
 
+def convert_run(out: str | Path) -> list[str]:
+    """Convert a run directory of an older ``train`` (``model.zip``, ``vecnormalize.pkl``,
+    their ``best_`` twins: pickles) in place to the current :data:`FORMAT`: **this loads the
+    pickles, which runs any code they hold; only for directories you trust.** Writes the
+    policy and normalization files and a new ``config.json`` (the old one kept as
+    ``config.v1.json``); the pickles stay. Returns the names of the files written."""
+    import pickle
+
+    out = Path(out)
+    config = check_convertible(out)
+    config_path = out / "config.json"
+    cls = _algo_class(config["algo"])
+    written = []
+    for which, prefix in (("final", ""), ("best", "best_")):
+        zipped = out / f"{prefix}model.zip"
+        if not zipped.is_file():
+            continue
+        model = cls.load(zipped, device="cpu")  # (the trusted pickles: code runs here)
+        save_policy(model, out / POLICY_FILES[which])
+        written.append(POLICY_FILES[which])
+        pkl = out / f"{prefix}vecnormalize.pkl"
+        if pkl.is_file():
+            with open(pkl, "rb") as f:
+                save_normalization(pickle.load(f), out / NORMALIZATION_FILES[which])
+            written.append(NORMALIZATION_FILES[which])
+    spaces = {"observation": space_record(model.observation_space),
+              "action": space_record(model.action_space)}
+    new = {"format": FORMAT, **config, "spaces": spaces,
+           "normalized": (out / NORMALIZATION_FILES["final"]).exists()}
+    shutil.copyfile(config_path, out / "config.v1.json")
+    config_path.write_text(json.dumps(new, indent=1))
+    return [*written, "config.json"]
+
+
+def check_convertible(out: Path) -> dict[str, Any]:
+    """The ``config.json`` of a run directory of an older ``train`` (read as JSON, nothing
+    else opened); ValueError unless there is one to convert."""
+    config_path = out / "config.json"
+    if not out.is_dir() or not config_path.is_file():
+        raise ValueError(f"{str(out)!r} is not a run directory of cparticles train (no "
+                         "config.json)")
+    config = _read_config(config_path)
+    if not isinstance(config, dict):
+        raise ValueError(f"{config_path} is not a JSON object")
+    if "format" in config:
+        raise ValueError(f"{str(out)!r} is already of format {config['format']!r}: nothing to "
+                         "convert")
+    if config.get("algo") not in ALGOS:
+        raise ValueError(f"{config_path}: algo must be one of {ALGOS}, got "
+                         f"{config.get('algo')!r}")
+    if not (out / "model.zip").is_file():
+        raise ValueError(f"{str(out)!r} has no model.zip to convert")
+    return config
+
+
 # ---------------------------------------------------------------------- command line
-TRUST = ("A run directory holds pickles (model.zip, best_model.zip, vecnormalize.pkl) that run "
-         "code when loaded: evaluate only directories that cparticles train wrote and that you "
-         "trust. config.json is checked before anything is unpickled.")
+TRUST = ("A run directory holds data only (config.json, the policy weights, the observation "
+         "statistics as plain arrays): evaluate runs no code stored in it. A directory of an "
+         "older train (model.zip, vecnormalize.pkl: pickles) is refused; convert one you "
+         "trust with cparticles convert-run.")
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
@@ -435,7 +706,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
                         help="seed of the model; env copy i starts from seed + i")
     parser.add_argument("--out", required=True, type=new_directory,
-                        help="run directory (created; must not hold a run already)")
+                        help="run directory (created when the run is complete; must not "
+                        "exist, or be an empty directory)")
     parser.add_argument("--action-mode", choices=sorted({m for v in ENV_ACTION_MODES.values()
                                                          for m in v}),
                         help=f"action mode ({modes}) (default: the env's first)")
@@ -462,10 +734,11 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
         load_hyperparams(args.algo, args.env, args.action_mode)
     except ValueError as exc:
         parser.error(str(exc))
-    for name in ("config.json", "model.zip"):
-        if (Path(args.out) / name).exists():
-            parser.error(f"argument --out: {args.out!r} already holds a run ({name}); choose "
-                         "another directory")
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()):
+        held = " a run" if any((out / n).exists() for n in ("config.json", *OLD_FILES)) else ""
+        parser.error(f"argument --out: {args.out!r} already holds{held or ' files'}; choose "
+                     "another directory (or an empty one)")
     require("stable_baselines3", "torch", command="cparticles train")
 
 
@@ -473,8 +746,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles evaluate``."""
     parser.description = ("evaluate a run directory that cparticles train wrote, on held-out "
                           f"episodes (rl extra). {TRUST}")
-    parser.add_argument("dir", help="run directory written by cparticles train (trusted: it "
-                        "holds pickles)")
+    parser.add_argument("dir", help="run directory written by cparticles train")
     parser.add_argument("--episodes", type=int_at_least(1), default=100,
                         help="number of episodes")
     parser.add_argument("--seed-start", type=int_at_least(0), default=HELD_OUT_SEED_START,
@@ -482,7 +754,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stochastic", action="store_true",
                         help="sample actions instead of the deterministic policy")
     parser.add_argument("--best", action="store_true",
-                        help="use best_model.zip (best periodic evaluation), not model.zip")
+                        help="use the best model of the periodic evaluations "
+                        f"({POLICY_FILES['best']}), not the final one")
     parser.add_argument("--json", action="store_true", help="print only the JSON line")
 
 
@@ -497,16 +770,10 @@ def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Nam
 
 
 def main_train(args: argparse.Namespace) -> int:
-    """``cparticles train``; a directory it created stays only if something was written."""
-    out = Path(args.out)
-    created = not out.exists()
-    try:
-        config = train(args.env, args.algo, args.seed, out, args.action_mode, args.timesteps,
-                       args.eval_freq, args.eval_episodes, progress_bar=not args.no_progress,
-                       threads=args.threads)
-    finally:
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
+    """``cparticles train``; the run directory appears only when the run is complete."""
+    config = train(args.env, args.algo, args.seed, args.out, args.action_mode, args.timesteps,
+                   args.eval_freq, args.eval_episodes, progress_bar=not args.no_progress,
+                   threads=args.threads)
     print(f"trained {config['algo']} on {config['env']} ({config['action_mode']}), seed "
           f"{config['seed']}, {config['timesteps']} steps in {config['wall_seconds']:.0f} s; "
           f"saved to {args.out}")
@@ -525,4 +792,34 @@ def main_evaluate(args: argparse.Namespace) -> int:
         print(f"success rate {res['success_rate']:.0%}, mean return {res['mean_return']:.2f}, "
               f"mean length {res['mean_length']:.1f} steps")
     print(json.dumps(res))
+    return 0
+
+
+def add_convert_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``cparticles convert-run``."""
+    parser.description = ("convert a run directory of an older cparticles train (model.zip, "
+                          "vecnormalize.pkl: pickles) to the current format, which evaluate "
+                          "reads. This LOADS THE PICKLES, which runs any code they hold: only "
+                          "for directories you made yourself or otherwise trust (rl extra).")
+    parser.add_argument("dir", help="run directory of an older cparticles train (trusted)")
+
+
+def check_convert_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
+                            ) -> None:
+    """Before any work: a directory to convert (its config.json only is read), the rl
+    extra."""
+    try:
+        check_convertible(Path(args.dir))
+    except ValueError as exc:
+        parser.error(f"argument dir: {exc}")
+    require("stable_baselines3", "torch", command="cparticles convert-run")
+
+
+def main_convert(args: argparse.Namespace) -> int:
+    """``cparticles convert-run``: one line saying what was trusted and written."""
+    print(f"loading the pickles of {args.dir} (trusted, as convert-run says) ...",
+          file=sys.stderr, flush=True)
+    written = convert_run(args.dir)
+    print(f"converted {args.dir}: wrote {', '.join(written)} (the pickles are left in place "
+          "and never read by evaluate)")
     return 0

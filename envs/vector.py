@@ -26,7 +26,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .base import ParticleTask
-from .checks import check_positive
+from .checks import check_options, check_positive, check_seed
 from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
@@ -90,13 +90,18 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
         """One seed (or None: keep the copy's generator) per copy, from ``reset``'s ``seed``."""
         N = self.num_envs
-        seeds = ([seed + i for i in range(N)] if isinstance(seed, (int, np.integer))
-                 else [None] * N if seed is None else list(seed))
-        if len(seeds) != N:
+        if seed is None or isinstance(seed, (int, np.integer, bool, np.bool_)):
+            first = check_seed(seed)
+            return ([None] * N if first is None else [first + i for i in range(N)]) \
+                if self._rngs is not None or first is not None else self._draw([None] * N)
+        if isinstance(seed, (str, bytes)) or not hasattr(seed, "__len__") or len(seed) != N:
             raise ValueError(f"seed must be an int, None or a list of {N} seeds, got {seed!r}")
-        if self._rngs is None:  # first reset: unseeded copies draw a seed from np_random
-            seeds = [int(self.np_random.integers(2**63)) if s is None else s for s in seeds]
-        return seeds
+        seeds = [check_seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
+        return seeds if self._rngs is not None else self._draw(seeds)
+
+    def _draw(self, seeds: list[int | None]) -> list[int | None]:
+        """On the first reset: a seed drawn from ``np_random`` for each unseeded copy."""
+        return [int(self.np_random.integers(2**63)) if s is None else s for s in seeds]
 
     def _seed_copies(self, seeds: list[int | None]) -> None:
         if self._rngs is None:
@@ -107,11 +112,15 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every copy, or those in ``options["reset_mask"]`` (a (num_envs,) bool array)."""
-        super().reset(seed=seed if isinstance(seed, (int, np.integer)) else None)
-        seeds = self._seeds(seed)
+        """Reset every copy, or those in ``options["reset_mask"]`` (a (num_envs,) bool array,
+        the only option). ``seed``: a Python or numpy integer >= 0 (copy i gets seed + i), a
+        list of one seed (or None) per copy, or None."""
+        options = check_options(options, ("reset_mask",))
+        one = seed is None or isinstance(seed, (int, np.integer, bool, np.bool_))
+        seeds = self._seeds(seed)  # (checked before anything changes)
+        super().reset(seed=seeds[0] if one and seed is not None else None)
         mask = np.ones(self.num_envs, bool)
-        if options is not None and "reset_mask" in options:
+        if "reset_mask" in options:
             mask = np.asarray(options["reset_mask"])
             if mask.shape != (self.num_envs,) or mask.dtype != bool or not mask.any():
                 raise ValueError("options['reset_mask'] must be a bool array of shape "
@@ -208,8 +217,11 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         return [self._frame(i) for i in range(self.num_envs)]
 
     def close(self, **kwargs: Any) -> None:
-        """Stop the physics threads (safe to call twice; a step after it starts them again)."""
-        self.task.system.close_threads()
+        """Stop the physics threads (safe to call twice; a step after it starts them again;
+        nothing to stop on an env whose constructor failed)."""
+        task = self.__dict__.get("task")
+        if task is not None:
+            task.system.close_threads()
         super().close(**kwargs)
 
     def __getstate__(self) -> dict[str, Any]:

@@ -4,9 +4,11 @@ exit codes and its checks of user mistakes (exit 2, one ``error:`` line, never a
 import json
 import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
+import envs  # noqa: F401  (registers the envs)
 from constrained_particles import METHODS
 from constrained_particles.arguments import progress_enabled
 from cparticles import cli
@@ -352,7 +354,7 @@ def test_train_and_evaluate_check_every_argument_first(argv, words, tmp_path, ca
     done = tmp_path / "DONE"
     done.mkdir()
     (done / "config.json").write_text(json.dumps(RUN_CONFIG))
-    (done / "model.zip").write_bytes(b"")
+    (done / "policy.pt").write_bytes(b"")
     before = sorted(tmp_path.rglob("*"))
     argv = [str(tmp_path / a[4:]) if a.startswith("TMP/") else a for a in argv]
     argv = [str(tmp_path / a) if a in ("FILE", "FILE/sub", "DONE") else
@@ -362,10 +364,26 @@ def test_train_and_evaluate_check_every_argument_first(argv, words, tmp_path, ca
     assert sorted(tmp_path.rglob("*")) == before
 
 
+def _spaces(env_id: str = "SliderCrank-v0") -> dict:
+    from envs.train import space_record
+
+    env = gym.make(env_id)
+    spaces = {"observation": space_record(env.observation_space),
+              "action": space_record(env.action_space)}
+    env.close()
+    return spaces
+
+
 #: The fields ``cparticles train`` writes into config.json (a SliderCrank run).
-RUN_CONFIG = {"env": "SliderCrank-v0", "action_mode": "force", "algo": "ppo", "seed": 0,
-              "timesteps": 2048, "hyperparams": {"n_envs": 16}, "observation_shape": [9],
-              "action_shape": [1], "wall_seconds": 1.0}
+RUN_CONFIG = {"format": 2, "env": "SliderCrank-v0", "action_mode": "force", "algo": "ppo",
+              "seed": 0, "timesteps": 2048,
+              "hyperparams": {"n_envs": 16, "policy": "MlpPolicy",
+                              "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5}},
+              "observation_shape": [9], "action_shape": [1], "spaces": _spaces(),
+              "normalized": True, "wall_seconds": 1.0}
+#: What a run directory of an older train held in config.json (its model: pickles).
+OLD_RUN_CONFIG = {k: v for k, v in RUN_CONFIG.items()
+                  if k not in ("format", "spaces", "normalized")}
 
 
 class Marker:
@@ -383,65 +401,143 @@ class Marker:
     ({"action_mode": "draw"}, ["action_mode", "force or spring"]),
     ({"algo": "dqn"}, ["algo"]),
     ({"seed": None}, ["'seed'"]),
-    ({"observation_shape": [145]}, ["observation shape", "(145,)", "(9,)"]),
+    ({"format": 3}, ["'format'", "2"]),
+    ({"spaces": {**_spaces(), "observation": _spaces("ClothSlide-v0")["observation"]}},
+     ["observation space", "(145,)", "(9,)"]),
     ({"hyperparams": {"env_kwargs": {"nonsense": 1}}}, ["env_kwargs"]),
+    ({"hyperparams": {"policy": "CnnPolicy"}}, ["hyperparams.policy", "MlpPolicy"]),
+    ({"hyperparams": {"policy_kwargs": {"activation_fn": "os.system"}}}, ["policy_kwargs"]),
+    ({"hyperparams": {"policy_kwargs": {"net_arch": [10**9]}}}, ["net_arch"]),
     (None, ["not valid JSON"]),
+    ("deep", ["nested too deeply"]),
+    ("huge", ["larger than"]),
 ])
-def test_evaluate_checks_config_json_before_unpickling(change, words, tmp_path, capsys):
-    """A run directory whose config.json is not one train writes is refused with one error
-    line, and none of its pickles is loaded (the crafted one would create a file)."""
+def test_evaluate_checks_config_json_first(change, words, tmp_path, capsys):
+    """A run directory whose config.json is not one train writes (malformed, deeply nested or
+    huge JSON included) is refused with one error line, and nothing stored in it is loaded
+    (the crafted pickles would create a file)."""
     import pickle
 
     run = tmp_path / "run"
     run.mkdir()
     marker = tmp_path / "unpickled"
     (run / "vecnormalize.pkl").write_bytes(pickle.dumps(Marker(marker)))
-    (run / "model.zip").write_bytes(b"")
-    text = "{not json" if change is None else json.dumps({**RUN_CONFIG, **change})
+    (run / "policy.pt").write_bytes(pickle.dumps(Marker(marker)))
+    text = ("{not json" if change is None else "[" * 100_000 + "]" * 100_000
+            if change == "deep" else json.dumps({**RUN_CONFIG, "pad": "x" * 2_000_000})
+            if change == "huge" else json.dumps({**RUN_CONFIG, **change}))
     (run / "config.json").write_text(text)
     err = fails_cleanly(["evaluate", str(run)], capsys)
     assert all(w in err for w in words), err
     assert not marker.exists()
 
 
-def test_evaluate_without_model_names_the_file(tmp_path, capsys):
+def crafted_model_zip(path, marker) -> None:
+    """A Stable-Baselines3 archive whose stored policy class is a pickle that creates
+    ``marker`` when loaded (SB3 unpickles such entries while reading the archive)."""
+    import base64
+    import pickle
+    import zipfile
+
+    payload = base64.b64encode(pickle.dumps(Marker(marker))).decode()
+    data = {"policy_class": {":type:": "<class 'type'>", ":serialized:": payload}}
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("data", json.dumps(data))
+        z.writestr("_stable_baselines3_version", "2.3.0")
+
+
+@pytest.mark.parametrize("best", [False, True])
+def test_a_crafted_run_directory_of_the_old_format_runs_nothing(best, tmp_path, capsys):
+    """model.zip / vecnormalize.pkl payloads (which the old evaluate unpickled) are never
+    opened: one error line that says how to convert a directory one trusts."""
+    import pickle
+
+    run = tmp_path / "run"
+    run.mkdir()
+    marker = tmp_path / "ran"
+    prefix = "best_" if best else ""
+    crafted_model_zip(run / f"{prefix}model.zip", marker)
+    (run / f"{prefix}vecnormalize.pkl").write_bytes(pickle.dumps(Marker(marker)))
+    (run / "config.json").write_text(json.dumps(OLD_RUN_CONFIG))
+    err = fails_cleanly(["evaluate", str(run), *(["--best"] if best else [])], capsys)
+    assert "older cparticles train" in err and f"cparticles convert-run {run}" in err, err
+    assert not marker.exists()
+
+
+def test_a_crafted_weights_or_statistics_file_runs_nothing(tmp_path, capsys):
+    """In a run directory of the current format: a weights file that is a pickle payload, a
+    statistics file holding a pickled object array, and pickles where the old format kept
+    its model, give one error line each; none of them runs (the marker is never written)."""
+    pytest.importorskip("stable_baselines3")
+    import pickle
+
+    import torch
+    from stable_baselines3 import PPO
+
+    from envs.train import load_policy, read_run
+
+    run = tmp_path / "run"
+    run.mkdir()
+    marker = tmp_path / "ran"
+    (run / "config.json").write_text(json.dumps(RUN_CONFIG))
+    crafted_model_zip(run / "model.zip", marker)  # (left over: never opened)
+    (run / "vecnormalize.pkl").write_bytes(pickle.dumps(Marker(marker)))
+    (run / "policy.pt").write_bytes(pickle.dumps(Marker(marker)))
+    err = fails_cleanly(["evaluate", str(run), "--episodes", "1"], capsys)
+    assert "policy.pt is not a weights file" in err, err
+    # a torch.save'd payload (a zip archive holding the pickle) is refused the same way
+    with open(run / "policy.pt", "wb") as f:
+        torch.save({"w": Marker(marker)}, f)
+    err = fails_cleanly(["evaluate", str(run), "--episodes", "1"], capsys)
+    assert "policy.pt is not a weights file" in err, err
+    # real weights, then statistics holding a pickled object array
+    model = PPO("MlpPolicy", gym.make("SliderCrank-v0"), n_steps=64, device="cpu",
+                policy_kwargs=RUN_CONFIG["hyperparams"]["policy_kwargs"])
+    torch.save(model.policy.state_dict(), run / "policy.pt")
+    assert load_policy(read_run(run), run / "policy.pt") is not None
+    np.savez(run / "normalization.npz", mean=np.array([Marker(marker)], dtype=object))
+    err = fails_cleanly(["evaluate", str(run), "--episodes", "1"], capsys)
+    assert "normalization.npz is not a normalization file" in err, err
+    assert not marker.exists()
+
+
+def test_evaluate_without_the_policy_names_the_file(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     (run / "config.json").write_text(json.dumps(RUN_CONFIG))
     err = fails_cleanly(["evaluate", str(run)], capsys)
-    assert "no model.zip" in err and "model.zip.zip" not in err
+    assert "no policy.pt" in err
     err = fails_cleanly(["evaluate", str(run), "--best"], capsys)
-    assert "no best_model.zip" in err
+    assert "no best_policy.pt" in err
 
 
-def test_evaluate_of_a_model_for_another_env_is_an_error(tmp_path, capsys):
-    """A SliderCrank model (9 observations) in a directory whose config.json says ClothSlide
-    (145) and records no shapes: refused after loading, before any episode."""
+def test_evaluate_of_weights_for_another_env_is_an_error(tmp_path, capsys):
+    """SliderCrank weights (9 observations) in a directory whose config.json says ClothSlide
+    (145): refused when the weights are loaded, before any episode."""
     pytest.importorskip("stable_baselines3")
-    import gymnasium as gym
+    import torch
     from stable_baselines3 import PPO
-
-    import envs  # noqa: F401
 
     run = tmp_path / "run"
     run.mkdir()
-    PPO("MlpPolicy", gym.make("SliderCrank-v0"), n_steps=64, device="cpu").save(
-        run / "model.zip")
-    config = {k: v for k, v in RUN_CONFIG.items() if not k.endswith("_shape")}
-    (run / "config.json").write_text(json.dumps({**config, "env": "ClothSlide-v0"}))
+    model = PPO("MlpPolicy", gym.make("SliderCrank-v0"), n_steps=64, device="cpu",
+                policy_kwargs=RUN_CONFIG["hyperparams"]["policy_kwargs"])
+    torch.save(model.policy.state_dict(), run / "policy.pt")
+    config = {**RUN_CONFIG, "env": "ClothSlide-v0", "spaces": _spaces("ClothSlide-v0")}
+    (run / "config.json").write_text(json.dumps(config))
     err = fails_cleanly(["evaluate", str(run), "--episodes", "1"], capsys)
-    assert "(9,)" in err and "(145,)" in err and "ClothSlide-v0" in err
+    assert "does not hold the weights of the run's policy" in err and "145" in err, err
 
 
-def test_evaluate_help_says_a_run_holds_pickles(capsys):
+def test_evaluate_help_says_a_run_holds_data_only(capsys):
     with pytest.raises(SystemExit):
         cli.main(["evaluate", "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "pickles" in out and "run code when loaded" in out and "trust" in out
-    from envs import train
-
-    assert "run code when" in " ".join(train.__doc__.split())
-    assert "pickles" in " ".join(train.evaluate.__doc__.split())
+    assert "data only" in out and "runs no code" in out and "convert-run" in out
+    with pytest.raises(SystemExit):
+        cli.main(["convert-run", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "LOADS THE PICKLES" in out and "trust" in out
 
 
 # ------------------------------------------------------------------ without the rl extra
@@ -460,7 +556,7 @@ def test_train_without_the_rl_extra_is_a_one_line_hint(argv, tmp_path):
     import subprocess
 
     (tmp_path / "config.json").write_text(json.dumps(RUN_CONFIG))
-    (tmp_path / "model.zip").write_bytes(b"")
+    (tmp_path / "policy.pt").write_bytes(b"")
     argv = [a.replace("TMP", str(tmp_path)) for a in argv]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
@@ -499,3 +595,58 @@ def test_verify_orders_json_is_one_object_on_one_line(capsys):
         assert set(per) == set(METHODS)
         assert all(isinstance(v, float) for v in per.values())
         assert abs(per["rk4"] - 4) < 0.5
+
+
+# ------------------------------------------------------------------ the system says no
+def test_out_naming_a_dangling_symlink_or_a_device_is_an_argument_error(tmp_path, capsys):
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "nowhere")
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", str(link)], capsys)
+    assert "--out" in err and "dangling" in err
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", "/dev/null"], capsys)
+    assert "--out" in err and "not a directory" in err
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    err = fails_cleanly(["train", "SliderCrank-v0", "--out", str(busy)], capsys)
+    assert "already holds files" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["busy", "link"]
+
+
+def test_a_gif_on_a_full_disk_is_one_line_and_leaves_no_file(tmp_path, capsys, monkeypatch):
+    """Writing the GIF fails with ENOSPC half-way: exit status 1, one error line, no
+    traceback, and neither the GIF nor its partial file is left."""
+    pytest.importorskip("PIL")
+    import errno
+
+    from PIL import Image
+
+    def full(self, fp, *args, **kwargs):
+        with open(fp, "wb") as f:
+            f.write(b"GIF89a")  # (a start, then the disk is full)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    gif = tmp_path / "x.gif"
+    code = cli.main(["demo", "--env", "SliderCrank-v0", "--episodes", "1", "--save-gif",
+                     str(gif)])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == ["cparticles demo: error: No space left on device"]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("exc, words", [
+    (OSError(28, "No space left on device", "/data/run/x"),
+     "No space left on device: /data/run/x"),
+    (PermissionError(13, "Permission denied", "/etc/x"), "Permission denied: /etc/x"),
+    (IsADirectoryError(21, "Is a directory", "/tmp"), "Is a directory: /tmp"),
+])
+def test_an_os_error_of_a_command_is_one_line_and_status_1(exc, words, capsys):
+    from constrained_particles.arguments import run_command
+
+    def fail():
+        raise exc
+
+    assert run_command("cparticles x", fail) == 1
+    assert capsys.readouterr().err == f"cparticles x: error: {words}\n"

@@ -262,3 +262,68 @@ def test_a_replaced_actuator_force_array_of_the_wrong_length_is_not_read_out_of_
     assert task.system.x.tobytes() == x0.tobytes()
     env.step(np.zeros((4, 1), np.float32))
     assert np.all(np.isfinite(task.system.x))
+
+
+def _vector(env_id: str = "ClothSlide-v0", **kwargs: object) -> gym.vector.VectorEnv:
+    return gym.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+
+@pytest.mark.parametrize("env_id", envs.ENV_IDS)
+def test_python_and_numpy_integer_seeds_are_alike(env_id: str) -> None:
+    """A numpy integer seeds a single or a vector env as the Python int of the same value
+    (gymnasium alone refuses it), in a list of per-copy seeds too."""
+    single = gym.make(env_id)
+    first = single.reset(seed=5)[0]
+    for seed in (np.int64(5), np.uint32(5), np.int8(5)):
+        np.testing.assert_array_equal(single.reset(seed=seed)[0], first)
+    vec = _vector(env_id)
+    batch = vec.reset(seed=5)[0]
+    np.testing.assert_array_equal(batch[0], first)
+    np.testing.assert_array_equal(vec.reset(seed=np.int64(5))[0], batch)
+    np.testing.assert_array_equal(vec.reset(seed=[np.uint16(5), 6])[0], batch)
+    vec.close()
+
+
+@pytest.mark.parametrize("seed", [-1, True, 1.5, "3"])
+def test_a_bad_seed_is_a_value_error_naming_it(seed: object) -> None:
+    single, vec = gym.make("ClothSlide-v0"), _vector()
+    for env in (single, vec):
+        with pytest.raises(ValueError, match="seed"):
+            env.reset(seed=seed)
+    with pytest.raises(ValueError, match=r"seed\[1\]"):
+        vec.reset(seed=[1, -2])
+
+
+def test_unknown_reset_options_are_an_error_naming_the_valid_ones() -> None:
+    single, vec = gym.make("ClothSlide-v0"), _vector()
+    with pytest.raises(ValueError, match="'goal'.*takes no options"):
+        single.reset(options={"goal": 0.3})
+    with pytest.raises(ValueError, match="'goal'.*valid keys are 'reset_mask'"):
+        vec.reset(options={"goal": 0.3, "reset_mask": np.ones(2, bool)})
+    with pytest.raises(ValueError, match="options"):
+        vec.reset(options=["reset_mask"])
+    single.reset(options={})  # (gymnasium's checker passes an empty dict)
+    vec.reset(options={"reset_mask": np.array([True, False])})
+
+
+def test_a_failed_constructor_leaves_no_warning_behind(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An env whose constructor raised is closed by the garbage collector (gymnasium's
+    vector envs close themselves in ``__del__`` in some versions): no "Exception ignored"."""
+    import gc
+    import sys
+
+    from envs.cloth_slide import ClothSlideEnv, ClothSlideVectorEnv
+
+    ignored: list[object] = []
+    monkeypatch.setattr(sys, "unraisablehook", ignored.append)
+    for kwargs in ({"num_threads": 0}, {"num_envs": 0}, {"nonsense": 1}):
+        with pytest.raises((TypeError, ValueError)):
+            ClothSlideVectorEnv(**kwargs)
+    with pytest.raises((TypeError, ValueError)):
+        ClothSlideEnv(nonsense=1)
+    gc.collect()
+    assert ignored == []
+    for cls in (ClothSlideVectorEnv, ClothSlideEnv):  # what __del__ calls: close()
+        half = object.__new__(cls)
+        half.close()
+        half.close()

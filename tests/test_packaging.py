@@ -62,7 +62,7 @@ def test_pyproject_metadata():
     include = re.search(r"^include = \[(.*)\]$", text, re.M).group(1)
     assert "benchmarks" not in include and "tests" not in include
     deps = text[text.index("dependencies = ["):text.index("]", text.index("dependencies = ["))]
-    assert '"numba>=0.59"' in deps
+    assert re.search(r'"numba>=0\.59,<0\.\d+"', deps)  # (bounded: its internals are used)
 
 
 def test_wheel_packages_are_the_four_top_level_ones():
@@ -318,3 +318,116 @@ def test_every_compiled_function_uses_the_jit_module():
     assert offenders == []
     kernels = (ROOT / "constrained_particles" / "kernels.py").read_text()
     assert "from .jit import njit" in kernels
+
+
+def damage(folder: Path, how: str) -> list[Path]:
+    """Damage every cache file below ``folder`` as a full disk, a killed process or a copied
+    home directory leaves them; returns the files damaged."""
+    import random
+
+    files = cached_files(folder)
+    rng = random.Random(0)
+    for path in files:
+        data = path.read_bytes()
+        if how == "truncated":
+            path.write_bytes(data[: len(data) // 2])
+        elif how == "random bytes":
+            path.write_bytes(bytes(rng.randrange(256) for _ in data))
+        elif how == "empty":
+            path.write_bytes(b"")
+        elif how == "data files only" and path.suffix == ".nbi":
+            path.unlink()
+        elif how == "another pickle protocol" and path.suffix == ".nbc":
+            path.write_bytes(b"\x80\x09" + data[2:])  # as from a Python yet to come
+    return files
+
+
+@pytest.mark.parametrize("how", ["truncated", "random bytes", "empty", "data files only",
+                                 "another pickle protocol"])
+def test_a_damaged_cache_entry_is_set_aside_and_compiled_again(tmp_path, how):
+    folder = {"NUMBA_CACHE_DIR": str(tmp_path / "numba"), "XDG_CACHE_HOME": None}
+    assert probe(tmp_path, **folder).stdout.splitlines()[2] == "3.0 1 0"  # compiled, cached
+    assert len(damage(tmp_path / "numba", how)) == 2
+    out = probe(tmp_path, **folder)  # the first run after the damage succeeds
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[2] == "3.0 1 0"  # compiled again
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1, out.stderr  # one line: what was found, and where
+    assert lines[0].startswith("constrained-particles: a compiled kernel in the cache could "
+                               "not be loaded") and str(tmp_path / "numba") in lines[0]
+    aside = sorted(p.name for p in (tmp_path / "numba").rglob("*.unreadable"))
+    assert aside and all(name.startswith("jitted.twice-") for name in aside)
+    again = probe(tmp_path, **folder)  # healed: loaded, nothing said
+    assert again.stdout.splitlines()[2] == "3.0 0 1" and again.stderr == ""
+
+
+def test_two_processes_filling_one_empty_cache_at_once(tmp_path):
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "XDG_CACHE_HOME"}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(tmp_path / "src")])
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "jitted.py").write_text(JITTED)
+    runs = [subprocess.Popen([sys.executable, "-c", PROBE], env=env, cwd=tmp_path,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            for _ in range(3)]
+    outs = [run.communicate(timeout=300) for run in runs]
+    assert [run.returncode for run in runs] == [0, 0, 0], outs
+    assert all(err == "" and out.splitlines()[2].startswith("3.0 ") for out, err in outs)
+    after = subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=tmp_path,
+                           capture_output=True, text=True, timeout=300)
+    assert after.stdout.splitlines()[2] == "3.0 0 1" and after.stderr == ""  # loads the cache
+    assert list((tmp_path / "numba").rglob("*.unreadable")) == []
+
+
+FULL_DISK = '''
+import errno
+from numba.core import caching
+
+def full(self, *args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+caching.IndexDataCacheFile._save_index = full
+caching.IndexDataCacheFile._save_data = full
+import jitted
+print(jitted.twice(1.5), jitted.twice(2.0))
+'''
+
+
+def test_a_cache_on_a_full_disk_keeps_the_kernels_in_memory_with_one_line(tmp_path):
+    import os
+
+    probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "other"))  # (writes src/jitted.py)
+    env = {k: v for k, v in os.environ.items() if k != "XDG_CACHE_HOME"}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(tmp_path / "src")])
+    out = subprocess.run([sys.executable, "-c", FULL_DISK], env=env, cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.split() == ["3.0", "4.0"], out.stderr
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and "could not be written to the cache" in lines[0], out.stderr
+    assert "No space left on device" in lines[0]
+
+
+def test_ci_tests_the_oldest_numba_and_numpy_pyproject_allows():
+    """The lower bounds of numba and numpy in pyproject.toml are the versions .ci/oldest.txt
+    pins for the oldest Pythons (CI runs the suite on them), and numba has an upper bound
+    (its internals: constrained_particles.jit.NUMBA_INTERNALS)."""
+    text = (ROOT / "pyproject.toml").read_text()
+    numba = re.search(r'"numba>=([\d.]+),<([\d.]+)"', text)
+    numpy = re.search(r'"numpy>=([\d.]+)', text)
+    assert numba and numpy, "numba must be bounded on both sides"
+    pins = {}
+    for line in (ROOT / ".ci" / "oldest.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            py, *reqs = line.split()
+            pins[py] = dict(r.split("==") for r in reqs)
+    assert pins["3.10"]["numba"].startswith(numba.group(1))
+    assert pins["3.10"]["numpy"].startswith(numpy.group(1))
+    def version(text: str) -> tuple[int, ...]:
+        return tuple(int(part) for part in text.split("."))
+
+    assert all(version(p["numba"]) < version(numba.group(2)) for p in pins.values())
+    assert f"{sys.version_info[0]}.{sys.version_info[1]}" in pins  # (this Python has a line)
+    assert ".ci/oldest.txt" in (ROOT / ".ci" / "run").read_text()

@@ -155,10 +155,14 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
                      str(out), "--timesteps", "2048", "--eval-freq", "2048",
                      "--eval-episodes", "4", "--no-progress"])
     assert code == 0
-    for name in ("model.zip", "vecnormalize.pkl", "config.json", "evaluations.json",
-                 "best_model.zip"):
-        assert (out / name).is_file(), name
+    names = {"policy.pt", "normalization.npz", "config.json", "evaluations.json",
+             "best_policy.pt", "best_normalization.npz"}
+    assert {p.name for p in out.iterdir()} == names  # data only: no pickles
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]  # (no partial directory left)
     config = json.loads((out / "config.json").read_text())
+    assert config["format"] == 2 and config["normalized"] is True
+    assert config["hyperparams"] == load_hyperparams("ppo", "SliderCrank-v0", "force")
+    assert config["spaces"]["observation"]["shape"] == [9]
     assert config["timesteps"] == 2048 and config["seed"] == 3 and config["wall_seconds"] > 0
     capsys.readouterr()
     assert cli.main(["evaluate", str(out), "--episodes", "5", "--seed-start", "100",
@@ -202,3 +206,113 @@ def test_median_interval_coverage_matches_the_binomial():
     low, high, cov = median_ci(x)
     assert (low, high) == (1.0, 8.0) and cov == pytest.approx(1 - 2 * binom.cdf(1, 10, 0.5))
     assert 1 - 2 * binom.cdf(2, 10, 0.5) < 0.95 <= cov
+
+
+def test_the_stored_statistics_normalize_as_vec_normalize_does(tmp_path):
+    from envs.train import ObsNormalizer, save_normalization
+
+    vn = VecNormalize(native("SliderCrank-v0", n=4), norm_reward=False)
+    vn.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        vn.step(rng.uniform(-1, 1, (4, 1)).astype(np.float32))
+    save_normalization(vn, tmp_path / "n.npz")
+    mine = ObsNormalizer.load(tmp_path / "n.npz", (9,))
+    obs = rng.normal(0, 3, (50, 9)).astype(np.float32)
+    np.testing.assert_array_equal(mine.normalize_obs(obs), vn.normalize_obs(obs))
+    assert mine.normalize_obs(obs).dtype == np.float32
+    with pytest.raises(ValueError, match="mean"):
+        ObsNormalizer.load(tmp_path / "n.npz", (145,))
+
+
+def test_convert_run_makes_an_old_directory_evaluate_the_same(tmp_path, capsys, monkeypatch):
+    """A run directory as the older train wrote it (model.zip, vecnormalize.pkl and their
+    best_ twins, a config.json without "format"): refused by evaluate, converted by
+    convert-run (which says it loads the pickles), then evaluated with the results of the
+    pickled model itself."""
+    from envs.train import read_run, run_episodes, sb3_policy, summarize
+
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    run = tmp_path / "run"
+    run.mkdir()
+    hp = load_hyperparams("ppo", "SliderCrank-v0", "force")
+    venv = VecNormalize(native("SliderCrank-v0", n=4), norm_reward=False)
+    model = PPO("MlpPolicy", venv, n_steps=32, batch_size=64, seed=0, device="cpu",
+                policy_kwargs=hp["policy_kwargs"])
+    model.learn(128)
+    for prefix in ("", "best_"):
+        model.save(run / f"{prefix}model.zip")
+        venv.save(str(run / f"{prefix}vecnormalize.pkl"))
+    old = {"env": "SliderCrank-v0", "action_mode": "force", "algo": "ppo", "seed": 0,
+           "timesteps": 128, "hyperparams": hp, "observation_shape": [9], "action_shape": [1]}
+    (run / "config.json").write_text(json.dumps(old))
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["evaluate", str(run)])
+    assert exc.value.code == 2 and "convert-run" in capsys.readouterr().err
+    assert cli.main(["convert-run", str(run)]) == 0
+    io = capsys.readouterr()
+    assert "trusted" in io.err and "policy.pt" in io.out
+    assert read_run(run)["format"] == 2 and (run / "config.v1.json").is_file()
+    assert cli.main(["evaluate", str(run), "--episodes", "6", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    want = summarize(run_episodes(sb3_policy(model, venv), "SliderCrank-v0", 6, 2_000_000))
+    assert {k: res[k] for k in want} == want
+    with pytest.raises(SystemExit):  # (converted once: nothing more to convert)
+        cli.main(["convert-run", str(run)])
+    assert "already of format 2" in capsys.readouterr().err
+
+
+def test_a_train_that_fails_leaves_no_run_directory(tmp_path, capsys, monkeypatch):
+    """A full disk while the weights are written: one error line, exit status 1, and neither
+    the run directory nor its partial twin is left."""
+    import errno
+
+    from envs import train
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "x"))
+
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    monkeypatch.setattr(train, "save_policy", full)
+    out = tmp_path / "run"
+    code = cli.main(["train", "SliderCrank-v0", "--out", str(out), "--timesteps", "256",
+                     "--eval-freq", "256", "--eval-episodes", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert [line for line in err.splitlines() if "error" in line] == [
+        f"cparticles train: error: No space left on device: {tmp_path / 'x'}"], err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_sac_policy_is_rebuilt_from_its_settings(tmp_path):
+    """SAC (whose constructor writes use_sde into policy_kwargs): weights saved as train saves
+    them evaluate as the model itself does, and train records the settings it was given."""
+    from stable_baselines3 import SAC
+
+    from envs.train import (
+        FORMAT,
+        evaluate,
+        run_episodes,
+        save_policy,
+        sb3_policy,
+        space_record,
+        summarize,
+    )
+
+    hp = load_hyperparams("sac", "SliderCrank-v0", "force")
+    env = gym.make("SliderCrank-v0")
+    model = SAC("MlpPolicy", env, seed=1, device="cpu", **{
+        k: v for k, v in json.loads(json.dumps(hp)).items()
+        if k in ("policy_kwargs", "learning_rate", "buffer_size", "gamma")})
+    run = tmp_path / "run"
+    run.mkdir()
+    save_policy(model, run / "policy.pt")
+    config = {"format": FORMAT, "env": "SliderCrank-v0", "action_mode": "force", "algo": "sac",
+              "seed": 1, "timesteps": 0, "hyperparams": {**hp, "policy_kwargs": {
+                  **hp["policy_kwargs"], "use_sde": False}},
+              "spaces": {"observation": space_record(env.observation_space),
+                         "action": space_record(env.action_space)}, "normalized": False}
+    (run / "config.json").write_text(json.dumps(config))
+    res = evaluate(run, episodes=3)
+    want = summarize(run_episodes(sb3_policy(model), "SliderCrank-v0", 3, 2_000_000))
+    assert {k: res[k] for k in want} == want

@@ -218,3 +218,69 @@ def test_the_threads_of_an_env_never_closed_end_with_it(small_ranges: None) -> N
     for t in threads:
         t.join(timeout=10)
     assert not any(t.is_alive() for t in threads)
+
+
+def _play(vec: gym.vector.VectorEnv, actions: np.ndarray) -> np.ndarray:
+    """Observations of an episode start (seed 3) and ``actions``, stacked."""
+    rows = [vec.reset(seed=3)[0]]
+    rows += [vec.step(a)[0] for a in actions]
+    return np.stack(rows)
+
+
+def test_a_child_forked_while_a_parent_thread_steps_steps_its_env(small_ranges: None) -> None:
+    """A child forked while a thread of the parent is inside a step of a threaded vector env
+    inherits the system's step lock held (by a thread the child does not have): the child
+    still steps its copy, with the results of a fresh env."""
+    import os
+    import threading
+    import time
+    import warnings
+
+    actions = np.random.default_rng(0).uniform(-1, 1, (12, 8, 2)).astype(np.float32)
+    expected = _play(_vec("ClothSlide-v0", 2, num_envs=8), actions)
+    vec = _vec("ClothSlide-v0", 2, num_envs=8)
+    vec.reset(seed=0)
+    lock = vec.unwrapped.task.system._step_lock()
+    stop = threading.Event()
+
+    def stepper() -> None:
+        while not stop.is_set():
+            vec.step(actions[0])
+
+    thread = threading.Thread(target=stepper, daemon=True)
+    thread.start()
+    seen_held = 0
+    try:
+        for _ in range(10):
+            deadline = time.monotonic() + 10
+            while not lock.locked() and time.monotonic() < deadline:
+                pass
+            read, write = os.pipe()
+            with warnings.catch_warnings():  # (Python 3.12+: forking a process with threads)
+                warnings.simplefilter("ignore", DeprecationWarning)
+                pid = os.fork()
+            if pid == 0:  # the child: one thread, the parent's env in mid-step
+                code = 1
+                try:
+                    held = lock.locked()  # (the parent's lock, as it was at the fork)
+                    os.write(write, pickle.dumps((held, _play(vec, actions))))
+                    code = 0
+                except BaseException as exc:
+                    os.write(write, pickle.dumps((None, repr(exc))))
+                finally:
+                    os._exit(code)
+            os.close(write)
+            with os.fdopen(read, "rb") as f:
+                data = f.read()
+            _, status = os.waitpid(pid, 0)
+            held, got = pickle.loads(data)
+            assert os.waitstatus_to_exitcode(status) == 0, got
+            np.testing.assert_array_equal(got, expected)
+            seen_held += bool(held)
+            if seen_held >= 3:
+                break
+    finally:
+        stop.set()
+        thread.join(timeout=60)
+        vec.close()
+    assert seen_held >= 1, "no fork landed inside a step: the case went untested"
