@@ -1,4 +1,4 @@
-"""ClothPin-v0: draw persistent springs that hold a pushed cloth at a goal short of the wall."""
+"""ClothPin-v1: draw persistent springs that hold a pushed cloth at a goal short of the wall."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ class ClothPin(ShapedTask, ParticleTask):
                  wall_penalty: float = 1.0, max_springs: int = 4, spring_cost: float = 0.1,
                  ks_range: tuple[float, float] = (0.2, 20.0), spring_kd: float = 0.02,
                  snap_radius: float = 0.1,
-                 anchor_region: tuple[float, float, float, float] = (-1.3, -0.25, -0.9, 0.25),
+                 anchor_region: tuple[float, float, float, float] = (-1.3, -0.1, -0.9, 0.1),
                  start_range: tuple[float, float] = (-0.5, -0.2),
                  goal_range: tuple[float, float] = (0.0, 0.5), min_distance: float = 0.2,
                  dt: float = 0.01, substeps: int = 5, integrator: str = "symplectic_euler",
@@ -222,14 +222,16 @@ class ClothPin(ShapedTask, ParticleTask):
         """Draw one spring per copy in ``envs`` from clipped actions (len(envs), 6), the
         drawing being valid; returns the mask of copies that placed one.
 
-        A drawing is refused (nothing changes) when the budget is spent or the spring would not
-        join the cloth to an anchor (both ends on the cloth, or neither): only such a spring can
-        hold the cloth against the push, so no other uses up the budget. A new anchor is the
+        A drawing is refused (nothing changes) when the budget is spent, when the cloth is not
+        at rest (:meth:`still`), or when the spring would not join the cloth to an anchor (both
+        ends on the cloth, or neither): only such a spring can hold the cloth against the push,
+        so no other uses up the budget. A new anchor is the
         copy's next parked anchor, moved to the drawn point. The rest length is the distance
         between the two ends as placed.
         """
         out = np.zeros(len(envs), bool)
-        room = np.flatnonzero(self.placed[envs] < self.max_springs)  # (a spent budget refuses)
+        # (a spent budget refuses, and so does a cloth that is not at rest)
+        room = np.flatnonzero((self.placed[envs] < self.max_springs) & self.still()[envs])
         if not len(room):
             return out
         envs, action = envs[room], action[room]
@@ -246,6 +248,17 @@ class ClothPin(ShapedTask, ParticleTask):
         out[room[ok]] = True
         self._attach(envs[ok], ends[ok], action[ok])
         return out
+
+    def still(self) -> np.ndarray:
+        """Copies (num_envs,) bool whose cloth is at rest, so that a spring may be drawn: the
+        rest test's speed (the RMS, m/s, of the cloth particles' moving average velocities;
+        see :meth:`advance_rest`) below ``rest_speed``. True at a reset; the push takes a
+        free cloth out of rest within about 6 steps (0.3 s)."""
+        N, n, nc = self.num_envs, self.n, self.cloth_n
+        avg = self.mean_v.reshape(N, n, 2)[:, :nc]
+        speed = np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)
+                        * (1.0 / nc))
+        return speed < self.rest_speed
 
     def _attach(self, envs: np.ndarray, ends: np.ndarray, action: np.ndarray) -> None:
         """Place one spring per copy in ``envs`` whose drawing is valid: ``ends`` (len(envs),
@@ -292,10 +305,11 @@ class ClothPin(ShapedTask, ParticleTask):
 
     # ------------------------------------------------------------------ base hooks
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
-        """Place the springs that copies draw (``draw > 0``), then switch the push on (off for
-        ``idle`` copies, whose action is ignored). The drawings are checked in one compiled
-        pass (:func:`envs._measure.pin_draws`) where the arrays allow it, else by
-        :meth:`place`; the same springs either way."""
+        """Place the springs that copies draw (``draw > 0``) on a cloth at rest, then switch
+        the push on (off for ``idle`` copies, whose action is ignored). The drawings are
+        checked in one compiled pass (:func:`envs._measure.pin_draws`) where the arrays allow
+        it, else by :meth:`place`; the same springs either way (:meth:`still` refuses in
+        both)."""
         if not np.count_nonzero(actions[:, 5] > 0):  # (the usual step: nobody draws)
             self.placed_now[:] = False
             super().apply(actions, idle)
@@ -303,6 +317,7 @@ class ClothPin(ShapedTask, ParticleTask):
         drawn = self._drawn(actions, idle)
         if drawn is not None:
             ends, ok = drawn
+            ok &= self.still()  # (a moving cloth refuses, as in place)
             self.placed_now[:] = ok
             if np.count_nonzero(ok):
                 envs = np.flatnonzero(ok)
@@ -649,7 +664,7 @@ class ClothPinEnv(ParticleEnv):
     ```python
     >>> import gymnasium as gym
     >>> import envs
-    >>> env = gym.make("ClothPin-v0", cloth_size=(5, 4), max_springs=2)
+    >>> env = gym.make("ClothPin-v1", cloth_size=(5, 4), max_springs=2)
     >>> obs, info = env.reset(seed=0)
     >>> obs.shape, env.action_space.shape
     ((95,), (6,))
@@ -694,7 +709,7 @@ class ClothPinEnv(ParticleEnv):
 
     ## Vectorized environment
 
-    ``gym.make_vec("ClothPin-v0", num_envs=N, vectorization_mode="vector_entry_point")`` runs
+    ``gym.make_vec("ClothPin-v1", num_envs=N, vectorization_mode="vector_entry_point")`` runs
     :class:`ClothPinVectorEnv`: the N cloths, their anchors and spring budgets are one particle
     system. Autoreset is NEXT_STEP, and copy ``i`` reproduces a single env reset with
     ``seed + i``.
