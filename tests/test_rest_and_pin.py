@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+import envs.cloth_pin
 import envs.cloth_slide
 from envs import _measure
 
@@ -235,3 +236,60 @@ def test_cloth_pin_compiled_drawings_and_bookkeeping_match_the_numpy_reference(m
                 task.reset_envs(list(range(N)), [np.random.default_rng(i) for i in range(N)])
                 into_the_wall(task)
     assert min(seen.values()) >= 5, seen
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_moving_cloth_refuses_a_drawing_and_a_cloth_at_rest_takes_it(monkeypatch, compiled):
+    """ClothPin draws springs only on a cloth at rest: its averaged particle speed below
+    ``rest_speed`` (0.05 m/s). Three copies start with every cloth particle's velocity (and so
+    its moving average) at 0, 0.049 and 0.051 m/s; the same valid drawing is taken by the
+    first two only, on the compiled drawing check and on the numpy reference alike."""
+    if compiled and not _measure.ENABLED:
+        pytest.skip("compiled bookkeeping off")
+    monkeypatch.setattr(_measure, "ENABLED", compiled)
+    task = envs.cloth_pin.ClothPin(3)
+    nc = task.cloth_n
+    starts = []
+    for speed in (0.0, 0.049, 0.051):
+        x, v, goal = task.sample_start(np.random.default_rng(0))
+        v[:nc] = [0.0, speed]  # (vertical: the same speed on every particle)
+        starts.append((x, v, goal))
+    task.write_start([0, 1, 2], starts)
+    assert task.still().tolist() == [True, True, False]
+    x = task.positions()[0]
+    action = np.tile(pin_action(task, x[3], [-1.1, 0.0]).astype(np.float64), (3, 1))
+    task.apply(action)
+    assert task.placed.tolist() == [1, 1, 0] and task.placed_now.tolist() == [True, True, False]
+    ks = task.springs.ks.reshape(3, -1)
+    assert ks[0, 0] > 0 and ks[1, 0] > 0 and not ks[2].any()
+    assert task.anchors_used.tolist() == [1, 1, 0]
+
+
+def test_a_drawing_on_the_moving_cloth_changes_nothing_and_costs_nothing():
+    """Once the push has the cloth moving (10 steps after a reset), a valid drawing is refused:
+    the episode goes on exactly as if nothing had been drawn (same observations and rewards),
+    while the same drawing on the first step is taken."""
+    runs = []
+    for draw_at in (None, 10, 0):
+        env = gym.make("ClothPin-v1")
+        env.reset(seed=4)
+        task = env.unwrapped.task
+        x = task.positions()[0]
+        draw = pin_action(task, x[3], [-1.1, 0.0])
+        idle = draw.copy()
+        idle[5] = -1.0
+        trace = []
+        for k in range(15):
+            obs, reward, *_ = env.step(draw if k == draw_at else idle)
+            trace.append((obs.tobytes(), reward, int(task.placed[0])))
+        runs.append(trace)
+    assert runs[1] == runs[0] and runs[0][-1][2] == 0
+    assert runs[2][0][2] == 1 and runs[2][-1][0] != runs[0][-1][0]
+
+
+@pytest.mark.filterwarnings("ignore:.*ClothPin-v0 is out of date")
+def test_the_v0_id_names_its_successor():
+    from gymnasium.error import DeprecatedEnv
+
+    with pytest.raises(DeprecatedEnv, match="ClothPin-v1"):
+        gym.make("ClothPin-v0")
