@@ -61,7 +61,7 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     from constrained_particles.extras import require
     from constrained_particles.viewer import display_problem
 
-    pin = args.env == "ClothPin-v0"
+    pin = args.env == "ClothPin-v1"
     if args.action_mode is not None and (args.action_mode in DRAW_MODES) != pin:
         modes = DRAW_MODES if pin else ACTION_MODES
         parser.error(f"--action-mode: {args.env} takes one of {', '.join(modes)}, "
@@ -147,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
     physics = {k: getattr(args, k) for k in ("integrator", "dt", "substeps")
                if getattr(args, k) is not None}
     if args.action_mode is None:  # each environment's default
-        args.action_mode = "draw" if args.env == "ClothPin-v0" else "force"
+        args.action_mode = "draw" if args.env == "ClothPin-v1" else "force"
     if args.watch:
         record_episode(args.env, args.agent, args.seed, args.action_mode, render_mode="human",
                        **physics)

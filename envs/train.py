@@ -80,7 +80,7 @@ NEAR_GOAL = 0.1
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
 #: The action modes each env takes, its default first (``train`` ships hyperparameters for each).
 ENV_ACTION_MODES: dict[str, tuple[str, ...]] = {
-    env_id: DRAW_MODES if env_id == "ClothPin-v0" else ACTION_MODES for env_id in ENV_IDS}
+    env_id: DRAW_MODES if env_id == "ClothPin-v1" else ACTION_MODES for env_id in ENV_IDS}
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1

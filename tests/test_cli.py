@@ -95,7 +95,7 @@ def test_dt_equal_to_seconds_runs_one_step(capsys):
     (["demo", "--substeps", "0"], "--substeps"),
     (["demo", "--save-gif", "/nonexistent/x.gif"], "--save-gif"),
     (["demo", "--save-gif", "episode.png"], "--save-gif"),
-    (["demo", "--env", "ClothPin-v0", "--action-mode", "spring"], "--action-mode"),
+    (["demo", "--env", "ClothPin-v1", "--action-mode", "spring"], "--action-mode"),
     (["demo", "--env", "SliderCrank-v0", "--action-mode", "draw"], "--action-mode"),
     (["verify", "report", "--out", "/proc/x"], "--out"),
     (["view", "pendulum", "--headless", "--fps", "0"], "--fps"),
@@ -255,7 +255,7 @@ def test_demo_reports_diverged_episodes(capsys):
     assert json.loads(capsys.readouterr().out)["diverged_episodes"] == 0
 
 
-@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "force"), ("ClothPin-v0", "draw")])
+@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "force"), ("ClothPin-v1", "draw")])
 def test_demo_runs_every_registered_environment(env_id, mode, capsys):
     """The two newer environments run in ``cparticles demo`` too, each in its default action
     mode (ClothPin draws springs), with the scripted agent reaching the goal."""
@@ -305,13 +305,13 @@ def test_help_states_every_default(command):
 
 
 @pytest.mark.parametrize("env_id", ["ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0",
-                                    "ClothPin-v0"])
+                                    "ClothPin-v1"])
 def test_train_help_after_every_env_id(env_id, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["train", env_id, "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "--timesteps" in out and "(default: ppo)" in out and "ClothPin-v0: draw" in out
+    assert "--timesteps" in out and "(default: ppo)" in out and "ClothPin-v1: draw" in out
 
 
 # ------------------------------------------------------------------ train / evaluate mistakes
@@ -337,7 +337,7 @@ def fails_cleanly(argv: list[str], capsys) -> str:
     (["train", "ClothSlide-v0", "--out", "TMP/run", "--seed", "-1"], ["--seed"]),
     (["train", "ClothSlide-v0", "--out", "TMP/run", "--timesteps", "0"], ["--timesteps"]),
     (["train", "ClothSlide-v0", "--out", "TMP/run", "--eval-freq", "x"], ["--eval-freq"]),
-    (["train", "ClothPin-v0", "--out", "TMP/run", "--action-mode", "force"],
+    (["train", "ClothPin-v1", "--out", "TMP/run", "--action-mode", "force"],
      ["--action-mode", "draw"]),
     (["train", "ChainSwing-v0", "--out", "TMP/run", "--action-mode", "draw"],
      ["--action-mode", "force or spring"]),
@@ -546,7 +546,7 @@ HIDE_SB3 = ("import sys; sys.modules['stable_baselines3'] = None; "
 
 
 @pytest.mark.parametrize("argv", [["train", "ClothSlide-v0", "--out", "TMP/run"],
-                                  ["train", "ClothPin-v0", "--out", "TMP/run"],
+                                  ["train", "ClothPin-v1", "--out", "TMP/run"],
                                   ["evaluate", "TMP"]])
 def test_train_without_the_rl_extra_is_a_one_line_hint(argv, tmp_path):
     """A fresh interpreter in which stable_baselines3 cannot be imported (as if the rl extra

@@ -41,7 +41,7 @@ CONFIGS = [(env_id, kind, {"action_mode": mode})
            for env_id, modes in (("ClothSlide-v0", ("force", "spring")),
                                  ("SliderCrank-v0", ("force", "spring")),
                                  ("ChainSwing-v0", ("force", "spring")),
-                                 ("ClothPin-v0", ("draw",)))
+                                 ("ClothPin-v1", ("draw",)))
            for mode in modes for kind in ("single", "vector")]
 # the threaded vector env: its physics cut into two ranges of one copy each, stepped on two
 # threads (ranges as small as one copy are allowed for it: see _make)
@@ -49,7 +49,7 @@ CONFIGS += [("SliderCrank-v0", "vector", {"action_mode": "spring", "num_threads"
             ("ClothSlide-v0", "vector", {"action_mode": "force", "num_threads": 2}),
             # (its pins change the system's blocks: cut again, stepped whole, cut reusing the
             # cut before)
-            ("ClothPin-v0", "vector", {"action_mode": "draw", "num_threads": 2})]
+            ("ClothPin-v1", "vector", {"action_mode": "draw", "num_threads": 2})]
 EDITS = ("huge", "negative", "nan", "inf", "one_row", "dtype")
 ALLOWED = (ValueError, TypeError, RuntimeError)
 STEPS = 3

@@ -24,7 +24,7 @@ pytestmark = pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeepi
 
 CASES = [("ClothSlide-v0", "force"), ("ClothSlide-v0", "spring"),
          ("SliderCrank-v0", "force"), ("SliderCrank-v0", "spring"),
-         ("ChainSwing-v0", "force"), ("ChainSwing-v0", "spring"), ("ClothPin-v0", None),
+         ("ChainSwing-v0", "force"), ("ChainSwing-v0", "spring"), ("ClothPin-v1", None),
          ("ClothSlide-v0", "spring-radius")]  # a finite grab_radius, so that grabs can miss
 
 

@@ -133,15 +133,15 @@ def test_leaving_the_constraints_is_flagged_and_the_state_kept():
     ("ChainSwing-v0", {"start_angle": 2.0}, "start_angle"),
     ("ChainSwing-v0", {"action_mode": "draw"}, "action_mode"),
     ("ChainSwing-v0", {"dt": float("nan")}, "dt"),
-    ("ClothPin-v0", {"action_mode": "force"}, "action_mode"),
-    ("ClothPin-v0", {"max_springs": 0}, "max_springs"),
-    ("ClothPin-v0", {"ks_range": (0.0, 5.0)}, "ks_range"),
-    ("ClothPin-v0", {"anchor_region": (-1.3, 0.0, -1.4, 0.1)}, "anchor_region"),
-    ("ClothPin-v0", {"anchor_region": (-1.3, -0.2, -0.6, 0.2)}, "anchor_region"),
-    ("ClothPin-v0", {"start_range": (-0.5, 0.1)}, "start_range"),
-    ("ClothPin-v0", {"goal_range": (0.0, 0.9)}, "goal_range"),
-    ("ClothPin-v0", {"push": 0.0}, "push"),
-    ("ClothPin-v0", {"cloth_size": (1, 5)}, "cloth_size"),
+    ("ClothPin-v1", {"action_mode": "force"}, "action_mode"),
+    ("ClothPin-v1", {"max_springs": 0}, "max_springs"),
+    ("ClothPin-v1", {"ks_range": (0.0, 5.0)}, "ks_range"),
+    ("ClothPin-v1", {"anchor_region": (-1.3, 0.0, -1.4, 0.1)}, "anchor_region"),
+    ("ClothPin-v1", {"anchor_region": (-1.3, -0.2, -0.6, 0.2)}, "anchor_region"),
+    ("ClothPin-v1", {"start_range": (-0.5, 0.1)}, "start_range"),
+    ("ClothPin-v1", {"goal_range": (0.0, 0.9)}, "goal_range"),
+    ("ClothPin-v1", {"push": 0.0}, "push"),
+    ("ClothPin-v1", {"cloth_size": (1, 5)}, "cloth_size"),
 ])
 def test_bad_make_arguments_get_a_value_error_naming_them(env_id, kwargs, name):
     with pytest.raises(ValueError, match=name):
@@ -154,7 +154,7 @@ def test_bad_make_arguments_get_a_value_error_naming_them(env_id, kwargs, name):
     ("ClothSlide-v0", dict(dt=0.05, substeps=1, integrator="euler")),
     ("SliderCrank-v0", dict(dt=0.2, substeps=1, integrator="euler")),
     ("ChainSwing-v0", dict(dt=0.05, substeps=1, integrator="euler")),
-    ("ClothPin-v0", dict(dt=0.05, substeps=1, integrator="euler")),
+    ("ClothPin-v1", dict(dt=0.05, substeps=1, integrator="euler")),
 ])
 def test_diverging_simulation_terminates_with_a_penalty_without_nan(env_id, kwargs):
     env = gym.make(env_id, **kwargs)

@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+import envs.cloth_pin
 import envs.cloth_slide
 from envs import _measure
 
@@ -74,14 +75,18 @@ def test_rest_state_is_saved_and_restored():
 
 
 def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
-    env = gym.make("ClothPin-v0").unwrapped
+    env = gym.make("ClothPin-v1", max_springs=2).unwrapped
     env.reset(seed=1)
     task = env.task
     x = task.positions()[0].copy()
-    for _ in range(6):  # more tries than the budget: none is placed, none is charged
+    # more tries than the budget, all while the cloth is still at rest (its first few steps):
+    # none is placed, none is charged
+    for _ in range(3):
+        assert task.still()[0]
         _, reward, _, _, info = env.step(pin_action(task, x[3], x[20]))
         assert not info["placed"] and info["springs"] == 0
     assert task.placed[0] == 0 and np.all(task.springs.ks == 0)
+    assert task.still()[0]
     _, _, _, _, info = env.step(pin_action(task, x[3], [-1.1, 0.0]))  # cloth to anchor
     assert info["placed"] and info["springs"] == 1
 
@@ -93,11 +98,13 @@ def _pin_args(task):
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
 def test_cloth_pin_compiled_observation_matches_the_numpy_reference():
-    env = gym.make_vec("ClothPin-v0", num_envs=6, vectorization_mode="vector_entry_point")
+    # a push too weak to move the cloths out of rest: drawings are taken on every step
+    env = gym.make_vec("ClothPin-v1", num_envs=6, vectorization_mode="vector_entry_point",
+                       push=1e-4)
     env.reset(seed=3)
     task = env.unwrapped.task
     rng = np.random.default_rng(0)
-    for _ in range(40):
+    for _ in range(100):
         a = rng.uniform(-1, 1, (6, 6)).astype(np.float32)
         a[:, 5] = np.where(rng.random(6) < 0.3, 1.0, -1.0)  # some drawings, most refused
         env.step(a)
@@ -109,7 +116,7 @@ def test_cloth_pin_compiled_observation_matches_the_numpy_reference():
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
 def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
-    env = gym.make_vec("ClothPin-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    env = gym.make_vec("ClothPin-v1", num_envs=2, vectorization_mode="vector_entry_point")
     env.reset(seed=0)
     task = env.unwrapped.task
     args = list(_pin_args(task))
@@ -142,7 +149,7 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
 def test_cloth_pin_compiled_drawing_check_refuses_arrays_of_the_wrong_sizes():
-    env = gym.make_vec("ClothPin-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    env = gym.make_vec("ClothPin-v1", num_envs=2, vectorization_mode="vector_entry_point")
     env.reset(seed=0)
     task = env.unwrapped.task
     x, N = task.system.x, 2
@@ -171,7 +178,7 @@ def test_cloth_pin_compiled_drawings_and_bookkeeping_match_the_numpy_reference(m
     and bookkeeping, one through the numpy reference (``resolve``, ``place``, ``measure``,
     ``observe_reference``): the springs, anchors, measures and observations agree exactly."""
     N = 6
-    fast, ref = (gym.make_vec("ClothPin-v0", num_envs=N, vectorization_mode="vector_entry_point")
+    fast, ref = (gym.make_vec("ClothPin-v1", num_envs=N, vectorization_mode="vector_entry_point")
                  .unwrapped.task for _ in range(2))
     for task in (fast, ref):
         task.reset_envs(list(range(N)), [np.random.default_rng(i) for i in range(N)])
@@ -229,3 +236,60 @@ def test_cloth_pin_compiled_drawings_and_bookkeeping_match_the_numpy_reference(m
                 task.reset_envs(list(range(N)), [np.random.default_rng(i) for i in range(N)])
                 into_the_wall(task)
     assert min(seen.values()) >= 5, seen
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_moving_cloth_refuses_a_drawing_and_a_cloth_at_rest_takes_it(monkeypatch, compiled):
+    """ClothPin draws springs only on a cloth at rest: its averaged particle speed below
+    ``rest_speed`` (0.05 m/s). Three copies start with every cloth particle's velocity (and so
+    its moving average) at 0, 0.049 and 0.051 m/s; the same valid drawing is taken by the
+    first two only, on the compiled drawing check and on the numpy reference alike."""
+    if compiled and not _measure.ENABLED:
+        pytest.skip("compiled bookkeeping off")
+    monkeypatch.setattr(_measure, "ENABLED", compiled)
+    task = envs.cloth_pin.ClothPin(3)
+    nc = task.cloth_n
+    starts = []
+    for speed in (0.0, 0.049, 0.051):
+        x, v, goal = task.sample_start(np.random.default_rng(0))
+        v[:nc] = [0.0, speed]  # (vertical: the same speed on every particle)
+        starts.append((x, v, goal))
+    task.write_start([0, 1, 2], starts)
+    assert task.still().tolist() == [True, True, False]
+    x = task.positions()[0]
+    action = np.tile(pin_action(task, x[3], [-1.1, 0.0]).astype(np.float64), (3, 1))
+    task.apply(action)
+    assert task.placed.tolist() == [1, 1, 0] and task.placed_now.tolist() == [True, True, False]
+    ks = task.springs.ks.reshape(3, -1)
+    assert ks[0, 0] > 0 and ks[1, 0] > 0 and not ks[2].any()
+    assert task.anchors_used.tolist() == [1, 1, 0]
+
+
+def test_a_drawing_on_the_moving_cloth_changes_nothing_and_costs_nothing():
+    """Once the push has the cloth moving (10 steps after a reset), a valid drawing is refused:
+    the episode goes on exactly as if nothing had been drawn (same observations and rewards),
+    while the same drawing on the first step is taken."""
+    runs = []
+    for draw_at in (None, 10, 0):
+        env = gym.make("ClothPin-v1")
+        env.reset(seed=4)
+        task = env.unwrapped.task
+        x = task.positions()[0]
+        draw = pin_action(task, x[3], [-1.1, 0.0])
+        idle = draw.copy()
+        idle[5] = -1.0
+        trace = []
+        for k in range(15):
+            obs, reward, *_ = env.step(draw if k == draw_at else idle)
+            trace.append((obs.tobytes(), reward, int(task.placed[0])))
+        runs.append(trace)
+    assert runs[1] == runs[0] and runs[0][-1][2] == 0
+    assert runs[2][0][2] == 1 and runs[2][-1][0] != runs[0][-1][0]
+
+
+@pytest.mark.filterwarnings("ignore:.*ClothPin-v0 is out of date")
+def test_the_v0_id_names_its_successor():
+    from gymnasium.error import DeprecatedEnv
+
+    with pytest.raises(DeprecatedEnv, match="ClothPin-v1"):
+        gym.make("ClothPin-v0")

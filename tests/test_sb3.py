@@ -178,7 +178,7 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     assert exc.value.code == 2
 
 
-@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "spring"), ("ClothPin-v0", None)])
+@pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "spring"), ("ClothPin-v1", None)])
 def test_train_and_evaluate_the_newer_envs(env_id, mode, tmp_path, capsys, monkeypatch):
     """ChainSwing and ClothPin train and evaluate through the command line too (ClothPin in
     its only mode, draw, chosen when --action-mode is left out)."""

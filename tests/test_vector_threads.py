@@ -30,7 +30,7 @@ CONFIGS = [(env_id, mode) for env_id in envs.ENV_IDS for mode in ENV_ACTION_MODE
 
 #: Envs whose physics blocks change at most steps (ClothPin draws its pins as springs): their
 #: new packs are stepped whole, and cut into ranges only once a pack serves a second step.
-CHURNING = {"ClothPin-v0"}
+CHURNING = {"ClothPin-v1"}
 
 
 def _vec(env_id: str, threads: int, num_envs: int = 64, **kwargs: object) -> gym.vector.VectorEnv:
