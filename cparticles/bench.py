@@ -524,6 +524,10 @@ def markdown(r: dict[str, Any]) -> str:
     if "threads" in r:
         lines += S.threads_markdown(r["threads"])
     lines += ["", S.implicit_table(r["implicit_scaling"])]
+    if "chains" in r:
+        from cparticles.bench_chain import markdown as chain_markdown
+
+        lines += chain_markdown(r["chains"], 10)
     return "\n".join(lines)
 
 
@@ -565,7 +569,7 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
 
     units = (len(sizes) * repeats + 5 + repeats + 2 + repeats
              + (repeats * (1 + len(VECTOR_ENVS) * len(copies)) + repeats if envs else 0)
-             + (repeats * len(S.THREAD_ENVS) if envs and threads else 0))
+             + (repeats * len(S.THREAD_ENVS) if envs and threads else 0) + 1)
     bar = Progress(units, progress)
     try:
         bar.section("accuracy")
@@ -596,6 +600,12 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
         if envs and threads:
             results["threads"] = S.bench_threads(S.THREAD_ENVS, thread_copies, repeats,
                                                  2 * seconds, bar)
+        bar.section("chains of rods")
+        from cparticles.bench_chain import bench_chains
+
+        results["chains"] = bench_chains([16, 64, 256] if quick else [16, 64, 256, 1024], 10,
+                                         repeats, seconds)
+        bar.update()
         bar.section("implicit Euler")
         results["implicit_scaling"] = S.bench_implicit_scaling(
             S.IMPLICIT_SIZES[:2] if quick else S.IMPLICIT_SIZES, repeats, progress=bar)

@@ -14,7 +14,8 @@ timed in each round) and the ratio of each peer's time to ours (above 1: ours is
   Euler integrator. Its XML parser refuses chains nested as deep as 1024 bodies: those rows
   have no MuJoCo figure.
 
-Run: ``python -m benchmarks.bench_chain [--rods 16 64 256 1024] [--steps 10] [--repeats 5]``.
+Run: ``python -m cparticles.bench_chain [--rods 16 64 256 1024] [--steps 10] [--repeats 5]``,
+or as a section of ``cparticles bench``.
 """
 
 from __future__ import annotations
@@ -81,6 +82,53 @@ def mujoco_chain(rods: int) -> Callable[[int], None] | None:
     return lambda steps: mujoco.mj_step(model, data, steps)
 
 
+def bench_chains(rods: list[int], steps: int = 10, repeats: int = 5,
+                 seconds: float = 0.3) -> dict[str, dict[str, float]]:
+    """Microseconds per step of each engine on chains of each length in ``rods`` (medians of
+    ``repeats`` alternated rounds of ``seconds`` per engine, ``steps`` steps per call):
+    ``{str(rods): {engine: us}}``, MuJoCo where it is installed and takes the chain."""
+    out: dict[str, dict[str, float]] = {}
+    for n in rods:
+        engines = {"rattle": ours(n, "rattle"), "symplectic_euler": ours(n, "symplectic_euler"),
+                   "pymunk": pymunk_chain(n)}
+        mj = mujoco_chain(n)
+        if mj is not None:
+            engines["mujoco"] = mj
+        times: dict[str, list[float]] = {name: [] for name in engines}
+        for run in engines.values():
+            run(steps)  # compile / warm up
+        for _ in range(repeats):
+            for name, run in engines.items():
+                count, start = 0, time.perf_counter()
+                while time.perf_counter() - start < seconds:
+                    run(steps)
+                    count += steps
+                times[name].append((time.perf_counter() - start) / count * 1e6)
+        out[str(n)] = {name: float(np.median(t)) for name, t in times.items()}
+    return out
+
+
+def markdown(results: dict[str, dict[str, float]], steps: int) -> list[str]:
+    """The chain section as a Markdown table: microseconds per step, and each peer's time
+    over ours (above 1: ours is faster)."""
+    peers = sorted({p for r in results.values() for p in r} - {"rattle", "symplectic_euler"})
+    lines = ["", f"Chains of rods ({LINK} m, {MASS} kg, dt {DT} s, {steps} steps per call), "
+             "us per step:", "",
+             "| rods | rattle | symplectic_euler | " + " | ".join(peers) + " | "
+             + " | ".join(f"{p} / rattle | {p} / symplectic_euler" for p in peers)
+             + " | rattle ns per rod |",
+             "|---" * (4 + 3 * len(peers)) + "|"]
+    for n, r in results.items():
+        cells = [n, f"{r['rattle']:.1f}", f"{r['symplectic_euler']:.1f}"]
+        cells += [f"{r[p]:.1f}" if p in r else "-" for p in peers]
+        for p in peers:
+            cells += ([f"{r[p] / r['rattle']:.2f}x", f"{r[p] / r['symplectic_euler']:.2f}x"]
+                      if p in r else ["-", "-"])
+        cells.append(f"{r['rattle'] / int(n) * 1e3:.0f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rods", type=int, nargs="+", default=[16, 64, 256, 1024])
@@ -88,38 +136,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=0.3, help="per engine and round")
     args = ap.parse_args(argv)
-    print(f"chain of rods, {LINK} m, {MASS} kg, dt {DT} s, {args.steps} steps per call; "
-          "us per step, median of alternated rounds")
-    first = {}
-    for rods in args.rods:
-        engines = {"rattle": ours(rods, "rattle"),
-                   "symplectic_euler": ours(rods, "symplectic_euler"),
-                   "pymunk": pymunk_chain(rods)}
-        mj = mujoco_chain(rods)
-        if mj is not None:
-            engines["mujoco"] = mj
-        times: dict[str, list[float]] = {name: [] for name in engines}
-        for run in engines.values():
-            run(args.steps)  # compile / warm up
-        for _ in range(args.repeats):
-            for name, run in engines.items():
-                count, start = 0, time.perf_counter()
-                while time.perf_counter() - start < args.seconds:
-                    run(args.steps)
-                    count += args.steps
-                times[name].append((time.perf_counter() - start) / count * 1e6)
-        med = {name: float(np.median(t)) for name, t in times.items()}
-        first.setdefault("rods", rods)
-        for name in ("rattle", "symplectic_euler"):
-            first.setdefault(name, med[name])
-        line = ", ".join(f"{name} {t:.1f}" for name, t in med.items())
-        ratios = ", ".join(f"{peer}/{name} {med[peer] / med[name]:.2f}x"
-                           for name in ("rattle", "symplectic_euler")
-                           for peer in med if peer not in ("rattle", "symplectic_euler"))
-        growth = ", ".join(f"{name} x{med[name] / first[name]:.1f} from {first['rods']} rods"
-                           for name in ("rattle", "symplectic_euler"))
-        print(f"{rods:5d} rods: {line}; {ratios}; {growth}; "
-              f"{med['rattle'] / rods * 1e3:.0f} ns per rod (rattle)")
+    results = bench_chains(args.rods, args.steps, args.repeats, args.seconds)
+    print("\n".join(markdown(results, args.steps)))
 
 
 if __name__ == "__main__":
