@@ -100,7 +100,7 @@ def bench_chains(rods: list[int], steps: int = 10, repeats: int = 5,
         for _ in range(repeats):
             for name, run in engines.items():
                 count, start = 0, time.perf_counter()
-                while time.perf_counter() - start < seconds:
+                while count == 0 or time.perf_counter() - start < seconds:  # (at least once)
                     run(steps)
                     count += steps
                 times[name].append((time.perf_counter() - start) / count * 1e6)
