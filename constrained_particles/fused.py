@@ -14,9 +14,11 @@ of rounding.
 **The constraint solve.** The rows of ``J W J^T lam = -Jdot qdot - J W Q - ks C - kd Cdot`` are
 split once per topology into connected components (rows that share a movable coordinate).
 Components of up to :data:`DIRECT_MAX` rows are solved directly (dense Cholesky per component);
-larger ones by Jacobi-preconditioned conjugate gradients per component, warm-started from the
-previous multipliers. Copies of a tiled scene are therefore solved independently, and copy ``i``
-of a batch reproduces the same scene stepped alone bit for bit.
+larger ones by a sparse Cholesky factorisation in the elimination order of :mod:`.ordering`
+(:mod:`.factor_kernels`), or with ``solver="cg"`` by Jacobi-preconditioned conjugate gradients
+per component, warm-started from the previous multipliers. Copies of a tiled scene are
+therefore solved independently, and copy ``i`` of a batch reproduces the same scene stepped
+alone bit for bit.
 
 Anything the fused kernel cannot do exactly as the reference does (a singular or ill-posed
 solve, CG that does not converge, an index out of range, a user-defined block, a subclass) is
@@ -409,9 +411,10 @@ if kernels.ENABLED:
         from it), else ``method``: 0 euler, 3 symplectic_euler, or the explicit Runge-Kutta
         method 1 midpoint, 2 rk4 (one stage loop over its tableau). ``large, runs, extra``
         are the pack's :attr:`~.packing.Packed.variant`: None where no constraint component
-        has more than ``DIRECT_MAX`` rows (the version for None compiles no conjugate
-        gradients), where no springs form runs (no run loop), and where the system has no
-        angular springs, mouse springs or fixed points (none of their loops). Returns
+        has more than ``DIRECT_MAX`` rows (the version for None compiles neither the sparse
+        factorisation nor conjugate gradients), where no springs form runs (no run loop), and
+        where the system has no angular springs, mouse springs or fixed points (none of their
+        loops). Returns
         ``(status, steps done)``. Reads ``state`` and writes ``x_out, v_out`` only (the
         first step reads the caller's state, the last writes the caller's output).
 

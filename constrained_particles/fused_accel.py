@@ -1,8 +1,9 @@
 """The compiled acceleration of a packed system, for the fused step (:mod:`.fused`): forces by
 block type (the elements of :mod:`.kernels`), the constraint rows and their per-component solve
-(dense Cholesky up to :data:`~.solver.DIRECT_MAX` rows, Jacobi-preconditioned conjugate
-gradients beyond), :func:`_accel` (both, for one state) and RATTLE's step :func:`_rattle`; with
-the flat per-particle helpers of the step loop and the check of a pack's inputs.
+(dense Cholesky up to :data:`~.solver.DIRECT_MAX` rows, beyond them the sparse factorisation
+of :mod:`.factor_kernels` or Jacobi-preconditioned conjugate gradients), :func:`_accel` (both,
+for one state) and RATTLE's step :func:`_rattle`; with the flat per-particle helpers of the
+step loop and the check of a pack's inputs.
 
 The step loop, the tableau-driven Runge-Kutta stages and the entry point
 :func:`~.fused.fused_steps` are in :mod:`.fused`, which also packs the blocks; see its

@@ -359,8 +359,9 @@ class Packed:
     @property
     def large(self) -> bool | None:
         """True if a constraint component has more than ``DIRECT_MAX`` rows (the kernels
-        solve it by conjugate gradients), else None: the fused step takes it as an argument,
-        and its version for None compiles no conjugate gradients (docs/compile_time.md)."""
+        solve it by its sparse factorisation, or by conjugate gradients with
+        ``solver="cg"``), else None: the fused step takes it as an argument, and its version
+        for None compiles neither (docs/compile_time.md)."""
         return True if self.max_component > DIRECT_MAX else None
 
     @property
