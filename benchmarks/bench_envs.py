@@ -20,10 +20,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import envs  # noqa: F401 - registers the ids
+import envs
 
-#: The environments compared (their force and spring action modes)
-COMPARED = ("ClothSlide-v0", "SliderCrank-v0")
+#: The environments compared (their force and spring action modes): the tasks whose
+#: declarations ask for the vector benchmarks (``TaskSpec.bench_vector``)
+COMPARED = tuple(spec.id for spec in envs.task_specs() if spec.bench_vector)
 
 
 def _block(env: Any, actions: np.ndarray) -> float:

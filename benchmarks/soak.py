@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from constrained_particles import CircularWire, FixedPoint, LineWire, Rod
-from envs.train import ENV_ACTION_MODES
+from envs.task import env_action_modes
 
 #: Residual (m) above which an unflagged step counts as a failure.
 RESIDUAL = 0.01
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.steps < 1 or args.seed < 0:
         parser.error("--steps must be >= 1 and --seed >= 0")
-    configs = [(env_id, mode, vector) for env_id, modes in ENV_ACTION_MODES.items()
+    configs = [(env_id, mode, vector) for env_id, modes in env_action_modes().items()
                for mode in modes for vector in (False, True)]
     per = max(args.steps // len(configs), 1)
     for k, (env_id, mode, vector) in enumerate(configs):  # warm-up: imports, caches, JIT

@@ -14,17 +14,18 @@ Sections, in the order printed:
     Each timed call advances 10 steps (``step(1e-3, steps=10)`` for ours, ten ``space.step``
     for pymunk), so our one-off cost per call (argument checks and entering compiled code,
     about 8 us) is shared by ten steps as in the environments' substeps.
-(b) small envs. One env step of ClothSlide-v0 and SliderCrank-v0 (force and spring mode),
-    ChainSwing-v0 (force) and ClothPin-v1 as a multiple of one step of gymnasium's CartPole-v1,
+(b) small envs. One env step of every registered task in each of its action modes (ClothSlide,
+    SliderCrank, ChainSwing, ClothPin, ...) as a multiple of one step of gymnasium's CartPole-v1,
     all made by ``gym.make`` with the default wrappers and driven by uniform random actions
     (resets included when an episode ends).
-(c) vector scaling. The native vector env at 1, 8, 64, 512 and 4096 copies: env-steps per
-    second, and its cost per particle-step against stepping the bare tiled system
+(c) vector scaling. The native vector env of each task whose declaration asks for it
+    (``TaskSpec.bench_vector``: ClothSlide and SliderCrank) at 1, 8, 64, 512 and 4096 copies:
+    env-steps per second, and its cost per particle-step against stepping the bare tiled system
     (``task.system``) the same number of substeps in one call.
 (d) the rest: particle-steps per second of every integrator against pymunk (10 iterations),
     cost per particle-step for 32 / 64 / 128 square cloths, peak memory of the 128 x 128 cloth,
-    ClothSlide-v0 as single env, SyncVectorEnv(64), AsyncVectorEnv(2) and native vector env(64),
-    and the error of rk4 and pymunk at equal CPU time.
+    the first of those tasks as single env, SyncVectorEnv(64), AsyncVectorEnv(2) and native
+    vector env(64), and the error of rk4 and pymunk at equal CPU time.
 (e) threads: the native vector env with 512 copies at 1, 2 and all cores' threads, beside two
     busy processes against one (the machine's own control); see :mod:`cparticles.bench_scaling`.
 (f) implicit Euler's cost per step on the stiff cloth at 15 x 15 to 120 x 120, with the
@@ -62,13 +63,25 @@ REFERENCE_DT = 1e-4  #: rk4 step of the reference trajectory (s)
 PYMUNK_ITERATIONS = (1, 10)
 EQUAL_ACCURACY_FACTOR = 2.0  #: pymunk counts as "as accurate" within this factor of our error
 OURS = "symplectic_euler"  #: our integrator in the headline ratio
-SMALL_ENVS = (("ClothSlide-v0", "force"), ("ClothSlide-v0", "spring"),
-              ("SliderCrank-v0", "force"), ("SliderCrank-v0", "spring"),
-              ("ChainSwing-v0", "force"), ("ClothPin-v1", "draw"))
 VECTOR_COPIES = (1, 8, 64, 512, 4096)
-VECTOR_ENVS = ("ClothSlide-v0", "SliderCrank-v0")
 MIN_REPEATS = 5
 WORK_STEPS = 400  #: untimed env steps over which integrator steps per physics step are counted
+
+
+def small_envs() -> tuple[tuple[str, str], ...]:
+    """``(env id, action mode)`` of every registered task and mode, timed as a single env in
+    section (b)."""
+    import envs
+
+    return tuple((spec.id, mode) for spec in envs.task_specs() for mode in spec.action_modes)
+
+
+def vector_envs() -> tuple[str, ...]:
+    """The ids whose declarations ask for the vector and thread sections
+    (``TaskSpec.bench_vector``), in registration order."""
+    import envs
+
+    return tuple(spec.id for spec in envs.task_specs() if spec.bench_vector)
 
 
 # ---------------------------------------------------------------- the cloth in both engines
@@ -266,14 +279,14 @@ def _stepper(env: Any, seed: int) -> Callable[[], None]:
 
 def bench_small_envs(repeats: int, seconds: float, progress: Progress | None = None
                      ) -> dict[str, Any]:
-    """Seconds per single-env step of each of :data:`SMALL_ENVS` and of CartPole-v1, and each
+    """Seconds per single-env step of each of :func:`small_envs` and of CartPole-v1, and each
     as a multiple of CartPole's (median over repeats of the per-round ratio)."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the ids)
 
     made = {"CartPole-v1": gym.make("CartPole-v1")}
-    for env_id, mode in SMALL_ENVS:
+    for env_id, mode in small_envs():
         made[f"{env_id}/{mode}"] = gym.make(env_id, action_mode=mode)
     calls = {name: _stepper(env, seed=0) for name, env in made.items()}
     if progress is not None:
@@ -510,7 +523,7 @@ def markdown(r: dict[str, Any]) -> str:
         f"N={n}: {v:.3g} us" for n, v in c["us_per_particle_step"].items())
         + f"; ratio {r['scaling_ratio']:.2f}. Peak memory 128x128: {r['peak_mb_128']:.0f} MB."]
     if "envs" in r:
-        lines += ["", "| ClothSlide-v0 | env-steps/s |", "|---|---|"]
+        lines += ["", f"| {r.get('envs_id', 'ClothSlide')} | env-steps/s |", "|---|---|"]
         lines += [f"| {k} | {v:.4g} |" for k, v in r["envs"].items() if k != "vector_speedup"]
         lines += ["", f"Native vector env over SyncVectorEnv (64 envs): "
                   f"{r['vector_speedup']:.1f}x"]
@@ -568,8 +581,8 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
     from cparticles import bench_scaling as S
 
     units = (len(sizes) * repeats + 5 + repeats + 2 + repeats
-             + (repeats * (1 + len(VECTOR_ENVS) * len(copies)) + repeats if envs else 0)
-             + (repeats * len(S.THREAD_ENVS) if envs and threads else 0) + 1)
+             + (repeats * (1 + len(vector_envs()) * len(copies)) + repeats if envs else 0)
+             + (repeats * len(vector_envs()) if envs and threads else 0) + 1)
     bar = Progress(units, progress)
     try:
         bar.section("accuracy")
@@ -587,18 +600,19 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
             results["small_envs"] = small
             results["env_step_vs_cartpole"] = small["vs_cartpole"]
             results["vector_scaling"] = {env_id: bench_vector(env_id, copies, repeats, seconds,
-                                                              bar) for env_id in VECTOR_ENVS}
+                                                              bar) for env_id in vector_envs()}
         results["scaling"] = bench_scaling([32, 64, 128], OURS, repeats, seconds, bar)
         results["scaling_ratio"] = results["scaling"]["scaling_ratio"]
         bar.section("peak memory")
         results["peak_mb_128"] = peak_memory_mb()
         if envs:
-            results["envs"] = bench_env_modes("ClothSlide-v0", repeats, seconds, bar)
+            results["envs_id"] = vector_envs()[0]
+            results["envs"] = bench_env_modes(results["envs_id"], repeats, seconds, bar)
             results["vector_speedup"] = results["envs"]["vector_speedup"]
         bar.section("accuracy at equal time")
         results["accuracy"] = bench_accuracy_at_equal_time(progress=bar)
         if envs and threads:
-            results["threads"] = S.bench_threads(S.THREAD_ENVS, thread_copies, repeats,
+            results["threads"] = S.bench_threads(vector_envs(), thread_copies, repeats,
                                                  2 * seconds, bar)
         bar.section("chains of rods")
         from cparticles.bench_chain import bench_chains

@@ -1,13 +1,14 @@
 """cparticles bench, the scaling sections: threads of the native vector env, and implicit
 Euler from small to large cloths.
 
-(e) threads. The native vector env of ClothSlide-v0 and SliderCrank-v0 with 512 copies at 1, 2
-    and all cores' threads (``num_threads``), driven by uniform random actions (resets
-    included): env-steps per second. Beside it, the machine's own answer to "what do two cores
-    give": the same env (512 copies, one thread) stepped by one busy process alone, then by two
-    busy processes at once; their summed rate over the lone one is the control. A thread count's
-    speedup is its rate over one thread's in the same round, and ``of_control`` is the two-thread
-    speedup over the control's (1.0: threads get all the machine gives two processes).
+(e) threads. The native vector env of each task that asks for it (ClothSlide and SliderCrank)
+    with 512 copies at 1, 2 and all cores' threads (``num_threads``), driven by uniform random
+    actions (resets included): env-steps per second. Beside it, the machine's own answer to
+    "what do two cores give": the same env (512 copies, one thread) stepped by one busy process
+    alone, then by two busy processes at once; their summed rate over the lone one is the
+    control. A thread count's speedup is its rate over one thread's in the same round, and
+    ``of_control`` is the two-thread speedup over the control's (1.0: threads get all the
+    machine gives two processes).
 (f) implicit Euler. Cost per step on the stiff cloth (n x n particles of 0.01 kg, 0.1 m apart,
     ks = 2000 N/m, kd = 0.05 N s/m, top row on a wire, gravity, h = 1/60 s) at 15, 30, 60 and
     120, with the conjugate-gradient and the direct solve, and its growth per doubling of n
@@ -31,7 +32,6 @@ import numpy as np
 
 from constrained_particles import ParticleSystem, scenes
 
-THREAD_ENVS = ("ClothSlide-v0", "SliderCrank-v0")
 THREAD_COPIES = 512
 IMPLICIT_SIZES = (15, 30, 60, 120)
 IMPLICIT_H = 1.0 / 60.0  #: implicit Euler's step on the stiff cloth (s)
@@ -139,12 +139,17 @@ class _Control:
                 p.wait()
 
 
-def bench_threads(env_ids: tuple[str, ...] = THREAD_ENVS, copies: int = THREAD_COPIES,
+def bench_threads(env_ids: tuple[str, ...] | None = None, copies: int = THREAD_COPIES,
                   repeats: int = 5, seconds: float = 0.5, progress: Any = None,
                   warmup: int | None = None) -> dict[str, Any]:
     """Section (e): for each env, env-steps per second at each thread count, the speedups over
     one thread, and the two-process control (see the module docstring). ``warmup``: untimed
-    steps of every env before timing (default: through the end of an episode)."""
+    steps of every env before timing (default: through the end of an episode). ``env_ids``:
+    default, the tasks whose declarations ask for it (``TaskSpec.bench_vector``)."""
+    if env_ids is None:
+        from cparticles.bench import vector_envs
+
+        env_ids = vector_envs()
     counts = thread_counts()
     out: dict[str, Any] = {"cores": cores(), "copies": copies, "threads": counts,
                            "repeats": repeats, "batch_seconds": seconds}

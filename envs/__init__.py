@@ -1,32 +1,24 @@
 """Gymnasium environments on the constrained-particles simulator.
 
-Importing this package registers ``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainSwing-v0`` and
-``ClothPin-v1`` (idempotently, so a second import or a subprocess re-import is silent).
-``gym.make("envs:ClothSlide-v0")`` imports it for you. Every entry point lives in
-:mod:`envs.cparticles`, so ``gym.pprint_registry()`` lists the ids together under ``cparticles``.
+Importing this package registers every task of the registration list below
+(``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainSwing-v0`` and ``ClothPin-v1``; idempotently, so a
+second import or a subprocess re-import is silent). ``gym.make("envs:ClothSlide-v0")`` imports
+it for you. Each task is one module ending with its declaration, a :class:`TaskSpec` (see
+:mod:`envs.task` and docs/adding_a_task.md); :func:`register_task` registers one from anywhere,
+and every tool of the project (``cparticles train``, ``evaluate``, ``demo``, ``bench``,
+:func:`envs.agents.make_agent`, the conformance tests) reads the declarations through
+:func:`task_spec` and :func:`task_specs`. Every entry point lives in :mod:`envs.cparticles`, so
+``gym.pprint_registry()`` lists the ids together under ``cparticles``.
 """
 
-from gymnasium.envs.registration import register, registry
+from . import chain_swing, cloth_pin, cloth_slide, slider_crank
+from .task import TaskSpec, register_task, task_spec, task_specs
 
-#: Every registered id. ClothSlide, SliderCrank and ChainSwing take action modes "force" and
-#: "spring"; ClothPin draws springs ("draw").
-ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0", "ClothPin-v1")
+__all__ = ["ENV_IDS", "TaskSpec", "register_task", "task_spec", "task_specs"]
 
-_SPECS = {
-    "ClothSlide-v0": dict(entry_point="envs.cparticles:ClothSlideEnv",
-                          vector_entry_point="envs.cparticles:ClothSlideVectorEnv",
-                          max_episode_steps=200),
-    "SliderCrank-v0": dict(entry_point="envs.cparticles:SliderCrankEnv",
-                           vector_entry_point="envs.cparticles:SliderCrankVectorEnv",
-                           max_episode_steps=200),
-    "ChainSwing-v0": dict(entry_point="envs.cparticles:ChainSwingEnv",
-                          vector_entry_point="envs.cparticles:ChainSwingVectorEnv",
-                          max_episode_steps=200),
-    "ClothPin-v1": dict(entry_point="envs.cparticles:ClothPinEnv",
-                        vector_entry_point="envs.cparticles:ClothPinVectorEnv",
-                        max_episode_steps=200),
-}
+#: The registration list: the tasks this package ships, in the order the tools list them.
+for _module in (cloth_slide, slider_crank, chain_swing, cloth_pin):
+    register_task(_module.TASK)
 
-for _id, _kwargs in _SPECS.items():
-    if _id not in registry:
-        register(id=_id, **_kwargs)
+#: The ids of the shipped tasks (:func:`task_specs` also holds any registered since).
+ENV_IDS = tuple(spec.id for spec in task_specs())

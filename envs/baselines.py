@@ -45,8 +45,8 @@ from constrained_particles.arguments import (
     positive_float,
 )
 
-from . import ENV_IDS
-from .train import ALGOS, ENV_ACTION_MODES, HELD_OUT_SEED_START
+from .task import env_action_modes
+from .train import ALGOS, HELD_OUT_SEED_START
 
 #: Held-out episodes per evaluation.
 EPISODES = 100
@@ -225,9 +225,11 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("run", help="train and evaluate the grid", formatter_class=HelpFormatter)
     r.add_argument("--runs", default="runs", type=new_directory,
                    help="folder of the run directories (created)")
-    r.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=ENV_IDS,
-                   metavar="ENV_ID", help=f"env ids, of {', '.join(ENV_IDS)}")
-    modes = sorted({m for v in ENV_ACTION_MODES.values() for m in v})
+    takes_modes = env_action_modes()
+    ids = list(takes_modes)
+    r.add_argument("--envs", nargs="+", default=ids, choices=ids,
+                   metavar="ENV_ID", help=f"env ids, of {', '.join(ids)}")
+    modes = sorted({m for v in takes_modes.values() for m in v})
     r.add_argument("--modes", nargs="+", default=modes, choices=modes,
                    help="action modes (each env trains in those it takes)")
     r.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS)
@@ -265,10 +267,10 @@ def main(argv: list[str] | None = None) -> int:
         print(report(results, runs, out), end="")
         return 0
     grid = [(env, mode, algo, seed) for env in args.envs for mode in args.modes
-            if mode in ENV_ACTION_MODES[env]
+            if mode in takes_modes[env]
             for algo in args.algos for seed in (args.seeds or GRID_SEEDS[algo])]
     if not grid:
-        takes = "; ".join(f"{e} takes {', '.join(ENV_ACTION_MODES[e])}" for e in args.envs)
+        takes = "; ".join(f"{e} takes {', '.join(takes_modes[e])}" for e in args.envs)
         p.error(f"no env in --envs takes an action mode in --modes ({takes})")
     publish = Path(args.publish) if args.publish else None
     lock = threading.Lock()

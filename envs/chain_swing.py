@@ -6,9 +6,11 @@ import math
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from constrained_particles import (
     AngularSpring,
+    ConstantForce,
     Drag,
     Gravity,
     HorizontalWire,
@@ -19,10 +21,12 @@ from constrained_particles import (
     scenes,
 )
 
-from .base import ParticleTask
+from .agents import ScriptedAgent
+from .base import ACTION_MODES, ParticleTask
 from .checks import check_goal_range, check_positive, uniform_away
 from .cloth_slide import SUCCESS_BONUS
 from .single import ParticleEnv
+from .task import TaskSpec, ppo, sac
 from .vector import ParticleVectorEnv
 
 #: Valid values of the ``target`` argument.
@@ -342,3 +346,148 @@ class ChainSwingVectorEnv(ParticleVectorEnv):
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, **kwargs: Any) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped into [-pi, pi)."""
+    return np.mod(angle + np.pi, 2 * np.pi) - np.pi
+
+
+class ChainSwingController(ScriptedAgent):
+    """Linear-quadratic control of the chain in its own coordinates, linearized from the physics.
+
+    The state is ``s = (x_c, phi_1 .. phi_L, xdot_c, phidot_1 .. phidot_L)``: the carrier's x
+    (m) and each link's angle from the downward vertical (rad), with rates. :func:`linearize`
+    differentiates the task's own particle system (rods, angular springs, drag, with a force on
+    the carrier) by central differences about the straight chain hanging down (``"lateral"``) or
+    standing up (``"swingup"``); a discrete LQR for the env step (zero-order hold) gives the
+    feedback ``F = -K (s - s_goal)`` in newtons.
+
+    For ``"swingup"`` the chain is first pumped up: in the carrier's frame a carrier
+    acceleration ``a`` does work ``-a p`` on the chain per second (``p`` the chain's horizontal
+    momentum relative to the carrier, in kg m/s), so the controller asks for
+    ``a = -pump g (E* - E) / E* sign(p) - kx (x_c - goal) - kv xdot_c`` (m/s^2; ``E`` the
+    chain's energy in the carrier's frame, ``E*`` the upright chain's, ``(kx, kv) = center``)
+    and finds the force that gives it from the physics (:meth:`carrier_response`: the light
+    carrier's acceleration depends as much on the swinging chain as on the force). The LQR takes
+    over once every link is within ``catch`` rad of upright.
+    """
+
+    def __init__(self, task: ChainSwing, catch: float = 0.8, pump: float = 12.0,
+                 center: tuple[float, float] = (3.0, 2.0)) -> None:
+        super().__init__(task)
+        self.catch, self.pump, self.center = catch, pump, center
+        self._tiled: tuple[int, ParticleSystem] | None = None
+        self.spring_particle = 0
+        L = task.links
+        up = np.pi if task.target == "swingup" else 0.0
+        self.rest = np.full(L, up)
+        A, B = linearize(task, self.rest)
+        h = task.dt * task.substeps
+        # zero-order hold: expm([[A, B], [0, 0]] h) = [[Ad, Bd], [0, I]]
+        M = np.zeros((2 * L + 3, 2 * L + 3))
+        M[:2 * L + 2, :2 * L + 2], M[:2 * L + 2, -1:] = A, B
+        E = scipy.linalg.expm(M * h)
+        Ad, Bd = E[:2 * L + 2, :2 * L + 2], E[:2 * L + 2, -1:]
+        Q = np.diag([20.0] + [10.0] * L + [1.0] + [0.2] * L)
+        R = np.array([[0.05]])
+        P = scipy.linalg.solve_discrete_are(Ad, Bd, Q, R)
+        self.K = np.linalg.solve(R + Bd.T @ P @ Bd, Bd.T @ P @ Ad)[0]
+        self.upright_energy = scenes.G * task.particle_mass * task.link * L * (L + 1) / 2
+
+    def carrier_response(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(a0, b)`` (B,) with the carrier's acceleration ``a0 + b F`` (m/s^2) under a force
+        ``F`` (N) on it, from the physics at positions ``x`` and velocities ``v`` (B, n, 2)."""
+        B = len(x)
+        if self._tiled is None or self._tiled[0] != B:
+            scene = self.task.build_scene()
+            scene.add(ConstantForce([0], [[0.0, 0.0]]))
+            self._tiled = (B, scene.tile(B))
+        s = self._tiled[1]
+        X, V = x.reshape(-1, 2), v.reshape(-1, 2)
+        s.forces[-1].force[:] = 0.0
+        a0 = s.acceleration(0.0, X, V).reshape(B, -1, 2)[:, 0, 0]
+        s.forces[-1].force[:, 0] = 1.0
+        a1 = s.acceleration(0.0, X, V).reshape(B, -1, 2)[:, 0, 0]
+        return a0, a1 - a0
+
+    def state(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Link angles (B, L) in rad and their rates (B, L) in rad/s from particle states."""
+        d = np.diff(x, axis=1)
+        dv = np.diff(v, axis=1)
+        phi = np.arctan2(d[..., 0], -d[..., 1])
+        rate = (d[..., 0] * dv[..., 1] - d[..., 1] * dv[..., 0]) / np.sum(d * d, axis=2)
+        return phi, rate
+
+    def force(self, x, v, goal):
+        t = self.task
+        phi, rate = self.state(x, v)
+        err = np.concatenate([(x[:, 0, 0] - goal)[:, None], _wrap(phi - self.rest),
+                              v[:, 0, :1], rate], axis=1)
+        F = -err @ self.K
+        if t.target == "swingup":
+            rel = v[:, 1:] - v[:, :1]
+            m = t.particle_mass
+            energy = (0.5 * m * np.sum(rel**2, axis=(1, 2))
+                      + m * scenes.G * np.sum(x[:, 1:, 1], axis=1)
+                      + 0.5 * t.stiffness * np.sum(_wrap(np.diff(phi, axis=1)) ** 2, axis=1))
+            p = m * np.sum(rel[:, :, 0], axis=1)
+            deficit = np.clip((self.upright_energy - energy) / self.upright_energy, -1.0, 1.0)
+            kx, kv = self.center
+            a_want = (-self.pump * scenes.G * deficit * np.sign(p)
+                      - kx * (x[:, 0, 0] - goal) - kv * v[:, 0, 0])
+            a0, b = self.carrier_response(x, v)
+            swing = (a_want - a0) / b
+            caught = np.all(np.abs(_wrap(phi - self.rest)) < self.catch, axis=1)
+            F = np.where(caught, F, swing)
+        if t.action_mode == "spring":  # the mouse spring's own damping, compensated
+            F = F + t.mouse_kd * v[:, 0, 0]
+        return np.stack([F, np.zeros_like(F)], axis=1)
+
+    def force_action(self, F, x):
+        return F[:, :1] / self.task.max_force
+
+
+def linearize(task: ChainSwing, angles: np.ndarray, eps: float = 1e-6
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, B)`` of ``sdot = A s + B F`` about the chain at rest with link ``angles`` (rad),
+    ``s`` as in :class:`ChainSwingController` and ``F`` a horizontal force (N) on the carrier,
+    by central differences of the task's particle system."""
+    s = task.build_scene()
+    push = ConstantForce([0], [[0.0, 0.0]])
+    s.add(push)
+    L, l = task.links, task.link
+
+    def accel(z: np.ndarray, F: float) -> np.ndarray:
+        x, v = task.chain(z[0], z[1:L + 1], z[L + 2:])
+        v[:, 0] += z[L + 1]
+        push.force[0, 0] = F
+        a = s.acceleration(0.0, x, v)
+        phi = z[1:L + 1]
+        dd = np.diff(a, axis=0)
+        # d = l (sin phi, -cos phi) per link, so phi'' = d'' . (cos phi, sin phi) / l exactly
+        return np.concatenate([[a[0, 0]], (dd[:, 0] * np.cos(phi) + dd[:, 1] * np.sin(phi)) / l])
+
+    z0 = np.concatenate([[0.0], angles, np.zeros(L + 1)])
+    A = np.zeros((2 * L + 2, 2 * L + 2))
+    A[:L + 1, L + 1:] = np.eye(L + 1)
+    for k in range(2 * L + 2):
+        dz = np.zeros_like(z0)
+        dz[k] = eps
+        A[L + 1:, k] = (accel(z0 + dz, 0.0) - accel(z0 - dz, 0.0)) / (2 * eps)
+    B = np.zeros((2 * L + 2, 1))
+    B[L + 1:, 0] = (accel(z0, eps) - accel(z0, -eps)) / (2 * eps)
+    return A, B
+
+
+#: The task's declaration (see :mod:`envs.task`).
+TASK = TaskSpec(
+    id="ChainSwing-v0", env=ChainSwingEnv, vector_env=ChainSwingVectorEnv,
+    action_modes=ACTION_MODES, scripted_agent=ChainSwingController,
+    variants=({"target": "swingup"},),
+    summary="move a chain's carrier along its wire to bring the chain's tip to a target "
+            "beside it, or swing it up and balance it upright",
+    hyperparams={"ppo": {"force": ppo(300000, (64, 64)), "spring": ppo(400000, (64, 64))},
+                 "sac": {"force": sac(), "spring": sac()}},
+    notes="The PPO and SAC settings are untuned: carried over from SliderCrank (a small "
+          "observation). None are shipped for the swing-up.")

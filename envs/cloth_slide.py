@@ -10,10 +10,12 @@ import scipy.optimize
 
 from constrained_particles import ParticleSystem, Wall, scenes
 
-from .base import ParticleTask
+from .agents import ScriptedAgent
+from .base import ACTION_MODES, ParticleTask
 from .checks import check_goal_range, check_positive, uniform_away
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 from .single import ParticleEnv
+from .task import TaskSpec, ppo, sac
 from .vector import ParticleVectorEnv
 
 __all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSlideEnv",
@@ -344,3 +346,34 @@ class ClothSlideVectorEnv(ParticleVectorEnv):
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, **kwargs: Any) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
+
+
+class ClothSlideController(ScriptedAgent):
+    """PD control of the cloth's centre of mass: ``F = kp (goal - c) - kd c_dot``, total force
+    capped at ``f_max`` newtons so the cloth never hits the wall hard."""
+
+    def __init__(self, task: ClothSlide, kp: float = 3.0, kd: float = 2.5,
+                 f_max: float = 1.0) -> None:
+        super().__init__(task)
+        self.kp, self.kd, self.f_max = kp, kd, f_max
+        self.spring_particle = task.nx // 2
+
+    def force(self, x, v, goal):
+        c = x[:, :, 0].mean(axis=1)
+        c_dot = v[:, :, 0].mean(axis=1)
+        F = np.clip(self.kp * (goal - c) - self.kd * c_dot, -self.f_max, self.f_max)
+        return np.stack([F, np.zeros_like(F)], axis=1)
+
+    def force_action(self, F, x):
+        per_corner = F[:, 0] / (2 * self.task.max_force)
+        return np.stack([per_corner, per_corner], axis=1)
+
+
+#: The task's declaration (see :mod:`envs.task`).
+TASK = TaskSpec(
+    id="ClothSlide-v0", env=ClothSlideEnv, vector_env=ClothSlideVectorEnv,
+    action_modes=ACTION_MODES, scripted_agent=ClothSlideController, bench_vector=True,
+    summary="slide a hanging cloth along its wire to a goal and stop it there, without "
+            "slamming into the wall",
+    hyperparams={"ppo": {"force": ppo(400000, (128, 128)), "spring": ppo(500000, (128, 128))},
+                 "sac": {"force": sac(), "spring": sac()}})

@@ -1,13 +1,17 @@
 """The registered environment classes under one module name.
 
-Gymnasium's ``pprint_registry`` groups ids by the module of their entry point, so every id points
-here (``envs.cparticles:ClothSlideEnv``, ...) and are listed together under ``cparticles``.
+Gymnasium's ``pprint_registry`` groups ids by the module of their entry point, so every task's
+entry points name this module (``envs.cparticles:ClothSlideEnv``, ...) and the ids are listed
+together under ``cparticles``. A name resolves to the class of that name among the registered
+tasks' declarations (:func:`envs.task.register_task`).
 """
 
-from .chain_swing import ChainSwingEnv, ChainSwingVectorEnv
-from .cloth_pin import ClothPinEnv, ClothPinVectorEnv
-from .cloth_slide import ClothSlideEnv, ClothSlideVectorEnv
-from .slider_crank import SliderCrankEnv, SliderCrankVectorEnv
+from typing import Any
 
-__all__ = ["ChainSwingEnv", "ChainSwingVectorEnv", "ClothPinEnv", "ClothPinVectorEnv",
-           "ClothSlideEnv", "ClothSlideVectorEnv", "SliderCrankEnv", "SliderCrankVectorEnv"]
+import envs  # noqa: F401  (registers the shipped tasks)
+
+from .task import environment_class
+
+
+def __getattr__(name: str) -> Any:
+    return environment_class(name)

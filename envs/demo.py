@@ -21,10 +21,8 @@ import numpy as np
 from constrained_particles.arguments import int_at_least, output_file, time_step, written_whole
 from constrained_particles.integrators import METHODS
 
-from . import ENV_IDS
 from .agents import AGENTS, make_agent
-from .base import ACTION_MODES
-from .cloth_pin import DRAW_MODES
+from .task import task_spec, task_specs
 
 #: Largest batch of episodes run as one vector env.
 BATCH = 64
@@ -32,15 +30,18 @@ BATCH = 64
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
-    parser.add_argument("--env", default=ENV_IDS[0], choices=ENV_IDS, help="environment id")
+    specs = task_specs()
+    ids = [spec.id for spec in specs]
+    parser.add_argument("--env", default=ids[0], choices=ids, help="environment id")
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
                         help="number of episodes")
     parser.add_argument("--seed", type=int_at_least(0), default=0,
                         help="seed of episode 0 (then +1 each)")
-    parser.add_argument("--action-mode", choices=(*ACTION_MODES, *DRAW_MODES),
-                        help="force on handles or spring placement (ClothSlide, SliderCrank, "
-                        "ChainSwing; default force); ClothPin draws springs (draw)")
+    modes = "; ".join(f"{spec.id}: {', '.join(spec.action_modes)}" for spec in specs)
+    parser.add_argument("--action-mode",
+                        choices=sorted({m for spec in specs for m in spec.action_modes}),
+                        help=f"action mode ({modes}) (default: the env's first)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
                         help="save episode 0 as an animated GIF (needs the render extra; default: "
@@ -61,9 +62,8 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     from constrained_particles.extras import require
     from constrained_particles.viewer import display_problem
 
-    pin = args.env == "ClothPin-v1"
-    if args.action_mode is not None and (args.action_mode in DRAW_MODES) != pin:
-        modes = DRAW_MODES if pin else ACTION_MODES
+    modes = task_spec(args.env).action_modes
+    if args.action_mode is not None and args.action_mode not in modes:
         parser.error(f"--action-mode: {args.env} takes one of {', '.join(modes)}, "
                      f"got {args.action_mode!r}")
     if args.watch or args.save_gif:
@@ -147,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
     physics = {k: getattr(args, k) for k in ("integrator", "dt", "substeps")
                if getattr(args, k) is not None}
     if args.action_mode is None:  # each environment's default
-        args.action_mode = "draw" if args.env == "ClothPin-v1" else "force"
+        args.action_mode = task_spec(args.env).default_mode
     if args.watch:
         record_episode(args.env, args.agent, args.seed, args.action_mode, render_mode="human",
                        **physics)

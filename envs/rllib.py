@@ -40,10 +40,9 @@ from typing import Any
 
 import gymnasium as gym
 
-__all__ = ["ENV_IDS", "configure", "make_env", "register"]
+from .task import task_spec, task_specs
 
-#: The environments this module configures RLlib for (force or spring actions, a goal along x).
-ENV_IDS = ("ClothSlide-v0", "SliderCrank-v0")
+__all__ = ["configure", "make_env", "register"]
 
 #: RLlib's name for our vectorization: each EnvRunner calls the env's vector entry point.
 VECTORIZE_MODE = "vector_entry_point"
@@ -52,9 +51,7 @@ VECTORIZE_MODE = "vector_entry_point"
 def _check_id(env_id: Any) -> str:
     if not isinstance(env_id, str):
         raise TypeError(f"env_id must be a string, got {type(env_id).__name__}")
-    if env_id not in ENV_IDS:
-        raise ValueError(f"env_id must be one of {ENV_IDS}, got {env_id!r}")
-    return env_id
+    return task_spec(env_id).id  # (ValueError listing the registered ids)
 
 
 def make_env(env_id: str, config: Mapping[str, Any] | None = None
@@ -75,8 +72,9 @@ def make_env(env_id: str, config: Mapping[str, Any] | None = None
     return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=VECTORIZE_MODE, **kwargs)
 
 
-def register(env_ids: Iterable[str] = ENV_IDS) -> tuple[str, ...]:
-    """Register ``env_ids`` with Ray's env registry (under the same names); returns the names.
+def register(env_ids: Iterable[str] | None = None) -> tuple[str, ...]:
+    """Register ``env_ids`` (default: every registered task) with Ray's env registry (under the
+    same names); returns the names.
 
     Call it in the driver before building the algorithm; Ray makes the registration visible to
     every worker process of the cluster (the one it is connected to, or the next one started).
@@ -84,6 +82,8 @@ def register(env_ids: Iterable[str] = ENV_IDS) -> tuple[str, ...]:
     """
     from ray.tune.registry import register_env
 
+    if env_ids is None:
+        env_ids = [spec.id for spec in task_specs()]
     ids = tuple(_check_id(i) for i in env_ids)
     for env_id in ids:
         register_env(env_id, functools.partial(make_env, env_id))

@@ -10,10 +10,12 @@ import numpy as np
 from constrained_particles import Drag, ParticleSystem, scenes
 
 from . import _measure
-from .base import ParticleTask, _measured
+from .agents import ScriptedAgent
+from .base import ACTION_MODES, ParticleTask, _measured
 from .checks import _owned, away, check_goal_range, check_positive, scaled
 from .rewards import SUCCESS_BONUS, TIME_COST, ShapedTask
 from .single import ParticleEnv
+from .task import TaskSpec, ppo, sac
 from .vector import ParticleVectorEnv
 
 
@@ -438,3 +440,44 @@ class SliderCrankVectorEnv(ParticleVectorEnv):
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, **kwargs: Any) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
+
+
+class SliderCrankController(ScriptedAgent):
+    """Drive the crank to the angle above the wire that puts the slider at the goal (through a
+    dead centre if it starts below), with gravity compensation: ``F_t = m g cos(theta)
+    + kp (theta* - theta) - kd v_t`` along the tangent."""
+
+    def __init__(self, task: SliderCrank, kp: float = 3.0, kd: float = 1.5) -> None:
+        super().__init__(task)
+        self.kp, self.kd = kp, kd
+        self.spring_particle = 0
+
+    def force(self, x, v, goal):
+        t = self.task
+        r, L = t.radius, t.rod
+        crank = x[:, 0]
+        theta = np.arctan2(crank[:, 1], crank[:, 0])
+        # slider at g: r cos(th) + sqrt(L^2 - r^2 sin^2(th)) = g, so cos(th) = (g^2 + r^2 - L^2)/2gr
+        cos_target = np.clip((goal**2 + r**2 - L**2) / (2 * goal * r), -1.0, 1.0)
+        target = np.arccos(cos_target)  # the success test wants the crank above the wire
+
+        error = np.angle(np.exp(1j * (target - theta)))
+        tangent = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
+        v_t = np.sum(v[:, 0] * tangent, axis=1)
+        F_t = t.particle_mass * scenes.G * np.cos(theta) + self.kp * error - self.kd * v_t
+        return F_t[:, None] * tangent
+
+    def force_action(self, F, x):
+        crank = x[:, 0]
+        tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        return np.sum(F * tangent, axis=1, keepdims=True) / self.task.max_force
+
+
+#: The task's declaration (see :mod:`envs.task`).
+TASK = TaskSpec(
+    id="SliderCrank-v0", env=SliderCrankEnv, vector_env=SliderCrankVectorEnv,
+    action_modes=ACTION_MODES, scripted_agent=SliderCrankController, bench_vector=True,
+    summary="turn a crank so that the slider it drives rests at a goal",
+    hyperparams={"ppo": {"force": ppo(300000, (64, 64)), "spring": ppo(400000, (64, 64))},
+                 "sac": {"force": sac(), "spring": sac()}})

@@ -3,12 +3,12 @@
     cparticles train ClothSlide-v0 --algo ppo --seed 0 --out runs/cloth-ppo-0
     cparticles evaluate runs/cloth-ppo-0 --episodes 100 --seed-start 2000000 --json
 
-``train`` reads the shipped hyperparameters (``envs/hyperparams/{ppo,sac}.json``, one entry per
-``"<env id>/<action mode>"``, in the style of rl-baselines3-zoo), builds the training env (the
-native vector env through :func:`envs.sb3.to_sb3` when ``n_envs > 1``, as PPO wants; a single
-env otherwise, as SAC wants), optionally wraps it in ``VecNormalize``, and trains with a progress
-bar. Every ``--eval-freq`` steps it runs deterministic evaluation episodes on seeds from
-``EVAL_SEED_START`` and appends them to ``DIR/evaluations.json``. The run is written into a
+``train`` reads the shipped hyperparameters (each task's declaration, ``TaskSpec.hyperparams``:
+one entry per algorithm and action mode, in the style of rl-baselines3-zoo), builds the training
+env (the native vector env through :func:`envs.sb3.to_sb3` when ``n_envs > 1``, as PPO wants; a
+single env otherwise, as SAC wants), optionally wraps it in ``VecNormalize``, and trains with a
+progress bar. Every ``--eval-freq`` steps it runs deterministic evaluation episodes on seeds
+from ``EVAL_SEED_START`` and appends them to ``DIR/evaluations.json``. The run is written into a
 hidden directory beside ``DIR`` and renamed to ``DIR`` once complete, so a failed run (a full
 disk, an interrupt) leaves no directory that looks like a run.
 
@@ -62,14 +62,10 @@ import numpy as np
 from constrained_particles.arguments import int_at_least, new_directory
 from constrained_particles.extras import require
 
-from . import ENV_IDS
-from .base import ACTION_MODES
-from .cloth_pin import DRAW_MODES
+from .task import check_env_mode, task_spec, task_specs
 
 #: Algorithms ``cparticles train`` knows (Stable-Baselines3 classes).
 ALGOS = ("ppo", "sac")
-#: Folder of the shipped hyperparameter files, ``<algo>.json``.
-HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
 #: Seeds of the periodic evaluation episodes during training.
 EVAL_SEED_START = 1_000_000
 #: First seed of held-out evaluation episodes (the convention of docs/baselines).
@@ -78,9 +74,6 @@ HELD_OUT_SEED_START = 2_000_000
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
-#: The action modes each env takes, its default first (``train`` ships hyperparameters for each).
-ENV_ACTION_MODES: dict[str, tuple[str, ...]] = {
-    env_id: DRAW_MODES if env_id == "ClothPin-v1" else ACTION_MODES for env_id in ENV_IDS}
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -114,31 +107,12 @@ def _algo_class(algo: str) -> type:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def check_env_mode(env_id: str, action_mode: str | None) -> str:
-    """The action mode to use (``None``: the env's default); ValueError naming the argument if
-    ``env_id`` is not a registered id or does not take ``action_mode``."""
-    if env_id not in ENV_ACTION_MODES:
-        raise ValueError(f"env_id must be one of {ENV_IDS}, got {env_id!r}")
-    modes = ENV_ACTION_MODES[env_id]
-    if action_mode is None:
-        return modes[0]
-    if action_mode not in modes:
-        raise ValueError(f"action_mode: {env_id} takes {' or '.join(modes)}, "
-                         f"got {action_mode!r}")
-    return action_mode
-
-
 def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None) -> dict[str, Any]:
     """The shipped hyperparameters of ``algo`` for ``env_id`` in ``action_mode`` (None: the
-    env's default mode), a copy."""
+    env's default mode), a copy (the task's declaration, ``TaskSpec.settings``)."""
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
-    action_mode = check_env_mode(env_id, action_mode)
-    table = json.loads((HYPERPARAMS_DIR / f"{algo}.json").read_text())
-    key = f"{env_id}/{action_mode}"
-    if key not in table:
-        raise ValueError(f"no {algo} hyperparameters for {key} in {HYPERPARAMS_DIR}")
-    return json.loads(json.dumps(table[key]))
+    return task_spec(env_id).settings(algo, action_mode)
 
 
 def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
@@ -699,17 +673,19 @@ TRUST = ("A run directory holds data only (config.json, the policy weights, the 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles train``."""
-    modes = "; ".join(f"{e}: {', '.join(m)}" for e, m in ENV_ACTION_MODES.items())
-    parser.add_argument("env", choices=ENV_IDS, metavar="ENV_ID",
-                        help=f"environment id: {', '.join(ENV_IDS)}")
+    specs = task_specs()
+    ids = [spec.id for spec in specs]
+    modes = "; ".join(f"{spec.id}: {', '.join(spec.action_modes)}" for spec in specs)
+    parser.add_argument("env", choices=ids, metavar="ENV_ID",
+                        help=f"environment id: {', '.join(ids)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="SB3 algorithm")
     parser.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
                         help="seed of the model; env copy i starts from seed + i")
     parser.add_argument("--out", required=True, type=new_directory,
                         help="run directory (created when the run is complete; must not "
                         "exist, or be an empty directory)")
-    parser.add_argument("--action-mode", choices=sorted({m for v in ENV_ACTION_MODES.values()
-                                                         for m in v}),
+    parser.add_argument("--action-mode", choices=sorted({m for spec in specs
+                                                         for m in spec.action_modes}),
                         help=f"action mode ({modes}) (default: the env's first)")
     parser.add_argument("--timesteps", type=int_at_least(1),
                         help="env steps (default: the shipped budget of the env, mode and algo)")
@@ -724,7 +700,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Before any work: an action mode the env takes, shipped hyperparameters, an ``--out``
     that holds no run yet, then the rl extra (argument mistakes are reported either way)."""
-    modes = ENV_ACTION_MODES[args.env]
+    modes = task_spec(args.env).action_modes
     if args.action_mode is None:
         args.action_mode = modes[0]
     if args.action_mode not in modes:

@@ -36,7 +36,7 @@ import ray
 from ray.rllib.algorithms.ppo import PPOConfig
 
 import envs.rllib
-from envs.rllib import ENV_IDS
+from envs import ENV_IDS
 
 
 def positive_int(text: str) -> int:
@@ -49,7 +49,7 @@ def positive_int(text: str) -> int:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--env", choices=ENV_IDS, default="ClothSlide-v0")
+    p.add_argument("--env", choices=ENV_IDS, default=ENV_IDS[0])
     p.add_argument("--num-envs", type=positive_int, default=16,
                    help="env copies per EnvRunner and for SB3 (default 16)")
     p.add_argument("--steps", type=positive_int, default=6000,

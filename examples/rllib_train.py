@@ -25,7 +25,7 @@ from ray.rllib.algorithms.ppo import PPOConfig
 import constrained_particles
 import envs
 import envs.rllib
-from envs.rllib import ENV_IDS
+from envs import ENV_IDS
 
 
 def positive_int(text: str) -> int:
@@ -38,7 +38,7 @@ def positive_int(text: str) -> int:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--env", choices=ENV_IDS, default="ClothSlide-v0")
+    p.add_argument("--env", choices=ENV_IDS, default=ENV_IDS[0])
     p.add_argument("--action-mode", choices=("force", "spring"), default="force")
     p.add_argument("--num-env-runners", type=positive_int, default=2,
                    help="EnvRunner actors sampling in parallel (default 2)")

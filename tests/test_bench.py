@@ -62,11 +62,11 @@ def test_json_carries_the_headline_keys(monkeypatch):
     out = json.loads(json.dumps(B.run(repeats=1, sizes=[4], copies=(1, 2), seconds=0.0,
                                       accuracy_n=4, accuracy_seconds=0.02, thread_copies=4)))
     assert out["implicit_scaling"]["sizes"] == [4, 8]
-    assert threads_asked[0][:2] == (S.THREAD_ENVS, 4) and "threads" in out
+    assert threads_asked[0][:2] == (B.vector_envs(), 4) and "threads" in out
     assert out["pymunk_ratio_equal_accuracy"]["4"] > 0
     assert set(out["pymunk_ratio"]) == {"1", "10"}
-    assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.SMALL_ENVS}
-    assert set(out["vector_scaling"]) == set(B.VECTOR_ENVS)
+    assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.small_envs()}
+    assert set(out["vector_scaling"]) == set(B.vector_envs())
     assert all(set(rows) == {"1", "2"} for rows in out["vector_scaling"].values())
     assert set(out["cloth_errors"]) == {B.OURS, "midpoint", "rk4", "pymunk_1", "pymunk_10"}
     assert all(r > 0 for r in out["env_step_vs_cartpole"].values())

@@ -654,8 +654,8 @@ def test_the_step_without_conjugate_gradients_hands_large_components_to_the_refe
 
 def _env_cases() -> list[tuple[str, str]]:
     import envs
-    from envs.train import ENV_ACTION_MODES
-    return [(env_id, mode) for env_id in envs.ENV_IDS for mode in ENV_ACTION_MODES[env_id]]
+    return [(env_id, mode) for env_id in envs.ENV_IDS
+            for mode in envs.task_spec(env_id).action_modes]
 
 
 @pytest.mark.parametrize("env_id, mode", _env_cases())

@@ -20,12 +20,12 @@ import pytest
 import envs
 from constrained_particles import fused, kernels, parallel
 from envs.base import ParticleTask
-from envs.train import ENV_ACTION_MODES
 
 #: Threads step the compiled kernel: with ``CPARTICLES_NUMBA=0`` a threaded env steps on one
 #: thread, and only the tests of what it returns apply.
 compiled = pytest.mark.skipif(not kernels.ENABLED, reason="threads step the compiled kernel")
-CONFIGS = [(env_id, mode) for env_id in envs.ENV_IDS for mode in ENV_ACTION_MODES[env_id]]
+CONFIGS = [(env_id, mode) for env_id in envs.ENV_IDS
+           for mode in envs.task_spec(env_id).action_modes]
 
 
 #: Envs whose physics blocks change at most steps (ClothPin draws its pins as springs): their
@@ -98,7 +98,7 @@ def small_ranges(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_threads_give_the_same_bits(env_id: str, mode: str, small_ranges: None) -> None:
     one, ended, _ = _run(env_id, mode, 1)
     assert ended >= 64, "copies did not end: the autoreset path went untested"
-    for threads in (2, 3) if mode == ENV_ACTION_MODES[env_id][0] else (2,):
+    for threads in (2, 3) if mode == envs.task_spec(env_id).default_mode else (2,):
         # 3 threads (ranges of 22, 21 and 21 copies) in each env's first mode
         other, _, (on_ranges, calls, measures) = _run(env_id, mode, threads)
         # (every compiled physics call ran on the ranges: none fell back to one thread; the

@@ -1,0 +1,242 @@
+"""The task protocol: what a task module declares, and the registry that reads it.
+
+A task is one module. Besides its physics and its environment classes it ends with a
+:class:`TaskSpec`, the one place that says what the rest of the project needs to know about it:
+its id, its single and vector environment classes, its action modes (the default first), the
+keyword arguments of its variants worth testing, its scripted agent, its shipped
+hyperparameters, its episode length and one line for the docs' tables. Registration
+(``gym.make``), ``cparticles train``, ``evaluate``, ``demo`` and ``bench``, :func:`envs.agents.
+make_agent` and the conformance tests (:mod:`envs.conformance`) all read the declaration; no env
+id appears anywhere else but in its own module and the registration list of
+:mod:`envs` (docs/adding_a_task.md walks through a new task).
+
+>>> import envs
+>>> spec = envs.task_spec("SliderCrank-v0")
+>>> spec.action_modes
+('force', 'spring')
+>>> spec.default_mode
+'force'
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from gymnasium.envs.registration import register, registry
+
+__all__ = ["TaskSpec", "check_env_mode", "env_action_modes", "ppo", "register_task", "sac",
+           "spec_of_task", "task_spec", "task_specs", "unregister_task"]
+
+#: Algorithms whose settings a task may ship (Stable-Baselines3's PPO and SAC).
+HYPERPARAM_ALGOS = ("ppo", "sac")
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task's declaration (see the module docstring).
+
+    ``env`` and ``vector_env``: the ``gymnasium.Env`` and native ``VectorEnv`` classes (each
+    with a ``task_class``); ``action_modes``: the values of the ``action_mode`` argument, the
+    default first; ``scripted_agent``: ``agent(task) -> callable(obs) -> action`` for the
+    task's physics object (``env.unwrapped.task``), batched or not; ``hyperparams``:
+    ``{algo: {action_mode: settings}}`` in the form ``cparticles train`` reads (see
+    :mod:`envs.train`), with ``notes`` saying how they were chosen; ``variants``: keyword
+    arguments of further configurations that the conformance tests run besides each action
+    mode (ChainSwing's swing-up); ``max_episode_steps``: the registered time limit (env steps);
+    ``bench_vector``: ``cparticles bench`` times the native vector env and threads on it;
+    ``summary``: one line for the docs' tables.
+    """
+
+    id: str
+    env: type
+    vector_env: type
+    action_modes: tuple[str, ...]
+    scripted_agent: Callable[[Any], Callable[[Any], Any]]
+    summary: str
+    hyperparams: Mapping[str, Mapping[str, Mapping[str, Any]]] = field(default_factory=dict)
+    notes: str = ""
+    variants: tuple[Mapping[str, Any], ...] = ()
+    max_episode_steps: int = 200
+    bench_vector: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.id, str) or "-v" not in self.id:
+            raise ValueError(f"id must be a string 'Name-vN', got {self.id!r}")
+        for name in ("env", "vector_env"):
+            cls = getattr(self, name)
+            if not isinstance(cls, type) or not hasattr(cls, "task_class"):
+                raise ValueError(f"{name} must be an environment class with a task_class, "
+                                 f"got {cls!r}")
+        modes = self.action_modes
+        if (not isinstance(modes, tuple) or not modes
+                or not all(isinstance(m, str) for m in modes) or len(set(modes)) != len(modes)):
+            raise ValueError(f"action_modes must be a non-empty tuple of distinct strings, the "
+                             f"default first, got {modes!r}")
+        if not callable(self.scripted_agent):
+            raise ValueError(f"scripted_agent must be callable(task) -> agent, "
+                             f"got {self.scripted_agent!r}")
+        for algo, table in self.hyperparams.items():
+            if algo not in HYPERPARAM_ALGOS:
+                raise ValueError(f"hyperparams: algo must be one of {HYPERPARAM_ALGOS}, "
+                                 f"got {algo!r}")
+            unknown = set(table) - set(modes)
+            if unknown:
+                raise ValueError(f"hyperparams[{algo!r}]: {sorted(unknown)} are not action "
+                                 f"modes of {self.id} ({', '.join(modes)})")
+        if (isinstance(self.max_episode_steps, bool) or not isinstance(self.max_episode_steps,
+                                                                        int)
+                or self.max_episode_steps < 1):
+            raise ValueError(f"max_episode_steps must be a positive int, "
+                             f"got {self.max_episode_steps!r}")
+
+    @property
+    def default_mode(self) -> str:
+        """The action mode a task takes when none is given."""
+        return self.action_modes[0]
+
+    @property
+    def task_class(self) -> type:
+        """The task's physics class (``env.unwrapped.task`` is one)."""
+        return self.env.task_class
+
+    @property
+    def cases(self) -> list[dict[str, Any]]:
+        """Keyword arguments of every configuration the conformance tests run: each action
+        mode, then each variant (in the default mode unless it names one)."""
+        return ([{"action_mode": m} for m in self.action_modes]
+                + [dict(v) for v in self.variants])
+
+    def settings(self, algo: str, action_mode: str | None = None) -> dict[str, Any]:
+        """A copy of the shipped ``algo`` settings for ``action_mode`` (None: the default
+        mode); ValueError naming the argument if there are none."""
+        if algo not in HYPERPARAM_ALGOS:
+            raise ValueError(f"algo must be one of {HYPERPARAM_ALGOS}, got {algo!r}")
+        mode = check_env_mode(self.id, action_mode)
+        table = self.hyperparams.get(algo, {})
+        if mode not in table:
+            have = ", ".join(f"{a}/{m}" for a, t in self.hyperparams.items() for m in t)
+            raise ValueError(f"algo: no {algo} settings shipped for {self.id} in {mode} mode "
+                             f"(it ships {have or 'none'})")
+        return copy.deepcopy(json.loads(json.dumps(table[mode])))
+
+
+#: The settings every shipped PPO entry starts from (keyword arguments of
+#: ``stable_baselines3.PPO`` plus ``cparticles train``'s own keys: see :mod:`envs.train`).
+PPO_BASE: dict[str, Any] = {
+    "n_envs": 16, "normalize": True, "policy": "MlpPolicy", "n_steps": 128, "batch_size": 512,
+    "n_epochs": 10, "learning_rate": 0.0003, "gamma": 0.99, "gae_lambda": 0.95,
+    "clip_range": 0.2, "ent_coef": 0.0}
+#: The settings every shipped SAC entry starts from: one single env (SAC makes one gradient
+#: step per env step and gains little from many copies), observations normalized (not
+#: rewards: SAC's entropy tuning is scale-aware).
+SAC_BASE: dict[str, Any] = {
+    "n_envs": 1, "normalize": True, "normalize_reward": False, "policy": "MlpPolicy",
+    "learning_rate": 0.0003, "buffer_size": 300000, "batch_size": 256, "gamma": 0.99,
+    "tau": 0.005, "learning_starts": 2000, "train_freq": 1, "gradient_steps": 1,
+    "ent_coef": "auto"}
+
+
+def ppo(n_timesteps: int, net_arch: tuple[int, ...], **changes: Any) -> dict[str, Any]:
+    """A PPO entry: :data:`PPO_BASE` with ``changes``, ``n_timesteps`` (the default budget, env
+    steps) and an MLP of ``net_arch`` hidden sizes starting from ``log_std_init = -0.5``."""
+    return {**PPO_BASE, "n_timesteps": n_timesteps, **changes,
+            "policy_kwargs": {"net_arch": list(net_arch), "log_std_init": -0.5}}
+
+
+def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256), **changes: Any
+        ) -> dict[str, Any]:
+    """A SAC entry: :data:`SAC_BASE` with ``changes``, ``n_timesteps`` and ``net_arch``."""
+    return {**SAC_BASE, "n_timesteps": n_timesteps, **changes,
+            "policy_kwargs": {"net_arch": list(net_arch)}}
+
+
+#: Every registered task's declaration, by id, in registration order.
+_SPECS: dict[str, TaskSpec] = {}
+
+
+def register_task(spec: TaskSpec) -> TaskSpec:
+    """Register ``spec`` with Gymnasium (``gym.make(spec.id)``, ``gym.make_vec`` with the
+    native vector env) and with the project's tools; idempotent for the same declaration.
+
+    The entry points name :mod:`envs.cparticles`, which resolves each class through this
+    registry, so ``gym.pprint_registry()`` lists every task under ``cparticles``.
+    ValueError if another declaration already holds the id."""
+    if not isinstance(spec, TaskSpec):
+        raise ValueError(f"spec must be a TaskSpec, got {type(spec).__name__}")
+    old = _SPECS.get(spec.id)
+    if old is not None and old is not spec and old != spec:
+        raise ValueError(f"spec: {spec.id} is already registered by another declaration")
+    for cls in (spec.env, spec.vector_env):
+        other = _by_class_name().get(cls.__name__)
+        if other is not None and other is not cls:
+            raise ValueError(f"spec: a class named {cls.__name__} is already registered")
+    _SPECS[spec.id] = spec
+    if spec.id not in registry:
+        register(id=spec.id, entry_point=f"envs.cparticles:{spec.env.__name__}",
+                 vector_entry_point=f"envs.cparticles:{spec.vector_env.__name__}",
+                 max_episode_steps=spec.max_episode_steps)
+    return spec
+
+
+def unregister_task(env_id: str) -> None:
+    """Remove ``env_id`` from the project's registry and Gymnasium's (a task registered in a
+    notebook or a test, to be declared again); ValueError if it is not registered."""
+    task_spec(env_id)
+    del _SPECS[env_id]
+    registry.pop(env_id, None)
+
+
+def _by_class_name() -> dict[str, type]:
+    return {cls.__name__: cls for s in _SPECS.values() for cls in (s.env, s.vector_env)}
+
+
+def environment_class(name: str) -> type:
+    """The registered environment class called ``name`` (:mod:`envs.cparticles`'s entry
+    points); AttributeError if none is."""
+    found = _by_class_name().get(name)
+    if found is None:
+        raise AttributeError(f"no registered environment class {name!r}")
+    return found
+
+
+def task_specs() -> tuple[TaskSpec, ...]:
+    """Every registered task's declaration, in registration order."""
+    return tuple(_SPECS.values())
+
+
+def env_action_modes() -> dict[str, tuple[str, ...]]:
+    """Each registered id's action modes, the default first."""
+    return {spec.id: spec.action_modes for spec in _SPECS.values()}
+
+
+def task_spec(env_id: str) -> TaskSpec:
+    """The declaration of ``env_id``; ValueError listing the registered ids otherwise."""
+    spec = _SPECS.get(env_id) if isinstance(env_id, str) else None
+    if spec is None:
+        raise ValueError(f"env_id must be one of {tuple(_SPECS)}, got {env_id!r}")
+    return spec
+
+
+def spec_of_task(task: Any) -> TaskSpec:
+    """The declaration whose environments hold ``task`` (a task object, or a made env)."""
+    task = getattr(getattr(task, "unwrapped", task), "task", task)
+    for spec in _SPECS.values():
+        if type(task) is spec.task_class:
+            return spec
+    raise ValueError(f"task: {type(task).__name__} belongs to no registered task")
+
+
+def check_env_mode(env_id: str, action_mode: str | None) -> str:
+    """The action mode to use (``None``: the env's default); ValueError naming the argument if
+    ``env_id`` is not a registered id or does not take ``action_mode``."""
+    modes = task_spec(env_id).action_modes
+    if action_mode is None:
+        return modes[0]
+    if action_mode not in modes:
+        raise ValueError(f"action_mode: {env_id} takes {' or '.join(modes)}, "
+                         f"got {action_mode!r}")
+    return action_mode
