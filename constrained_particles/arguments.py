@@ -88,6 +88,57 @@ def int_at_least(low: int, high: int | None = None) -> Callable[[str], int]:
     return parse
 
 
+def key_values(items: list[str] | None, option: str, tuples_for_lists: bool = True
+               ) -> dict[str, object]:
+    """The ``KEY=VALUE`` pairs of an option given as ``nargs="*"`` (or one JSON object), as a
+    dict: a value is read as JSON where it is JSON (numbers, ``true``, ``null``, lists, quoted
+    strings), else kept as the string it is (``target=swingup``); JSON lists become tuples
+    (unless ``tuples_for_lists`` is False).
+    ValueError naming ``option`` for a pair without ``=``, an empty key, a key given twice or
+    JSON that is not an object.
+
+    >>> key_values(["target=swingup", "links=3", "goal_range=[-0.3, 0.3]"], "--env-kwargs")
+    {'target': 'swingup', 'links': 3, 'goal_range': (-0.3, 0.3)}
+    """
+    import json
+
+    def tuples(value: object) -> object:
+        if isinstance(value, list) and tuples_for_lists:
+            return tuple(tuples(v) for v in value)
+        if isinstance(value, dict):
+            return {k: tuples(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [tuples(v) for v in value]
+        return value
+
+    if not items:
+        return {}
+    if len(items) == 1 and items[0].lstrip().startswith("{"):
+        try:
+            got = json.loads(items[0])
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{option}: not a JSON object ({exc})") from None
+        if not isinstance(got, dict):
+            raise ValueError(f"{option}: not a JSON object")
+        return {k: tuples(v) for k, v in got.items()}
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"{option}: {item!r} is not KEY=VALUE")
+        if key in out:
+            raise ValueError(f"{option}: {key!r} is given twice")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        if isinstance(value, float) and not math.isfinite(value):
+            value = text
+        out[key] = tuples(value)
+    return out
+
+
 def _reason(exc: OSError) -> str:
     """`` (why)`` a file cannot be created in an existing directory, or nothing where the
     system's words would mislead (a directory like /proc exists, yet a new file in it is "No

@@ -24,6 +24,7 @@ EXTRA_OF: dict[str, str] = {
     "PIL": "render",
     "stable_baselines3": "rl",
     "torch": "rl",
+    "tensorboard": "rl",
 }
 
 

@@ -277,17 +277,24 @@ def _stepper(env: Any, seed: int) -> Callable[[], None]:
     return step
 
 
-def bench_small_envs(repeats: int, seconds: float, progress: Progress | None = None
-                     ) -> dict[str, Any]:
+def bench_small_envs(repeats: int, seconds: float, progress: Progress | None = None,
+                     variant: tuple[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """Seconds per single-env step of each of :func:`small_envs` and of CartPole-v1, and each
-    as a multiple of CartPole's (median over repeats of the per-round ratio)."""
+    as a multiple of CartPole's (median over repeats of the per-round ratio). ``variant``:
+    ``(env id, keyword arguments)`` of one more env timed in each of its action modes (rows
+    ``"ID[k=v,...]/mode"``)."""
     import gymnasium as gym
 
-    import envs  # noqa: F401  (registers the ids)
+    import envs
 
     made = {"CartPole-v1": gym.make("CartPole-v1")}
     for env_id, mode in small_envs():
         made[f"{env_id}/{mode}"] = gym.make(env_id, action_mode=mode)
+    if variant is not None:
+        env_id, kwargs = variant
+        label = env_id + "[" + ",".join(f"{k}={v}" for k, v in kwargs.items()) + "]"
+        for mode in envs.task_spec(env_id).action_modes:
+            made[f"{label}/{mode}"] = gym.make(env_id, action_mode=mode, **kwargs)
     calls = {name: _stepper(env, seed=0) for name, env in made.items()}
     if progress is not None:
         progress.section("small envs")
@@ -557,11 +564,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "vector modes and threads)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bar (it shows by default when stderr is a terminal)")
+    parser.add_argument("--env", metavar="ENV_ID",
+                        help="also time this environment, made with --env-kwargs, in the "
+                        "small-envs section (default: the registered envs only)")
+    parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
+                        help="keyword arguments of --env (KEY=VALUE pairs read as JSON where "
+                        "they are JSON, or one JSON object), e.g. target=swingup")
     parser.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)
 
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Before any work: the ``verify`` extra (pymunk, tqdm)."""
+    """Before any work: ``--env`` and ``--env-kwargs`` (checked against the environment's
+    arguments), then the ``verify`` extra (pymunk, tqdm)."""
+    args.variant = None
+    if args.env_kwargs and args.env is None:
+        parser.error("argument --env-kwargs: give --env too")
+    if args.env is not None:
+        import envs
+        from constrained_particles.arguments import key_values
+
+        try:
+            envs.task_spec(args.env)
+        except ValueError as exc:
+            parser.error(f"argument --env: {exc}")
+        if args.skip_envs:
+            parser.error("argument --env: the environment sections are skipped (--skip-envs)")
+        try:
+            kwargs = envs.task.check_env_kwargs(args.env, key_values(args.env_kwargs,
+                                                                     "--env-kwargs"))
+        except ValueError as exc:
+            parser.error(f"argument --env-kwargs: {exc}")
+        args.variant = (args.env, kwargs)
     require("pymunk", "tqdm", command="cparticles bench")
 
 
@@ -569,8 +602,10 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
         progress: bool = False, *, sizes: list[int] | None = None,
         copies: tuple[int, ...] = VECTOR_COPIES, seconds: float | None = None,
         accuracy_n: int = ACCURACY_N, accuracy_seconds: float = ACCURACY_SECONDS,
-        threads: bool = True, thread_copies: int = 512) -> dict[str, Any]:
-    """Every section; the JSON document ``cparticles bench --json`` prints. ``sizes`` (cloth
+        threads: bool = True, thread_copies: int = 512,
+        variant: tuple[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Every section; the JSON document ``cparticles bench --json`` prints. ``variant``: an
+    env id and keyword arguments also timed in the small-envs section. ``sizes`` (cloth
     sizes of section (a)), ``copies`` (section (c)), ``seconds`` (per timed batch),
     ``accuracy_n`` and ``accuracy_seconds`` (the equal-accuracy runs), ``threads`` (section
     (e) on or off) and ``thread_copies`` (its copies) override the defaults. ``quick`` times
@@ -596,7 +631,7 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
                                        for n, r in results["pymunk"]["ratio"].items()}
                                    for k in PYMUNK_ITERATIONS}
         if envs:
-            small = bench_small_envs(repeats, seconds / 2, bar)
+            small = bench_small_envs(repeats, seconds / 2, bar, variant)
             results["small_envs"] = small
             results["env_step_vs_cartpole"] = small["vs_cartpole"]
             results["vector_scaling"] = {env_id: bench_vector(env_id, copies, repeats, seconds,
@@ -632,7 +667,8 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
 
 def main(args: argparse.Namespace) -> int:
     """Run every section and print JSON or Markdown."""
-    results = run(args.quick, args.repeats, not args.skip_envs, progress_enabled(args))
+    results = run(args.quick, args.repeats, not args.skip_envs, progress_enabled(args),
+                  variant=getattr(args, "variant", None))
     if args.json:
         print(json.dumps(results, indent=2))
     else:

@@ -140,6 +140,14 @@ def median_ci(values: np.ndarray, level: float = 0.95) -> tuple[float, float, fl
     return best
 
 
+def _median_cell(s: np.ndarray, low: float, high: float, coverage: float) -> str:
+    """The success column: the median with its interval and the interval's coverage; one
+    seed has no interval to give."""
+    if len(s) == 1:
+        return f"{s[0]:.0%} (one seed: no interval)"
+    return f"{np.median(s):.0%} [{low:.0%}, {high:.0%}] ({coverage:.0%})"
+
+
 def report(results_path: Path, runs: Path, docs: Path) -> str:
     """Write ``docs/table.md`` and ``docs/curves.png`` (``docs``: any folder) from the results
     and the runs' learning curves; returns the table (markdown)."""
@@ -162,7 +170,7 @@ def report(results_path: Path, runs: Path, docs: Path) -> str:
         minutes = np.median([r["wall_seconds"] for r in det]) / 60
         lines.append(f"| {env} | {mode} | {algo.upper()} | {len(det)} | "
                      f"{int(np.median([r['timesteps'] for r in det])):,} | "
-                     f"{np.median(s):.0%} [{low:.0%}, {high:.0%}] ({cov:.0%}) | "
+                     f"{_median_cell(s, low, high, cov)} | "
                      f"{sto_s:.0%} | {np.median([r['mean_return'] for r in det]):.2f} | "
                      f"{minutes:.1f} min |")
     table = "\n".join(lines) + "\n"

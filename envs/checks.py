@@ -146,3 +146,26 @@ def checked_actions(actions: Any, num_envs: int, action_dim: int, single: bool =
     if not np.all(np.isfinite(a)):
         raise ValueError(f"action must be finite, got {actions!r}")
     return np.clip(a, -1.0, 1.0).reshape(num_envs, action_dim)
+
+
+def task_arguments(task_class: type) -> dict[str, Any]:
+    """The keyword arguments a task class declares (its ``__init__``'s, but ``num_envs``), with
+    their defaults (``inspect.Parameter.empty`` for none)."""
+    import inspect
+
+    params = inspect.signature(task_class.__init__).parameters
+    return {name: p.default for name, p in params.items()
+            if name not in ("self", "num_envs")
+            and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+
+
+def check_task_kwargs(task_class: type, kwargs: dict[str, Any], also: tuple[str, ...] = ()
+                      ) -> None:
+    """ValueError naming each key of ``kwargs`` that ``task_class`` does not declare (nor
+    ``also``), and listing the valid ones."""
+    valid = [*task_arguments(task_class), *also]
+    unknown = [k for k in kwargs if k not in valid]
+    if unknown:
+        name = getattr(task_class, "__name__", str(task_class))
+        raise ValueError(f"{', '.join(map(repr, unknown))}: not an argument of {name}; it "
+                         f"takes {', '.join(sorted(valid))}")

@@ -18,11 +18,17 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from constrained_particles.arguments import int_at_least, output_file, time_step, written_whole
+from constrained_particles.arguments import (
+    int_at_least,
+    key_values,
+    output_file,
+    time_step,
+    written_whole,
+)
 from constrained_particles.integrators import METHODS
 
 from .agents import AGENTS, make_agent
-from .task import task_spec, task_specs
+from .task import check_env_kwargs, task_spec, task_specs
 
 #: Largest batch of episodes run as one vector env.
 BATCH = 64
@@ -32,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles demo``."""
     specs = task_specs()
     ids = [spec.id for spec in specs]
-    parser.add_argument("--env", default=ids[0], choices=ids, help="environment id")
+    parser.add_argument("--env", default=ids[0], choices=ids, metavar="ENV_ID",
+                        help="environment id: " + "; ".join(f"{spec.id}, {spec.summary}"
+                                                            for spec in specs))
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
                         help="number of episodes")
@@ -42,6 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--action-mode",
                         choices=sorted({m for spec in specs for m in spec.action_modes}),
                         help=f"action mode ({modes}) (default: the env's first)")
+    parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
+                        help="keyword arguments of the environment (KEY=VALUE pairs, values "
+                        "read as JSON where they are JSON, or one JSON object), e.g. "
+                        "target=swingup for ChainSwing-v0 (default: none)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
                         help="save episode 0 as an animated GIF (needs the render extra; default: "
@@ -62,6 +74,11 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     from constrained_particles.extras import require
     from constrained_particles.viewer import display_problem
 
+    try:
+        args.env_kwargs = check_env_kwargs(args.env, key_values(args.env_kwargs,
+                                                                "--env-kwargs"))
+    except ValueError as exc:
+        parser.error(f"argument --env-kwargs: {exc}")
     modes = task_spec(args.env).action_modes
     if args.action_mode is not None and args.action_mode not in modes:
         parser.error(f"--action-mode: {args.env} takes one of {', '.join(modes)}, "
@@ -144,8 +161,9 @@ def save_gif(path: str, frames: list[np.ndarray], fps: float) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """``cparticles demo``: a table (or JSON) of return, length and success per episode."""
-    physics = {k: getattr(args, k) for k in ("integrator", "dt", "substeps")
-               if getattr(args, k) is not None}
+    physics = {**args.env_kwargs,
+               **{k: getattr(args, k) for k in ("integrator", "dt", "substeps")
+                  if getattr(args, k) is not None}}
     if args.action_mode is None:  # each environment's default
         args.action_mode = task_spec(args.env).default_mode
     if args.watch:
@@ -171,7 +189,8 @@ def main(args: argparse.Namespace) -> int:
                        successes=res["success"].tolist(), diverged=res["diverged"].tolist())
         print(json.dumps(summary, indent=2))
         return 0
-    print(f"# {args.env}, {args.agent} agent, action_mode={args.action_mode}, "
+    variant = "".join(f", {k}={v}" for k, v in args.env_kwargs.items())
+    print(f"# {args.env}{variant}, {args.agent} agent, action_mode={args.action_mode}, "
           f"seeds {args.seed}..{args.seed + args.episodes - 1}")
     print(f"{'episode':>7} {'seed':>6} {'return':>9} {'length':>6} {'success':>7} "
           f"{'diverged':>8}")

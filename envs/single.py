@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from .base import FRAME_SIZE, ParticleTask
-from .checks import check_options, check_seed
+from .checks import check_options, check_seed, check_task_kwargs
 
 
 def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
@@ -48,6 +48,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
+        check_task_kwargs(self.task_class, kwargs, also=("render_mode",))
         self.task = self.task_class(1, **kwargs)
         self.action_space = self.task.single_action_space
         self.observation_space = self.task.single_observation_space

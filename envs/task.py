@@ -28,8 +28,8 @@ from typing import Any
 
 from gymnasium.envs.registration import register, registry
 
-__all__ = ["TaskSpec", "check_env_mode", "env_action_modes", "ppo", "register_task", "sac",
-           "spec_of_task", "task_spec", "task_specs", "unregister_task"]
+__all__ = ["TaskSpec", "check_env_kwargs", "check_env_mode", "env_action_modes", "ppo",
+           "register_task", "sac", "spec_of_task", "task_spec", "task_specs", "unregister_task"]
 
 #: Algorithms whose settings a task may ship (Stable-Baselines3's PPO and SAC).
 HYPERPARAM_ALGOS = ("ppo", "sac")
@@ -230,6 +230,24 @@ def spec_of_task(task: Any) -> TaskSpec:
     raise ValueError(f"task: {type(task).__name__} belongs to no registered task")
 
 
+def check_env_kwargs(env_id: str, kwargs: Mapping[str, Any]) -> dict[str, Any]:
+    """``kwargs`` checked for ``env_id`` before any work: each key an argument its task
+    declares (ValueError listing them otherwise; ``action_mode`` has an option of its own in
+    the commands, so it is refused here), and the values accepted by making one env (its own
+    ValueError naming the argument)."""
+    from .checks import check_task_kwargs
+
+    spec = task_spec(env_id)
+    kwargs = dict(kwargs)
+    if not kwargs:
+        return kwargs
+    if "action_mode" in kwargs:
+        raise ValueError("action_mode: give it with --action-mode, not as an env keyword")
+    check_task_kwargs(spec.task_class, kwargs)
+    spec.env(**kwargs).close()
+    return kwargs
+
+
 def check_env_mode(env_id: str, action_mode: str | None) -> str:
     """The action mode to use (``None``: the env's default); ValueError naming the argument if
     ``env_id`` is not a registered id or does not take ``action_mode``."""
@@ -240,3 +258,31 @@ def check_env_mode(env_id: str, action_mode: str | None) -> str:
         raise ValueError(f"action_mode: {env_id} takes {' or '.join(modes)}, "
                          f"got {action_mode!r}")
     return action_mode
+
+
+def overview_table(specs: tuple[TaskSpec, ...] | None = None) -> str:
+    """The overview table of docs/environments.md (Markdown), made from the declarations
+    (default: every registered task) and one env of each action mode: id, action modes, action
+    spaces, observation size, integrator and physics steps per env step, version."""
+    import gymnasium as gym
+
+    rows = ["| id | action modes | action | observation | physics per env step | version |",
+            "|---|---|---|---|---|---|"]
+    for spec in task_specs() if specs is None else specs:
+        made = [gym.make(spec.id, action_mode=m) for m in spec.action_modes]
+        tasks = [env.unwrapped.task for env in made]
+        modes = (f"`{spec.default_mode}` (the only one)" if len(spec.action_modes) == 1 else
+                 ", ".join(f"`{m}`" + (" (default)" if k == 0 else "")
+                           for k, m in enumerate(spec.action_modes)))
+        shapes = [env.action_space.shape for env in made]
+        action = f"`Box(-1, 1, {shapes[0]})`" + "".join(f" / `{s}`" for s in shapes[1:])
+        obs = made[0].observation_space.shape
+        t = tasks[0]
+        physics = f"`{t.integrator}`, {t.substeps} x {1000 * t.dt:g} ms"
+        rows.append(f"| `{spec.id}` | {modes} | {action} | "
+                    f"{obs[0] if len(obs) == 1 else obs} floats | {physics} | "
+                    f"v{spec.id.rsplit('-v', 1)[1]} |")
+        for env in made:
+            env.close()
+    return "\n".join(rows) + "\n"
+

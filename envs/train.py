@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -59,10 +60,15 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from constrained_particles.arguments import int_at_least, new_directory
+from constrained_particles.arguments import (
+    int_at_least,
+    key_values,
+    new_directory,
+)
 from constrained_particles.extras import require
 
-from .task import check_env_mode, task_spec, task_specs
+from .checks import check_positive
+from .task import check_env_kwargs, check_env_mode, task_spec, task_specs
 
 #: Algorithms ``cparticles train`` knows (Stable-Baselines3 classes).
 ALGOS = ("ppo", "sac")
@@ -113,6 +119,24 @@ def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None) -> 
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
     return task_spec(env_id).settings(algo, action_mode)
+
+
+def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """``overrides`` of the shipped settings of ``algo`` (``--hyperparams``), checked before
+    any work: each key one of ``train``'s own (:data:`OWN_KEYS`) or a keyword argument of the
+    Stable-Baselines3 class (ValueError naming it and listing the valid ones otherwise); a
+    copy."""
+    import inspect
+
+    params = set(inspect.signature(_algo_class(algo).__init__).parameters) - {
+        "self", "env", "policy", "seed", "verbose", "device", "_init_setup_model",
+        "tensorboard_log"}
+    valid = {*OWN_KEYS, *params} - {"env_kwargs"}  # (env keywords: --env-kwargs)
+    unknown = [k for k in overrides if k not in valid]
+    if unknown:
+        raise ValueError(f"hyperparams: {', '.join(map(repr, unknown))} not a setting of "
+                         f"{algo}; it takes {', '.join(sorted(valid))}")
+    return json.loads(json.dumps(overrides))
 
 
 def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
@@ -342,22 +366,40 @@ def _finish(partial: Path, out: Path) -> None:
 
 def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str | None = None,
           timesteps: int | None = None, eval_freq: int | None = None, eval_episodes: int = 50,
-          progress_bar: bool = True, threads: int = 1, verbose: int = 0) -> dict[str, Any]:
+          progress_bar: bool = True, threads: int = 1, verbose: int = 0, *,
+          env_kwargs: dict[str, Any] | None = None, hyperparams: dict[str, Any] | None = None,
+          n_envs: int | None = None, device: str = "auto",
+          tensorboard_log: str | Path | None = None) -> dict[str, Any]:
     """Train ``algo`` on ``env_id`` with the shipped hyperparameters; write the run to ``out``.
 
-    ``action_mode`` None takes the env's default. ``timesteps`` overrides the file's
+    ``action_mode`` None takes the env's default. ``timesteps`` overrides the shipped
     ``n_timesteps``; ``eval_freq`` (env steps, default a tenth of the budget) and
     ``eval_episodes`` set the periodic evaluation. ``threads`` caps torch's CPU threads.
+    ``env_kwargs``: keyword arguments of the env (a variant, such as ChainSwing's
+    ``target="swingup"``), over the shipped entry's; ``hyperparams``: settings over the
+    shipped ones (:func:`check_overrides`); ``n_envs``: env copies (over the shipped
+    ``n_envs``); ``device``: torch's (``"auto"``, ``"cpu"``, ``"cuda"``, ...). The run
+    directory gets ``progress.csv`` (SB3's logger: the training statistics every rollout);
+    ``tensorboard_log``: a folder that also gets TensorBoard event files, in a subfolder named
+    after ``out``. ``config.json`` records the settings used and the overrides given.
     ``out`` must not exist or be an empty directory: the run is written into a hidden
     directory beside it and renamed to ``out`` only once complete (a failure, a full disk or
     an interrupt leaves no ``out``). Returns the contents of ``out/config.json``.
     """
     import stable_baselines3
     import torch
+    from stable_baselines3.common.logger import Logger, make_output_format
     from stable_baselines3.common.vec_env import VecNormalize
 
     action_mode = check_env_mode(env_id, action_mode)
-    hp = load_hyperparams(algo, env_id, action_mode)
+    overrides = check_overrides(algo, dict(hyperparams or {}))
+    if n_envs is not None:
+        overrides["n_envs"] = int(check_positive("n_envs", n_envs, integer=True,
+                                                 maximum=4096))
+    if env_kwargs:
+        overrides["env_kwargs"] = check_env_kwargs(env_id, env_kwargs)
+    hp = {**load_hyperparams(algo, env_id, action_mode), **overrides}
+    _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -390,7 +432,13 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
                                 gamma=kwargs.get("gamma", 0.99))
         started = time.perf_counter()
         cls = _algo_class(algo)
-        model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose, **kwargs)
+        model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose,
+                    device=device, **kwargs)
+        writers = [make_output_format("csv", str(partial))]
+        if tensorboard_log is not None:
+            writers.append(make_output_format("tensorboard",
+                                              str(Path(tensorboard_log) / out.name)))
+        model.set_logger(Logger(str(partial), writers))
         callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
                              eval_episodes, started)
         model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
@@ -403,6 +451,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
             save_normalization(vn, partial / NORMALIZATION_FILES["final"])
         config = {"format": FORMAT, "env": env_id, "action_mode": action_mode, "algo": algo,
                   "seed": seed, "timesteps": int(model.num_timesteps), "hyperparams": hp,
+                  "overrides": overrides, "device": str(model.device),
                   "observation_shape": list(venv.observation_space.shape),
                   "action_shape": list(venv.action_space.shape),
                   "spaces": {"observation": space_record(venv.observation_space),
@@ -576,10 +625,13 @@ def load_policy(config: dict[str, Any], path: Path) -> Any:
 
 
 def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SEED_START,
-             deterministic: bool = True, which: str = "final") -> dict[str, Any]:
+             deterministic: bool = True, which: str = "final", *,
+             env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds from ``seed_start``) with the run in ``out``
     (``which``: ``"final"`` or ``"best"`` model). Returns :func:`summarize` plus the run's
-    identity (env, action_mode, algo, seed, timesteps).
+    identity (env, action_mode, algo, seed, timesteps). ``env_kwargs`` change the env the run
+    trained on (a variant), over its own: the observation and action spaces must stay the
+    run's (ValueError otherwise).
 
     Nothing stored in the directory can run code: :func:`read_run` checks ``config.json``
     (JSON), the policy is rebuilt from its settings and the weights read with ``weights_only``
@@ -600,10 +652,19 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
             raise ValueError(f"{str(out)!r} has no {norm_path.name} (its config.json says the "
                              "observations were normalized)")
         normalizer = ObsNormalizer.load(norm_path, tuple(config["observation_shape"]))
+    kwargs = {**config["hyperparams"].get("env_kwargs", {}), **(env_kwargs or {})}
+    if env_kwargs:
+        check_env_kwargs(config["env"], env_kwargs)
+        env = gym.make(config["env"], action_mode=config["action_mode"], **kwargs)
+        spaces = (space_record(env.observation_space), space_record(env.action_space))
+        env.close()
+        if spaces != (config["spaces"]["observation"], config["spaces"]["action"]):
+            raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
+                             f"space the run was trained on")
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
-                       seed_start, config["action_mode"],
-                       config["hyperparams"].get("env_kwargs", {}))
+                       seed_start, config["action_mode"], kwargs)
     return {"env": config["env"], "action_mode": config["action_mode"],
+            **({"env_kwargs": kwargs} if kwargs else {}),
             "algo": config["algo"], "seed": config["seed"], "timesteps": config["timesteps"],
             "model": which, "deterministic": deterministic, "seed_start": seed_start,
             **summarize(res)}
@@ -694,6 +755,21 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int_at_least(1), default=50,
                         help="episodes per periodic evaluation")
     parser.add_argument("--threads", type=int_at_least(1), default=1, help="torch CPU threads")
+    parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
+                        help="keyword arguments of the environment, over the shipped entry's "
+                        "(KEY=VALUE pairs read as JSON where they are JSON, or one JSON object), "
+                        "e.g. target=swingup (default: none)")
+    parser.add_argument("--hyperparams", nargs="+", metavar="KEY=VALUE",
+                        help="settings over the shipped ones, e.g. learning_rate=1e-4 "
+                        "n_steps=256 (default: none; recorded in config.json)")
+    parser.add_argument("--n-envs", type=int_at_least(1, 4096),
+                        help="env copies (default: the shipped n_envs)")
+    parser.add_argument("--device", default="auto",
+                        help="torch device: auto, cpu, cuda or cuda:N")
+    parser.add_argument("--tensorboard-log", type=new_directory, metavar="DIR",
+                        help="also write TensorBoard event files into DIR/<name of --out> "
+                        "(needs tensorboard, in the rl extra; default: progress.csv in the "
+                        "run directory only)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -710,12 +786,35 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
         load_hyperparams(args.algo, args.env, args.action_mode)
     except ValueError as exc:
         parser.error(str(exc))
+    for option, name in (("--env-kwargs", "env_kwargs"), ("--hyperparams", "hyperparams")):
+        try:
+            setattr(args, name, key_values(getattr(args, name), option,
+                                           tuples_for_lists=name == "env_kwargs"))
+            if name == "env_kwargs":
+                args.env_kwargs = check_env_kwargs(args.env, args.env_kwargs)
+            else:
+                hp = {**load_hyperparams(args.algo, args.env, args.action_mode),
+                      **check_overrides(args.algo, args.hyperparams)}
+                _check_policy_settings(Path("hyperparams"), hp)
+        except ImportError:
+            pass  # (the rl extra's check below says what is missing)
+        except ValueError as exc:
+            parser.error(f"argument {option}: {exc}")
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?|mps", args.device):
+        parser.error(f"argument --device: auto, cpu, cuda or cuda:N, got {args.device!r}")
     out = Path(args.out)
     if out.is_dir() and any(out.iterdir()):
         held = " a run" if any((out / n).exists() for n in ("config.json", *OLD_FILES)) else ""
         parser.error(f"argument --out: {args.out!r} already holds{held or ' files'}; choose "
                      "another directory (or an empty one)")
     require("stable_baselines3", "torch", command="cparticles train")
+    if args.tensorboard_log is not None:
+        require("tensorboard", command="cparticles train --tensorboard-log")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.error(f"argument --device: {args.device}: torch sees no CUDA device here")
 
 
 def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -732,6 +831,10 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--best", action="store_true",
                         help="use the best model of the periodic evaluations "
                         f"({POLICY_FILES['best']}), not the final one")
+    parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
+                        help="keyword arguments of the environment over the run's own (a "
+                        "variant with the same spaces), KEY=VALUE pairs or one JSON object "
+                        "(default: the run's)")
     parser.add_argument("--json", action="store_true", help="print only the JSON line")
 
 
@@ -739,9 +842,14 @@ def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Nam
                              ) -> None:
     """Before any work: a run directory :func:`read_run` accepts, then the rl extra."""
     try:
-        read_run(args.dir, "best" if args.best else "final")
+        config = read_run(args.dir, "best" if args.best else "final")
     except ValueError as exc:
         parser.error(f"argument dir: {exc}")
+    try:
+        args.env_kwargs = check_env_kwargs(config["env"],
+                                           key_values(args.env_kwargs, "--env-kwargs"))
+    except ValueError as exc:
+        parser.error(f"argument --env-kwargs: {exc}")
     require("stable_baselines3", "torch", command="cparticles evaluate")
 
 
@@ -749,7 +857,9 @@ def main_train(args: argparse.Namespace) -> int:
     """``cparticles train``; the run directory appears only when the run is complete."""
     config = train(args.env, args.algo, args.seed, args.out, args.action_mode, args.timesteps,
                    args.eval_freq, args.eval_episodes, progress_bar=not args.no_progress,
-                   threads=args.threads)
+                   threads=args.threads, env_kwargs=args.env_kwargs,
+                   hyperparams=args.hyperparams, n_envs=args.n_envs, device=args.device,
+                   tensorboard_log=args.tensorboard_log)
     print(f"trained {config['algo']} on {config['env']} ({config['action_mode']}), seed "
           f"{config['seed']}, {config['timesteps']} steps in {config['wall_seconds']:.0f} s; "
           f"saved to {args.out}")
@@ -759,7 +869,7 @@ def main_train(args: argparse.Namespace) -> int:
 def main_evaluate(args: argparse.Namespace) -> int:
     """``cparticles evaluate``: a summary, then one JSON line (the last line of the output)."""
     res = evaluate(args.dir, args.episodes, args.seed_start, not args.stochastic,
-                   "best" if args.best else "final")
+                   "best" if args.best else "final", env_kwargs=args.env_kwargs)
     if not args.json:
         print(f"# {res['algo']} on {res['env']} ({res['action_mode']}), seed {res['seed']}, "
               f"{'best' if args.best else 'final'} model, "

@@ -26,7 +26,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .base import ParticleTask
-from .checks import check_options, check_positive, check_seed
+from .checks import check_options, check_positive, check_seed, check_task_kwargs
 from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
@@ -68,6 +68,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         threads = check_positive("num_threads", num_threads, integer=True)
         self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
                                                 integer=True)
+        check_task_kwargs(self.task_class, kwargs,
+                          also=("num_envs", "max_episode_steps", "render_mode", "num_threads"))
         self.task = self.task_class(num_envs, **kwargs)
         self.task.episode_steps = self.max_episode_steps  # (what divergence pays for)
         #: The threads the copies' physics is stepped on (``ParticleSystem.threads``).

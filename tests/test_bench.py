@@ -114,3 +114,23 @@ def test_thread_section_reports_speedups_and_the_control():
     assert min(row["env_steps_per_s"].values()) > 0 and row["control_one_process"] > 0
     assert row["control_speedup"] > 0 and row["of_control"] > 0
     assert "SliderCrank-v0" in "\n".join(S.threads_markdown(r))
+
+
+def test_small_envs_time_a_variant_in_each_of_its_modes():
+    out = B.bench_small_envs(1, 0.0, variant=("ChainSwing-v0", {"target": "swingup"}))
+    rows = set(out["vs_cartpole"])
+    assert {"ChainSwing-v0[target=swingup]/force", "ChainSwing-v0[target=swingup]/spring"} <= rows
+    assert {f"{e}/{m}" for e, m in B.small_envs()} <= rows
+    assert all(v > 0 for v in out["us_per_step"].values())
+
+
+def test_bench_env_kwargs_are_checked_before_any_work(capsys):
+    from cparticles import cli
+
+    for argv, words in ((["--env-kwargs", "target=swingup"], ["--env"]),
+                        (["--env", "Nope-v0"], ["--env", "env_id must be one of"]),
+                        (["--env", "ChainSwing-v0", "--env-kwargs", "targt=1"], ["'targt'"])):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["bench", *argv])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and all(w in err for w in words), err

@@ -237,6 +237,22 @@ def test_verify_passes_progress_to_the_measurement(monkeypatch, capsys):
     assert seen == [True, False]
 
 
+def test_demo_takes_env_keywords_checked_before_any_work(capsys):
+    """``--env-kwargs`` reaches a variant (ChainSwing's swing-up); an unknown key or a bad
+    value is a usage error listing what the env takes."""
+    assert cli.main(["demo", "--env", "ChainSwing-v0", "--env-kwargs", "target=swingup",
+                     "links=3", "--agent", "random", "--episodes", "1", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["target"] == "swingup" and summary["links"] == 3
+    for words, argv in ((["'targt'", "stiffness"], ["targt=swingup"]),
+                        (["links must be"], ["links=0"]),
+                        (["not a JSON object"], ["{nope"])):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["demo", "--env", "ChainSwing-v0", "--env-kwargs", *argv])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and all(w in err for w in ["--env-kwargs", *words]), err
+
+
 def test_demo_reports_diverged_episodes(capsys):
     """Forward Euler at 20 ms is unstable on the cloth: every episode ends diverged, and the
     table and the JSON say so; the default settings diverge in none."""
@@ -347,6 +363,17 @@ def fails_cleanly(argv: list[str], capsys) -> str:
     (["evaluate", "TMP"], ["no config.json"]),
     (["evaluate", "DONE", "--episodes", "0"], ["--episodes"]),
     (["evaluate", "DONE", "--seed-start", "-5"], ["--seed-start"]),
+    (["train", "ChainSwing-v0", "--out", "TMP/run", "--env-kwargs", "targt=swingup"],
+     ["--env-kwargs", "'targt'", "target", "links"]),
+    (["train", "ChainSwing-v0", "--out", "TMP/run", "--env-kwargs", "target=up"],
+     ["--env-kwargs", "target must be one of"]),
+    (["train", "ChainSwing-v0", "--out", "TMP/run", "--env-kwargs", "target"],
+     ["--env-kwargs", "KEY=VALUE"]),
+    (["train", "ClothSlide-v0", "--out", "TMP/run", "--env-kwargs", "action_mode=spring"],
+     ["--env-kwargs", "--action-mode"]),
+    (["train", "ClothSlide-v0", "--out", "TMP/run", "--device", "gpu7"], ["--device"]),
+    (["evaluate", "DONE", "--env-kwargs", "spacing=0.2", "nonsense=1"],
+     ["--env-kwargs", "'nonsense'"]),
 ])
 def test_train_and_evaluate_check_every_argument_first(argv, words, tmp_path, capsys):
     """Each mistake stops before any work: nothing is created under TMP."""

@@ -156,7 +156,7 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
                      "--eval-episodes", "4", "--no-progress"])
     assert code == 0
     names = {"policy.pt", "normalization.npz", "config.json", "evaluations.json",
-             "best_policy.pt", "best_normalization.npz"}
+             "best_policy.pt", "best_normalization.npz", "progress.csv"}
     assert {p.name for p in out.iterdir()} == names  # data only: no pickles
     assert [p.name for p in tmp_path.iterdir()] == ["run"]  # (no partial directory left)
     config = json.loads((out / "config.json").read_text())
@@ -193,6 +193,51 @@ def test_train_and_evaluate_the_newer_envs(env_id, mode, tmp_path, capsys, monke
     assert cli.main(["evaluate", str(out), "--episodes", "2", "--json"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["env"] == env_id and res["episodes"] == 2
+
+
+def test_train_takes_zoo_options_and_records_them(tmp_path, capsys, monkeypatch):
+    """``--env-kwargs`` trains a variant (the swing-up) that ``evaluate`` plays again,
+    ``--hyperparams`` overrides a setting, ``--n-envs`` the copies, ``--tensorboard-log``
+    writes event files beside the CSV log in the run; config.json records all of it."""
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out, tb = tmp_path / "swing", tmp_path / "tb"
+    assert cli.main(["train", "ChainSwing-v0", "--seed", "2", "--out", str(out), "--timesteps",
+                     "512", "--eval-episodes", "2", "--no-progress", "--env-kwargs",
+                     "target=swingup", "--hyperparams", "learning_rate=1e-4", "n_steps=64",
+                     "batch_size=128",
+                     "--n-envs", "4", "--tensorboard-log", str(tb), "--device", "cpu"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["overrides"] == {"learning_rate": 1e-4, "n_steps": 64, "batch_size": 128,
+                                   "n_envs": 4,
+                                   "env_kwargs": {"target": "swingup"}}
+    hp = config["hyperparams"]
+    assert hp["learning_rate"] == 1e-4 and hp["n_steps"] == 64 and hp["n_envs"] == 4
+    assert config["timesteps"] == 512 and config["device"] == "cpu"  # (4 copies x 64 x 2)
+    rows = (out / "progress.csv").read_text().splitlines()
+    assert "train/learning_rate" in rows[0] and len(rows) >= 2
+    events = list(tb.rglob("events.out.tfevents.*"))
+    assert events and events[0].parent.name == "swing" and events[0].stat().st_size > 0
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "2", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["env_kwargs"] == {"target": "swingup"}
+    for argv, words in ((["--hyperparams", "learnin_rate=1e-4"], ["'learnin_rate'",
+                                                                  "learning_rate"]),
+                        (["--hyperparams", "policy=CnnPolicy"], ["policy", "MlpPolicy"])):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["train", "SliderCrank-v0", "--out", str(tmp_path / "x"), *argv])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and all(w in err for w in words), err
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_results_table_reads_right_for_one_seed_and_for_five():
+    from envs.baselines import _median_cell, median_ci
+
+    one = np.array([1.0])
+    assert _median_cell(one, *median_ci(one)) == "100% (one seed: no interval)"
+    five = np.array([0.4, 0.7, 0.14, 0.87, 0.49])
+    assert _median_cell(five, *median_ci(five)) == "49% [14%, 87%] (94%)"
 
 
 def test_median_interval_coverage_matches_the_binomial():

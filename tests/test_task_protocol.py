@@ -251,3 +251,15 @@ def test_no_registered_id_is_written_outside_its_module():
                     if env_id in node.value and pathlib.Path(owner) != path:
                         found.append(f"{name}:{node.lineno}: {env_id}")
     assert not found, found
+
+
+def test_the_docs_overview_table_is_the_declarations():
+    import pathlib
+
+    from envs.task import overview_table
+
+    page = pathlib.Path(envs.__path__[0]).parent / "docs" / "environments.md"
+    if not page.is_file():
+        pytest.skip("docs are not installed beside the package")
+    shipped = tuple(envs.task_spec(env_id) for env_id in envs.ENV_IDS)
+    assert overview_table(shipped) in page.read_text(), "run python -m envs.overview"
