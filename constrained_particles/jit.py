@@ -268,7 +268,8 @@ _OURS: set[int] = set()
 
 class _CompileNotice(event.Listener):
     """Numba's ``numba:compile`` events (a cache miss, then a compile): the first one of a
-    function decorated here prints one line to stderr when it is a terminal."""
+    function decorated here prints one line to stderr, a terminal or not (a notebook, a CI
+    log), so that nobody waits in silence."""
 
     def __init__(self) -> None:
         self.said = False
@@ -282,12 +283,13 @@ class _CompileNotice(event.Listener):
             return
         self.said = True
         stream = sys.stderr
-        if stream is None or not stream.isatty():
+        if stream is None:
             return
         where = cache_dir()
-        kept = f"cached in {where}" if where is not None else "kept in memory"
+        if where is None:  # (the line saying no cache is usable said they compile each run)
+            return
         print(f"constrained-particles: compiling kernels, first run only (tens of seconds; "
-              f"{kept}) ...", file=stream, flush=True)
+              f"cached in {where}) ...", file=stream, flush=True)
 
     def on_end(self, ev: event.Event) -> None:
         pass

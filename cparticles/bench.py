@@ -569,7 +569,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "small-envs section (default: the registered envs only)")
     parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
                         help="keyword arguments of --env (KEY=VALUE pairs read as JSON where "
-                        "they are JSON, or one JSON object), e.g. target=swingup")
+                        "they are JSON, or one JSON object), e.g. target=swingup (default: "
+                        "none)")
     parser.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)
 
 

@@ -46,14 +46,14 @@ SUBCOMMANDS: dict[str, Command] = {
                    "time", check="check_run", main="main_run"),
     "demo": Command("envs.demo", "run an agent on a Gymnasium environment and print its "
                     "returns"),
-    "train": Command("envs.train", "train a Stable-Baselines3 agent with the shipped "
+    "train": Command("envs.train_cli", "train a Stable-Baselines3 agent with the shipped "
                      "hyperparameters (rl extra)", add="add_train_arguments",
                      check="check_train_arguments", main="main_train"),
-    "evaluate": Command("envs.train", "evaluate a run directory that train wrote, on held-out "
+    "evaluate": Command("envs.train_cli", "evaluate a run directory that train wrote, on held-out "
                         "episodes (rl extra)",
                         add="add_evaluate_arguments", check="check_evaluate_arguments",
                         main="main_evaluate"),
-    "convert-run": Command("envs.train", "convert a run directory of an older train (pickles) "
+    "convert-run": Command("envs.train_cli", "convert a run directory of an older train (pickles) "
                            "for evaluate; loads its pickles: trusted directories only (rl "
                            "extra)", add="add_convert_arguments",
                            check="check_convert_arguments", main="main_convert"),

@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE",
                         help="keyword arguments of the environment (KEY=VALUE pairs, values "
                         "read as JSON where they are JSON, or one JSON object), e.g. "
-                        "target=swingup for ChainSwing-v0 (default: none)")
+                        "target=swingup for ChainSwing's swing-up (default: none)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
                         help="save episode 0 as an animated GIF (needs the render extra; default: "

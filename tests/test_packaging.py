@@ -213,7 +213,7 @@ def test_numba_cache_defaults_to_the_user_cache_directory(tmp_path):
         expected = tmp_path / "home" / ".cache" / "constrained-particles" / tag
         assert out.stdout.splitlines()[0] == str(expected)
     assert not (tmp_path / "relative").exists()
-    assert cached_files(tmp_path / "src") == [] and out.stderr == ""
+    assert cached_files(tmp_path / "src") == [] and out.stderr == ""  # (loaded: not a word)
 
 
 def test_a_cached_kernel_compiles_again_when_a_module_beside_it_changes(tmp_path):
@@ -284,7 +284,13 @@ def on_a_terminal(tmp_path: Path, **environ: str | None) -> str:
     return text.decode()
 
 
-def test_a_first_compile_says_so_once_and_only_on_a_terminal(tmp_path):
+def compile_notice_only(stderr: str) -> bool:
+    """True if ``stderr`` holds nothing but the first compile's one-line notice."""
+    lines = stderr.splitlines()
+    return len(lines) == 1 and lines[0].startswith("constrained-particles: compiling kernels")
+
+
+def test_a_first_compile_says_so_once_on_a_terminal_or_not(tmp_path):
     cache = str(tmp_path / "numba")
     said = on_a_terminal(tmp_path, NUMBA_CACHE_DIR=cache)  # an empty cache: it compiles
     assert said.count("compiling kernels") == 1, said
@@ -292,7 +298,9 @@ def test_a_first_compile_says_so_once_and_only_on_a_terminal(tmp_path):
     assert on_a_terminal(tmp_path, NUMBA_CACHE_DIR=cache) == ""  # loaded from the cache
     piped = probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "other"))  # compiles, into a pipe
     assert piped.returncode == 0 and piped.stdout.splitlines()[2] == "3.0 1 0"
-    assert piped.stderr == ""
+    assert compile_notice_only(piped.stderr), piped.stderr  # (a notebook, a CI log)
+    again = probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "other"))  # loaded: nothing said
+    assert again.stdout.splitlines()[2] == "3.0 0 1" and again.stderr == ""
 
 
 def test_njit_refuses_a_cache_option():
@@ -374,7 +382,8 @@ def test_two_processes_filling_one_empty_cache_at_once(tmp_path):
             for _ in range(3)]
     outs = [run.communicate(timeout=300) for run in runs]
     assert [run.returncode for run in runs] == [0, 0, 0], outs
-    assert all(err == "" and out.splitlines()[2].startswith("3.0 ") for out, err in outs)
+    assert all((err == "" or compile_notice_only(err)) and out.splitlines()[2].startswith("3.0 ")
+               for out, err in outs)
     after = subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=tmp_path,
                            capture_output=True, text=True, timeout=300)
     assert after.stdout.splitlines()[2] == "3.0 0 1" and after.stderr == ""  # loads the cache
@@ -395,7 +404,7 @@ print(jitted.twice(1.5), jitted.twice(2.0))
 '''
 
 
-def test_a_cache_on_a_full_disk_keeps_the_kernels_in_memory_with_one_line(tmp_path):
+def test_a_cache_on_a_full_disk_keeps_the_kernels_in_memory_with_one_line_more(tmp_path):
     import os
 
     probe(tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "other"))  # (writes src/jitted.py)
@@ -405,9 +414,10 @@ def test_a_cache_on_a_full_disk_keeps_the_kernels_in_memory_with_one_line(tmp_pa
     out = subprocess.run([sys.executable, "-c", FULL_DISK], env=env, cwd=tmp_path,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.split() == ["3.0", "4.0"], out.stderr
-    lines = out.stderr.splitlines()
-    assert len(lines) == 1 and "could not be written to the cache" in lines[0], out.stderr
-    assert "No space left on device" in lines[0]
+    lines = out.stderr.splitlines()  # the first compile's notice, then what went wrong
+    assert compile_notice_only(lines[0]) and len(lines) == 2, out.stderr
+    assert "could not be written to the cache" in lines[1], out.stderr
+    assert "No space left on device" in lines[1]
 
 
 def test_ci_tests_the_oldest_numba_and_numpy_pyproject_allows():
