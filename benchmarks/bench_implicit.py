@@ -6,7 +6,7 @@ makes them 2000 N/m too), kd = 0.05 N s/m, no bend springs, no drag, the top row
 wire, gravity. Two scenarios, each simulated for 1 s:
 
 - ``hanging``: released from its flat rest shape (it sags a few millimetres and rings);
-- ``pushed``: the same with the report's horizontal force, 0.05 N on each top-row particle,
+- ``pushed``: the same with a horizontal force of 0.05 N on each top-row particle,
   so the cloth slides along the wire and swings.
 
 Visual tolerance: the largest distance between any particle and its place in a fine reference

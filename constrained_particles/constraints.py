@@ -67,7 +67,7 @@ class _OneParticle(Constraint):
 
 
 class CircularWire(_OneParticle):
-    """Particles on circles (report eq. 4, halved): ``C = 1/2 (|x - center|^2 - radius^2)``.
+    """Particles on circles: ``C = 1/2 (|x - center|^2 - radius^2)`` (docs/physics.md).
 
     ``J = (x - center)^T``, ``Jdot = v^T``. ``center`` in metres; ``radius`` (m, > 0) defaults to
     the current distance from the centre.
@@ -111,7 +111,7 @@ class CircularWire(_OneParticle):
 
 
 class Rod(Constraint):
-    """Rigid rods between ``a`` and ``b`` (report eq. 5, halved, as an equality).
+    """Rigid rods between ``a`` and ``b``, an equality (docs/physics.md, "Constraints").
 
     ``C = 1/2 (|x_a - x_b|^2 - length^2)``, ``J = [d^T, -d^T]`` with ``d = x_a - x_b``,
     ``Jdot = [dv^T, -dv^T]``. ``length`` (m, > 0) defaults to the current distance.
@@ -208,7 +208,7 @@ class LineWire(_OneParticle):
 
 
 class HorizontalWire(LineWire):
-    """Particles sliding on a horizontal wire at ``height`` (m): ``C = y - height`` (report eq. 3).
+    """Particles sliding on a horizontal wire at ``height`` (m): ``C = y - height``.
 
     ``height`` defaults to each particle's current height.
     """

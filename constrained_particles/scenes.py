@@ -1,4 +1,4 @@
-"""The report's scenes as ready-to-run systems, in SI units (metres, kilograms, seconds).
+"""Ready-to-run scenes, in SI units (metres, kilograms, seconds).
 
 ``SCENES`` maps a name to a builder that takes only keyword arguments with defaults.
 """
@@ -18,7 +18,7 @@ G = 9.81  #: standard gravity, m/s^2
 
 def spring_pair(separation: float = 1.0, rest: float = 0.6, ks: float = 20.0, kd: float = 0.2,
                 mass: float = 0.5) -> ParticleSystem:
-    """Two free particles joined by one damped spring, stretched and released (report fig. 1).
+    """Two free particles joined by one damped spring, stretched and released.
 
     ``separation`` and ``rest`` in m, ``ks`` in N/m, ``kd`` in N s/m, ``mass`` in kg. No gravity,
     so the pair oscillates about its fixed centre of mass.
@@ -49,14 +49,14 @@ def cloth(nx: int = 8, ny: int = 8, spacing: float = 0.1, mass: float = 0.02,
           ks: float = 500.0, kd: float = 0.2, shear: bool = True, bend: bool = True,
           wire_height: float = 0.0, wall_x: float | None = 1.2, push: float = 0.0,
           drag: float = 0.01) -> ParticleSystem:
-    """A spring-mass cloth hanging from a horizontal wire, with a wall to its right (figs. 2-3).
+    """A spring-mass cloth hanging from a horizontal wire, with a wall to its right.
 
     ``nx`` x ``ny`` particles of ``mass`` kg, ``spacing`` m apart, the top row (the first ``nx``
     particles) sliding on a wire at ``wire_height`` m. Structural springs join neighbours,
     ``shear`` springs the diagonals (stiffness ``ks/2``) and ``bend`` springs every second
     particle (``ks/4``); ``ks`` in N/m, ``kd`` in N s/m. Particle ``(row, col)`` has index
     ``row * nx + col``; row 0 is the top. The wall fills ``x > wall_x`` (None: no wall). ``push``
-    (N) is the report's horizontal force on each top-row particle. ``drag`` in N s/m.
+    (N) is a horizontal force on each top-row particle, toward the wall. ``drag`` in N s/m.
     """
     if nx < 2 or ny < 2:
         raise ValueError(f"nx and ny must be >= 2, got nx={nx}, ny={ny}")
@@ -88,7 +88,7 @@ def cloth(nx: int = 8, ny: int = 8, spacing: float = 0.1, mass: float = 0.02,
 
 def wire_mixture(radius: float = 0.3, rod: float = 0.8, wire_height: float = 0.0,
                  angle: float = 1.0, omega: float = 4.0, mass: float = 0.1) -> ParticleSystem:
-    """The report's constraint mixture (section III-B): a slider-crank.
+    """A mixture of constraints (circular wire, horizontal wire, rod): a slider-crank.
 
     Particle 0 (the crank) rides a circular wire of ``radius`` m centred at the origin, starting
     at ``angle`` rad (counter-clockwise from +x) with angular speed ``omega`` rad/s; particle 1

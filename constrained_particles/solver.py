@@ -1,7 +1,8 @@
 """Sparse constraint assembly and the multiplier solve.
 
 The pattern of ``J`` (m x 2n) is built once per topology; each evaluation only refills the
-values of ``J`` and ``Jdot`` (same pattern). The multipliers solve report eq. 2::
+values of ``J`` and ``Jdot`` (same pattern). The multipliers solve (docs/physics.md, "The
+constraint force")::
 
     J W J^T lam = -Jdot qdot - J W Q - ks C - kd Cdot
 
@@ -315,7 +316,7 @@ class ConstraintSolver:
 
     def multipliers(self, x: np.ndarray, v: np.ndarray, Q: np.ndarray, w2: np.ndarray,
                     ks: float, kd: float) -> np.ndarray:
-        """Lagrange multipliers lam (report eq. 2) at state (x, v) under applied forces Q (N).
+        """Lagrange multipliers lam at state (x, v) under applied forces Q (N) (docs/physics.md).
 
         ``w2`` is the inverse mass per coordinate (2n,); ``ks`` (1/s^2) and ``kd`` (1/s) are the
         feedback gains that pull drift back. Returns lam (m,); ``J^T lam`` is the constraint force.

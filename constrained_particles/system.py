@@ -107,7 +107,8 @@ class ParticleSystem:
         of rods), ``"cg"`` (conjugate gradients, Jacobi preconditioner, warm start, for
         components of more than 8 rows) or ``"direct"`` (one sparse LU of the whole system).
     tol : relative residual tolerance of the multiplier solve (default 1e-10).
-    ks, kd : constraint feedback gains in 1/s^2 and 1/s (report eq. 2). The defaults pull drift
+    ks, kd : constraint feedback gains in 1/s^2 and 1/s (docs/physics.md, "The constraint
+        force"). The defaults pull drift
         back critically damped with a 0.1 s time constant.
     project : if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
     divergence_limit : a step that produces a coordinate (m) or speed (m/s) above this, or a

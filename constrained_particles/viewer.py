@@ -1,4 +1,4 @@
-"""``cparticles view``: the interactive viewer (pygame-ce), the report's section IV.
+"""``cparticles view``: the interactive viewer (pygame-ce).
 
 A :class:`Viewer` owns a :class:`~constrained_particles.system.ParticleSystem` built from
 :data:`~constrained_particles.scenes.SCENES`, a :class:`~constrained_particles.render.Renderer`
@@ -7,7 +7,7 @@ A :class:`Viewer` owns a :class:`~constrained_particles.system.ParticleSystem` b
 :meth:`Viewer.draw`, so the same object runs in a window, headless, or under synthetic events
 in the tests. pygame is imported only inside functions.
 
-Mouse (as in the report): press-drag-release draws a damped spring between the press and
+Mouse: press-drag-release draws a damped spring between the press and
 release points, creating a particle at each end unless one is within :attr:`Viewer.snap_radius`
 pixels; a click places a single particle under the same proximity check; right-drag (or
 shift-drag) pulls the nearest particle with Witkin's mouse spring. :data:`CONTROLS` lists
@@ -37,8 +37,8 @@ from .terms import Shape
 #: Integrators selected by keys 1-6 (a name missing from METHODS is reported, not selected).
 INTEGRATOR_KEYS = ("euler", "midpoint", "rk4", "symplectic_euler", "implicit_euler", "rattle")
 
-#: Keyword arguments the viewer passes to a scene builder: the cloth gets the report's
-#: horizontal push (N per top-row particle) so that it slides into its wall (figs. 2-3).
+#: Keyword arguments the viewer passes to a scene builder: the cloth gets a horizontal push
+#: (N per top-row particle) so that it slides into its wall.
 SCENE_KWARGS: dict[str, dict[str, Any]] = {"cloth": {"push": 0.06}}
 
 #: Default time step (s) per scene; scenes not listed use :data:`DEFAULT_DT`.

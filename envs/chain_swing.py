@@ -186,7 +186,7 @@ class ChainSwingEnv(ParticleEnv):
     """
     ## Description
 
-    The report's angular-spring chain, hung from a cart. A carrier particle slides on a
+    A chain of rods with angular springs, hung from a cart. A carrier particle slides on a
     horizontal wire at y = 0 (a Lagrange-multiplier constraint, Witkin & Baraff) between two
     walls at x = -``travel`` and x = +``travel`` that stop it. A chain of ``links`` rigid rods
     (``link`` metres each, constraints too) hangs from it; angular springs at the joints, with a

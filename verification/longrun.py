@@ -42,7 +42,7 @@ from constrained_particles import (
 
 from .properties import constraint_distance
 
-LONG_STEPS = 100_000  #: steps per run of the full report
+LONG_STEPS = 100_000  #: steps per run of the full verification report
 QUICK_STEPS = 3_000  #: steps per run of ``--quick``
 LONG_H = 2e-3  #: step (s) of every run
 SAMPLES = 2_000  #: recorded points per run (for the trend fit, the plot and the JSON)

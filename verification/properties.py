@@ -61,7 +61,8 @@ def _directional(system: ParticleSystem, x: np.ndarray, u: np.ndarray, eps: floa
 
 
 def constraint_acceleration_residual(system: ParticleSystem, eps: float = 1e-2) -> float:
-    """Relative residual of report eq. 2 after the multiplier solve, at the current state.
+    """Relative residual of the multiplier equation (docs/physics.md, "The constraint force")
+    after the multiplier solve, at the current state.
 
     Measures ``Cddot + ks C + kd Cdot`` with ``Cddot = J qddot + Jdot qdot``, where ``qddot`` is
     :meth:`ParticleSystem.acceleration` and ``J qddot``, ``Jdot qdot = qdot^T H qdot`` and

@@ -1,5 +1,6 @@
 """The verification report: measured orders, the pymunk cross-check, energy and constraint drift,
-and the original report's cloth experiments with numbers. Writes Markdown, JSON and PNG plots.
+and the cloth experiments of docs/notes_on_the_report.md with numbers. Writes Markdown, JSON and
+PNG plots.
 
 Experiments (all SI units; every integrator in :data:`constrained_particles.METHODS`):
 
@@ -17,7 +18,7 @@ Experiments (all SI units; every integrator in :data:`constrained_particles.METH
   ``max_r |C_r| / |J_r|`` (m), with and without projection after every step;
 - **section V**: the default cloth (:func:`constrained_particles.scenes.cloth`) pushed into its
   wall by :data:`PUSH` N per top particle, ``h = 1 ms``: the highest any particle gets above
-  the wire, and how far the top row leaves the wire (the report's "lifted over the line");
+  the wire, and how far the top row leaves the wire;
 - **section VI.A**: the same cloth, released from rest under gravity with spring constants
   ``ks`` in {1, 10} N/m and damping ``kd`` in {1, 10} N s/m: the highest rise above the wire
   and the settling time, defined as the last time any particle is farther than
@@ -55,7 +56,7 @@ from .properties import constraint_distance
 
 DRIFT_SECONDS = 10.0  #: duration (s) of the energy and constraint drift runs (quick: 2 s)
 DRIFT_H = 5e-3  #: step (s) of the drift runs
-SECTION_V_H = 1e-3  #: the report's step (s) for section V
+SECTION_V_H = 1e-3  #: the step (s) of the section V experiment
 SECTION_V_SECONDS = 3.0  #: duration (s) of section V (quick: 1 s)
 PUSH = 0.3  #: horizontal force (N) on each top-row particle in section V
 SECTION_VIA_SECONDS = 5.0  #: duration (s) of section VI.A (quick: 1 s)
@@ -136,9 +137,9 @@ def _wire(system: ParticleSystem) -> tuple[np.ndarray, float]:
 
 def section_v(seconds: float = SECTION_V_SECONDS, h: float = SECTION_V_H, push: float = PUSH,
               progress: bool = False) -> dict:
-    """The report's section V with numbers: for each integrator, the default cloth pushed into
-    its wall; the highest point of the cloth relative to the wire (m) and the top row's largest
-    distance from the wire (m), with their time series."""
+    """Section V of docs/notes_on_the_report.md with numbers: for each integrator, the default
+    cloth pushed into its wall; the highest point of the cloth relative to the wire (m) and the
+    top row's largest distance from the wire (m), with their time series."""
     out: dict = {}
     bar = _bar(len(METHODS), "section V", progress)
     for method in sorted(METHODS):
@@ -215,7 +216,8 @@ def static_equilibrium(system: ParticleSystem) -> np.ndarray:
 
 
 def section_via(seconds: float = SECTION_VIA_SECONDS, progress: bool = False) -> dict:
-    """The report's section VI.A with numbers, for each (ks, kd) in :data:`GAINS`."""
+    """Section VI.A of docs/notes_on_the_report.md with numbers, for each (ks, kd) in
+    :data:`GAINS`."""
     out: dict = {}
     bar = _bar(len(GAINS), "section VI.A", progress)
     for ks, kd in GAINS:
