@@ -515,7 +515,7 @@ class TableFriction(Force):
     >>> s = ParticleSystem(); p = s.add_particle((0.0, 0.0), (1.0, 0.0), mass=2.0)
     >>> s.add(TableFriction(mu=0.5, g=10.0, v_s=0.01))
     >>> s.applied_forces(s.x, s.v)[p].tolist()  # -mu m g along -v: 0.5 * 2 * 10 N
-    [-10.0, -0.0]
+    [-10.0, 0.0]
     """
 
     index_fields = ("particles",)
