@@ -18,6 +18,7 @@ from .forces import (
                      Force,
                      Gravity,
                      MouseSpring,
+                     TableFriction,
                      Wall,
 )
 from .implicit import ImplicitSolveError, force_jacobians
@@ -32,5 +33,5 @@ __all__ = [
     "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
     "FixedPoint", "Force", "Gravity", "HorizontalWire", "ImplicitSolveError", "LineWire",
     "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "RattleSolveError", "Rod", "Shape",
-    "SimulationDiverged", "Wall", "force_jacobians", "scenes",
+    "SimulationDiverged", "TableFriction", "Wall", "force_jacobians", "scenes",
 ]

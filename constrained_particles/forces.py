@@ -207,6 +207,11 @@ class DampedSpring(Force):
     ``ks/2 (|l| - rest)^2``. ``rest`` (m) defaults to the current length, ``ks`` is in N/m and
     ``kd`` in N s/m. A spring of zero current length exerts no force (its direction is undefined).
 
+    ``tension_only=True`` makes every spring of the block a string that pulls but never pushes
+    (cloth buckles instead of resisting compression, docs/physics.md "Tension-only spring"):
+    ``f_i = -max(0, ks (|l| - rest) + kd (ldot . l)/|l|) l/|l|`` while ``|l| > rest``, else 0;
+    energy ``ks/2 max(|l| - rest, 0)^2``.
+
     >>> from constrained_particles import ParticleSystem, DampedSpring
     >>> s = ParticleSystem()
     >>> a = s.add_particle((0.0, 0.0)); b = s.add_particle((2.0, 0.0))
@@ -218,8 +223,12 @@ class DampedSpring(Force):
     index_fields = ("i", "j")
     element_fields = ("rest", "ks", "kd")
     conservative = True
+    #: True: the springs pull but never push (see the class docstring)
+    tension_only: bool = False
 
-    def __init__(self, i: Any, j: Any, rest: Any = None, ks: Any = 1.0, kd: Any = 0.0) -> None:
+    def __init__(self, i: Any, j: Any, rest: Any = None, ks: Any = 1.0, kd: Any = 0.0,
+                 tension_only: bool = False) -> None:
+        self.tension_only = tension_only
         self.i = as_index_array("i", i)
         self.j = as_index_array("j", j)
         k = len(self.i)
@@ -230,6 +239,11 @@ class DampedSpring(Force):
         self.rest = None if rest is None else as_param_array("rest", rest, k, nonnegative=True)
         self.ks = as_param_array("ks", ks, k, nonnegative=True)
         self.kd = as_param_array("kd", kd, k, nonnegative=True)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "tension_only" and not isinstance(value, (bool, np.bool_)):
+            raise ArgumentTypeError(f"tension_only must be True or False, got {value!r}")
+        super().__setattr__(name, bool(value) if name == "tension_only" else value)
 
     def bind(self, system):
         super().bind(system)
@@ -254,6 +268,8 @@ class DampedSpring(Force):
         _, length, u, ldot = self._geometry(x, v)
         mag = self.ks * (length - self.rest) + self.kd * (ldot[:, 0] * u[:, 0]
                                                           + ldot[:, 1] * u[:, 1])
+        if self.tension_only:  # a string: no force while slack, and it never pushes
+            mag = np.where((length > self.rest) & (mag > 0.0), mag, 0.0)
         f = np.empty_like(u)
         f[:, 0] = -mag * u[:, 0]
         f[:, 1] = -mag * u[:, 1]
@@ -265,7 +281,8 @@ class DampedSpring(Force):
 
     def accumulate(self, x, v, mass, F):
         args = (self.i, self.j, self.ks, self.kd, self.rest)  # each attribute read once
-        if kernels.spring_forces is not None and _spring_arguments(x, v, F, *args):
+        if (kernels.spring_forces is not None and not self.tension_only
+                and _spring_arguments(x, v, F, *args)):
             # the compiled element (see kernels)
             i, j, ks, kd, rest = args
             kernels.spring_forces(x, v, i, j, ks, kd, rest, F)
@@ -278,8 +295,10 @@ class DampedSpring(Force):
                            - np.bincount(self.j, f[:, axis], minlength=n))
 
     def potential(self, x, mass):
-        length = np.linalg.norm(x[self.i] - x[self.j], axis=1)
-        return float(0.5 * np.sum(self.ks * (length - self.rest) ** 2))
+        stretch = np.linalg.norm(x[self.i] - x[self.j], axis=1) - self.rest
+        if self.tension_only:
+            stretch = np.maximum(stretch, 0.0)
+        return float(0.5 * np.sum(self.ks * stretch**2))
 
     def jacobian_pattern(self, n):
         """Blocks (i, i), (i, j), (j, i), (j, j) of every spring."""
@@ -295,6 +314,10 @@ class DampedSpring(Force):
         ``df_i/dldot = -kd u u^T``; ``f_j = -f_i``. ``definite=True`` keeps
         ``-[ks u u^T + max(ks (1 - rest/|l|), 0) P]``: no compressive transverse stiffness and
         no damping terms in df/dx (Choi & Ko 2002).
+
+        ``tension_only``: both are zero for a spring that exerts no force (slack, ``|l| <=
+        rest``, or clamped, ``ks (|l| - rest) + kd (ldot . u) <= 0``), as its force is zero
+        on a neighbourhood of the state; elsewhere they are those above.
         """
         _, length, u, ldot = self._geometry(x, v)
         inv = 1.0 / np.where(length > 0, length, np.inf)
@@ -308,6 +331,10 @@ class DampedSpring(Force):
             Kl = -(self.ks[:, None, None] * uu + (s * inv)[:, None, None] * P
                    + (self.kd * inv)[:, None, None] * _outer(u, np.einsum("kij,kj->ki", P, ldot)))
         Dl = -self.kd[:, None, None] * uu
+        if self.tension_only:
+            pull = self.ks * (length - self.rest) + self.kd * np.einsum("kd,kd->k", ldot, u)
+            on = ((length > self.rest) & (pull > 0.0)).astype(float)[:, None, None]
+            Kl, Dl = Kl * on, Dl * on
         return (np.stack([Kl, -Kl, -Kl, Kl], axis=1).ravel(),
                 np.stack([Dl, -Dl, -Dl, Dl], axis=1).ravel())
 
@@ -450,6 +477,151 @@ class Drag(Force):
         """``df/dx = 0``, ``df/dv = -kd I``."""
         k = 2 * len(_selected(self.particles, len(x)))
         return np.zeros(k), np.full(k, -self.kd)
+
+
+def _flags(name: str, value: Any, k: int) -> np.ndarray:
+    """``value`` (a bool or bools) as a writable (k,) bool array, else TypeError or ValueError
+    naming ``name``."""
+    try:
+        flags = np.asarray(value)
+    except ValueError:  # ragged nesting
+        flags = np.asarray(None)
+    if flags.dtype != bool:
+        raise ArgumentTypeError(f"{name} must be True/False or an array of bools, got {value!r}")
+    try:
+        return np.broadcast_to(flags, (k,)).copy()
+    except ValueError:
+        raise ValueError(f"{name} must broadcast to shape ({k},), got shape "
+                         f"{flags.shape}") from None
+
+
+class TableFriction(Force):
+    """Coulomb friction of particles sliding on a table seen from above, regularised.
+
+    Gravity ``g`` (m/s^2) presses each particle into the table, so particle p of mass m_p
+    sliding at velocity v_p feels ``f = -mu m_p g v_p / max(|v_p|, v_s)``: the Coulomb force
+    ``mu m_p g`` against the motion above the speed ``v_s`` (m/s), and below it a linear damper
+    of rate ``mu g / v_s`` (1/s), so that the force is continuous and a resting particle feels
+    none (docs/physics.md "Table friction"). A particle launched at ``v0 > v_s`` slides
+    ``(v0^2 + v_s^2) / (2 mu g)`` before it stops: ``v0^2 / (2 mu g)`` (Coulomb's distance) plus
+    ``v_s^2 / (2 mu g)``. Explicit steps need ``h < 2 v_s / (mu g)``.
+
+    ``mu`` (dimensionless, >= 0) is one per element; ``particles`` default to every particle the
+    system has when the block is added. ``lifted`` (bools, one per element, edited in place)
+    switches an element's friction off: a particle carried above the table (grabbed) slides on
+    nothing. The actuator that grabs a particle lifts it (:meth:`lift`, :meth:`lower`).
+
+    >>> from constrained_particles import ParticleSystem, TableFriction
+    >>> s = ParticleSystem(); p = s.add_particle((0.0, 0.0), (1.0, 0.0), mass=2.0)
+    >>> s.add(TableFriction(mu=0.5, g=10.0, v_s=0.01))
+    >>> s.applied_forces(s.x, s.v)[p].tolist()  # -mu m g along -v: 0.5 * 2 * 10 N
+    [-10.0, 0.0]
+    """
+
+    index_fields = ("particles",)
+    element_fields = ("mu", "lifted")
+
+    def __init__(self, mu: Any = 0.5, particles: Any = None, g: float = 9.81,
+                 v_s: float = 0.05, lifted: Any = False) -> None:
+        self.g = float(as_param_array("g", g, 1, positive=True)[0])
+        self.v_s = float(as_param_array("v_s", v_s, 1, positive=True)[0])
+        if particles is None:  # every particle, from the system's count when added (bind)
+            self.particles = None
+            try:
+                k = int(np.size(mu))
+            except ValueError:  # ragged nesting
+                k = 1
+            self.mu = as_param_array("mu", mu, max(k, 1), nonnegative=True)
+            self.lifted = _flags("lifted", lifted, int(np.size(np.asarray(lifted, dtype=object))))
+        else:
+            self.particles = as_index_array("particles", particles)
+            k = len(self.particles)
+            self.mu = as_param_array("mu", mu, k, nonnegative=True)
+            self.lifted = _flags("lifted", lifted, k)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "lifted" and not (isinstance(value, np.ndarray) and value.dtype == bool
+                                     and value.ndim == 1):
+            raise ArgumentTypeError(f"lifted must be a 1-D boolean array, got {value!r}")
+        if name in ("g", "v_s"):
+            value = float(as_param_array(name, value, 1, positive=True)[0])
+        super().__setattr__(name, value)
+
+    def __len__(self) -> int:
+        return 0 if self.particles is None else len(self.particles)
+
+    def bind(self, system):
+        if self.particles is None:
+            n = system.n
+            # everything validated before anything is assigned (add() changes nothing on an
+            # error)
+            particles = as_index_array("particles", np.arange(n))
+            mu = as_param_array("mu", self.mu, n, nonnegative=True)
+            lifted = _flags("lifted", self.lifted, n)
+            self.__dict__.update(particles=particles, mu=mu, lifted=lifted)
+            self.__dict__["version"] = self.version + 1
+        k = len(self.particles)
+        if len(self.mu) != k or len(self.lifted) != k:
+            raise ValueError(f"mu and lifted must hold one entry per particle ({k}), got "
+                             f"{len(self.mu)} and {len(self.lifted)}")
+        super().bind(system)
+
+    def _elements_of(self, particles: Any) -> np.ndarray:
+        """The elements whose particle is one of ``particles`` (indices, validated)."""
+        idx = as_index_array("particles", particles)
+        if self.particles is None:
+            raise ValueError("TableFriction: the block is not in a system yet (no particles)")
+        return np.flatnonzero(np.isin(self.particles, idx))
+
+    def lift(self, particles: Any) -> None:
+        """Mark ``particles`` (indices) lifted: they feel no friction until :meth:`lower`."""
+        self.lifted[self._elements_of(particles)] = True
+
+    def lower(self, particles: Any = None) -> None:
+        """Put ``particles`` (indices; default every particle) back on the table."""
+        if particles is None:
+            self.lifted[:] = False
+        else:
+            self.lifted[self._elements_of(particles)] = False
+
+    def _speeds(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Velocities (k, 2) of the block's particles and their speeds (k,), m/s."""
+        vv = np.take(v, self.particles, axis=0)
+        return vv, np.sqrt(vv[:, 0] * vv[:, 0] + vv[:, 1] * vv[:, 1])
+
+    def accumulate(self, x, v, mass, F):
+        if self.particles is None:
+            return
+        vv, speed = self._speeds(v)
+        # (the compiled element's arithmetic, in its order: (mu m) g / max(|v|, v_s))
+        scale = self.mu * np.take(mass, self.particles) * self.g / np.maximum(speed, self.v_s)
+        scale = np.where(self.lifted, 0.0, scale)
+        f = np.empty_like(vv)
+        f[:, 0] = -scale * vv[:, 0]
+        f[:, 1] = -scale * vv[:, 1]
+        scatter_add(F, self.particles, f)
+
+    def jacobian_pattern(self, n):
+        """One 2x2 block per element (its particle's velocity)."""
+        idx = _selected(self.particles, 0)[:, None]
+        return _block_pattern(idx, idx)
+
+    def jacobians(self, x, v, mass, definite=False):
+        """``df/dx = 0``; ``df/dv = -(mu m g / v_s) I`` below ``v_s`` and
+        ``-(mu m g / |v|) (I - vhat vhat^T)`` above it (no resistance to a change of speed,
+        only of direction); zero for lifted particles. Both are symmetric negative
+        semi-definite, so ``definite`` changes nothing."""
+        k = len(self)
+        if k == 0:
+            return np.zeros(0), np.zeros(0)
+        vv, speed = self._speeds(v)
+        coulomb = speed > self.v_s
+        scale = self.mu * np.take(mass, self.particles) * self.g / np.maximum(speed, self.v_s)
+        scale = np.where(self.lifted, 0.0, scale)
+        inv = 1.0 / np.where(coulomb, speed, 1.0)
+        vhat = vv * inv[:, None]
+        D = np.eye(2) - np.where(coulomb, 1.0, 0.0)[:, None, None] * _outer(vhat, vhat)
+        return np.zeros(4 * k), (-scale[:, None, None] * D).ravel()
 
 
 class Wall(Force):
@@ -609,19 +781,7 @@ class MouseSpring(Force):
             new_particle = self.particle.copy()
             new_particle[idx] = p
         new_anchor = None if anchors is None else as_param_array("anchors", anchors, k, width=2)
-        new_active = None
-        if active is not None:
-            try:
-                flags = np.asarray(active)
-            except ValueError:  # ragged nesting
-                flags = np.asarray(None)
-            if flags.dtype != bool:
-                raise ArgumentTypeError(f"active must be booleans, got {active!r}")
-            try:
-                new_active = np.broadcast_to(flags, (k,))
-            except ValueError:
-                raise ValueError(f"active must broadcast to shape ({k},), got shape "
-                                 f"{flags.shape}") from None
+        new_active = None if active is None else _flags("active", active, k)
         bound = self.__dict__.get("_bound_n")
         if bound is not None and particles is not None:
             on = self.active.copy()

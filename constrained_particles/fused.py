@@ -2,11 +2,12 @@
 
 A system built only from the standard blocks (:class:`~.Gravity`, :class:`~.ConstantForce`,
 :class:`~.DampedSpring`, :class:`~.AngularSpring`, :class:`~.Drag`, :class:`~.Wall`,
-:class:`~.MouseSpring`; :class:`~.CircularWire`, :class:`~.Rod`, :class:`~.LineWire` /
-:class:`~.HorizontalWire`, :class:`~.FixedPoint`) is *packed* into flat per-type arrays, and one
-compiled function then runs ``steps`` steps of ``euler``, ``midpoint``, ``rk4`` or
-``symplectic_euler``: force accumulation (the elements of :mod:`.kernels`), the constraint
-solve and the integrator update, with no Python between blocks. It follows the reference path
+:class:`~.MouseSpring`, :class:`~.TableFriction`; :class:`~.CircularWire`, :class:`~.Rod`,
+:class:`~.LineWire` / :class:`~.HorizontalWire`, :class:`~.FixedPoint`) is *packed* into flat
+per-type arrays, and one compiled function then runs ``steps`` steps of ``euler``,
+``midpoint``, ``rk4`` or ``symplectic_euler``: force accumulation (the elements of
+:mod:`.kernels`), the constraint solve and the integrator update, with no Python between
+blocks. It follows the reference path
 (:meth:`ParticleSystem.acceleration` and :mod:`.integrators`) formula for formula; only the
 order in which blocks' forces are summed differs (by type here, by block there), at the level
 of rounding.
@@ -62,12 +63,14 @@ from .packing import (  # (the packing layer: its public names are this module's
 )
 from .records import (
     CIRCLE,
+    FRICTION,
     LIVE_COMPONENTS,
     LIVE_ELEMENTS,
     LIVE_NEXT,
     LIVE_PARTICLES,
     LIVE_ROWS,
     MOUSE,
+    TENSION,
     Settings,
     State,
     borrowed,
@@ -284,7 +287,9 @@ if kernels.ENABLED:
                 and el.circle.shape[0] >= blocks.circle.particles.shape[0]
                 and el.rod.shape[0] >= blocks.rod.a.shape[0]
                 and el.line.shape[0] >= blocks.line.particles.shape[0]
-                and el.fixed.shape[0] >= blocks.fixed.particles.shape[0])
+                and el.fixed.shape[0] >= blocks.fixed.particles.shape[0]
+                and el.friction.shape[0] >= blocks.friction.particles.shape[0]
+                and el.tension.shape[0] >= blocks.tension.i.shape[0])
 
     @njit(inline="always")
     def _work_fits(ws, rows, n, m):  # pragma: no cover - compiled
@@ -379,6 +384,10 @@ if kernels.ENABLED:
         for t in range(4):
             sizes[LIVE_ELEMENTS + CIRCLE + t] = _live_elements(CIRCLE + t, firsts[t], mask,
                                                                plist, live_n, live, lists[t])
+        sizes[LIVE_ELEMENTS + FRICTION] = _live_elements(
+            FRICTION, blocks.friction.particles, mask, plist, live_n, live, el.friction)
+        sizes[LIVE_ELEMENTS + TENSION] = _live_elements(TENSION, blocks.tension.i, mask, plist,
+                                                        live_n, live, el.tension)
 
     @njit
     def _live_elements(t, idx, mask, plist, live_n, live, out):

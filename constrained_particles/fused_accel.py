@@ -24,6 +24,7 @@ from .records import (
     CONSTANT,
     DRAG,
     FIXED,
+    FRICTION,
     GRAVITY,
     LINE,
     LIVE_COMPONENTS,
@@ -33,6 +34,7 @@ from .records import (
     MOUSE,
     ROD,
     SPRING,
+    TENSION,
     WALL,
     live_lists,
 )
@@ -62,12 +64,14 @@ if kernels.ENABLED:
         add_spring,
         angular_element,
         circle_row,
+        friction_element,
         length_error,
         line_error,
         line_row,
         mouse_element,
         rod_row,
         spring_element,
+        tension_element,
         wall_element,
     )
     # the per-block helpers of _accel, inlined into it: each call passed dozens of arrays
@@ -88,8 +92,9 @@ if kernels.ENABLED:
         """False if the per-element arrays of a block disagree in length, if an active mouse
         spring's particle is outside [0, n), (``counts`` not empty) if two particles coupled
         by a force element or a constraint row take different numbers of steps, or if
-        ``extra`` is None (the version of the step without angular springs, mouse springs
-        and fixed points: see :func:`_forces`) and the blocks hold any of them.
+        ``extra`` is None (the version of the step without angular springs, mouse springs,
+        fixed points, table friction and tension-only springs: see :func:`_forces`) and the
+        blocks hold any of them.
 
         O(1) per array (and per mouse spring) on a plain call: the index, row, column and run
         arrays were checked when the pack was built (``Packed._consistent``) and are immutable,
@@ -110,10 +115,20 @@ if kernels.ENABLED:
                 or spring.kd.shape[0] != k):
             return False
         ang, mouse, fixed = blocks.angular, blocks.mouse, blocks.fixed
+        fric, tension = blocks.friction, blocks.tension
         if extra is None:
-            if ang.a.shape[0] or mouse.particle.shape[0] or fixed.particles.shape[0]:
+            if (ang.a.shape[0] or mouse.particle.shape[0] or fixed.particles.shape[0]
+                    or fric.particles.shape[0] or tension.i.shape[0]):
                 return False
         else:
+            k = fric.particles.shape[0]
+            if (fric.block.shape[0] != k or fric.mu.shape[0] != k or fric.lifted.shape[0] != k
+                    or fric.params.shape[1] != 2):
+                return False
+            k = tension.i.shape[0]
+            if (tension.j.shape[0] != k or tension.rest.shape[0] != k
+                    or tension.ks.shape[0] != k or tension.kd.shape[0] != k):
+                return False
             k = ang.a.shape[0]
             if (ang.b.shape[0] != k or ang.c.shape[0] != k or ang.rest.shape[0] != k
                     or ang.k.shape[0] != k or ang.kd.shape[0] != k):
@@ -147,7 +162,8 @@ if kernels.ENABLED:
         if counts.shape[0] != n:
             return False
         if not (_same_count(counts, spring.i, spring.j) and _same_count(counts, ang.a, ang.b)
-                and _same_count(counts, ang.b, ang.c)):
+                and _same_count(counts, ang.b, ang.c)
+                and _same_count(counts, tension.i, tension.j)):
             return False
         for r in range(m):
             for k in range(1, nnz[r]):
@@ -342,8 +358,9 @@ if kernels.ENABLED:
         checked by :func:`_check_inputs`). With ``live`` (the workspace of :func:`_gate`; None:
         all live), elements on particles that are not live are skipped, and so are those
         particles' rows of F (nothing reads them). ``runs``: see :func:`_springs`. ``extra``
-        (``Packed.extra``) None: the pack has no angular springs, mouse springs or fixed
-        points, and Numba drops their loops from this version (here and in :func:`_rows`,
+        (``Packed.extra``) None: the pack has no angular springs, mouse springs, fixed
+        points, table friction or tension-only springs, and Numba drops their loops from this
+        version (here and in :func:`_rows`,
         :func:`_distance_error`; :func:`_check_inputs` refuses blocks that hold them)."""
         lp, lr, lc, el = live_lists(live)  # (hoisted: None without live)
         if live is None:
@@ -412,6 +429,27 @@ if kernels.ENABLED:
                     q = mouse.particle[e]
                     fx, fy = mouse_element(x[q, 0], x[q, 1], v[q, 0], v[q, 1], mouse.anchor[e, 0],
                                            mouse.anchor[e, 1], mouse.ks[e], mouse.kd[e])
+                    F[q, 0] += fx
+                    F[q, 1] += fy
+            tension = blocks.tension
+            for ee in range(_count(live, LIVE_ELEMENTS + TENSION, tension.i.shape[0])):
+                e = ee if live is None else el.tension[ee]
+                a, b = tension.i[e], tension.j[e]
+                fx, fy = tension_element(x[a, 0] - x[b, 0], x[a, 1] - x[b, 1],
+                                         v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], tension.ks[e],
+                                         tension.kd[e], tension.rest[e])
+                F[a, 0] += fx
+                F[a, 1] += fy
+                F[b, 0] -= fx
+                F[b, 1] -= fy
+            fric = blocks.friction
+            fpar, lifted = fric.params, fric.lifted
+            for ee in range(_count(live, LIVE_ELEMENTS + FRICTION, fric.particles.shape[0])):
+                e = ee if live is None else el.friction[ee]
+                if not lifted[e]:
+                    q, k = fric.particles[e], fric.block[e]
+                    fx, fy = friction_element(v[q, 0], v[q, 1], fric.mu[e], mass[q],
+                                              fpar[k, 0], fpar[k, 1])
                     F[q, 0] += fx
                     F[q, 1] += fy
 

@@ -47,6 +47,30 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
             return 0.0, 0.0
 
         @njit
+        def tension_element(lx: float, ly: float, ux: float, uy: float, ks: float, kd: float,
+                            rest: float) -> tuple[float, float]:  # pragma: no cover - compiled
+            """Force (N) on end i of a tension-only spring (a string) with ``l = x_i - x_j``
+            (m) and ``ldot = v_i - v_j`` (``ux, uy``, m/s):
+            ``-max(0, ks (|l| - r) + kd (ldot . l)/|l|) l/|l|`` while ``|l| > r``, else zero."""
+            length = math.sqrt(lx * lx + ly * ly)
+            if length > rest and length > 0.0:
+                inv = 1.0 / length
+                mag = ks * (length - rest) + kd * (ux * lx + uy * ly) * inv
+                if mag > 0.0:
+                    mag *= inv
+                    return -mag * lx, -mag * ly
+            return 0.0, 0.0
+
+        @njit
+        def friction_element(vx: float, vy: float, mu: float, mass: float, g: float,
+                             v_s: float) -> tuple[float, float]:  # pragma: no cover - compiled
+            """Table friction (N) on a particle of ``mass`` (kg) sliding at ``v`` (m/s):
+            ``-mu m g v / max(|v|, v_s)`` (``g`` in m/s^2, ``v_s`` > 0 in m/s)."""
+            speed = math.sqrt(vx * vx + vy * vy)
+            scale = mu * mass * g / (speed if speed > v_s else v_s)
+            return -scale * vx, -scale * vy
+
+        @njit
         def angular_element(ux: float, uy: float, wx: float, wy: float, vax: float, vay: float,
                             vbx: float, vby: float, vcx: float, vcy: float, k: float, kd: float,
                             rest: float) -> tuple[float, float, float, float, float, float]:

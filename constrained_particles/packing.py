@@ -29,7 +29,16 @@ import numpy as np
 
 from . import kernels
 from .constraints import CircularWire, FixedPoint, HorizontalWire, LineWire, Rod
-from .forces import AngularSpring, ConstantForce, DampedSpring, Drag, Gravity, MouseSpring, Wall
+from .forces import (
+    AngularSpring,
+    ConstantForce,
+    DampedSpring,
+    Drag,
+    Gravity,
+    MouseSpring,
+    TableFriction,
+    Wall,
+)
 from .fused_accel import RUN_MIN
 from .ordering import CG, DENSE, SINGLE, SPARSE, factor_plan
 from .records import (
@@ -41,6 +50,7 @@ from .records import (
     DragArrays,
     Elements,
     FixedArrays,
+    FrictionArrays,
     GravityArrays,
     LineArrays,
     Live,
@@ -49,6 +59,7 @@ from .records import (
     Rows,
     Settings,
     SpringArrays,
+    TensionArrays,
     WallArrays,
     blocks_ref,
     engine_ref,
@@ -68,7 +79,8 @@ if TYPE_CHECKING:
 
 #: The block types of :class:`~.records.Blocks`, in order.
 ELEMENT_TYPES = Blocks._fields
-_FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring)
+_FORCE_TYPES = (Gravity, ConstantForce, DampedSpring, AngularSpring, Drag, Wall, MouseSpring,
+                TableFriction)
 _CONSTRAINT_TYPES = (CircularWire, Rod, LineWire, HorizontalWire, FixedPoint)
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -239,10 +251,15 @@ class Packed:
         gravity = GravityArrays(*join(grav, (_I0, _I0, _F02)))
         constant = ConstantArrays(*join([(idx_of(c, "particles"), f64(c, "force", 2))
                                          for c in by_type.get(ConstantForce, [])], (_I0, _F02)))
+        spring_blocks = by_type.get(DampedSpring, [])
         spring = join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1), f64(s, "ks", 1),
-                        f64(s, "kd", 1)) for s in by_type.get(DampedSpring, [])],
+                        f64(s, "kd", 1)) for s in spring_blocks if not s.tension_only],
                       (_I0, _I0, _F0, _F0, _F0))
         springs = SpringArrays(*spring, spring_runs(spring[0], spring[1]))
+        tension = TensionArrays(*join([(idx_of(s, "i"), idx_of(s, "j"), f64(s, "rest", 1),
+                                        f64(s, "ks", 1), f64(s, "kd", 1))
+                                       for s in spring_blocks if s.tension_only],
+                                      (_I0, _I0, _F0, _F0, _F0)))
         angular = AngularArrays(*join([(idx_of(a, "a"), idx_of(a, "b"), idx_of(a, "c"),
                                         f64(a, "rest", 1), f64(a, "k", 1), f64(a, "kd", 1))
                                        for a in by_type.get(AngularSpring, [])],
@@ -270,6 +287,16 @@ class Packed:
             mouse.append((idx_of(m, "particle"), f64(m, "anchor", 2), active, f64(m, "ks", 1),
                           f64(m, "kd", 1)))
         mice = MouseArrays(*join(mouse, (_I0, _F02, _B0, _F0, _F0)))
+        friction = []
+        for k, f in enumerate(by_type.get(TableFriction, [])):
+            lifted, same = _bool(f.lifted)
+            self.zero_copy &= same
+            if same:
+                self.params.append((lifted, lifted.shape))
+            idx = idx_of(f, "particles")
+            friction.append((idx, _ro(np.full(len(idx), k, np.int64)), f64(f, "mu", 1), lifted,
+                             made(np.array([[scalar(f, "g"), scalar(f, "v_s")]]))))
+        frictions = FrictionArrays(*join(friction, (_I0, _I0, _F0, _B0, _F02)))
 
         # constraints: per type, with the global row of each element (system block order)
         circ, rod, line, fixed = [], [], [], []
@@ -295,7 +322,8 @@ class Packed:
             CircleArrays(*join(circ, (_I0, _F02, _F0, _I0), measured=True)),
             RodArrays(*join(rod, (_I0, _I0, _F0, _I0), measured=True)),
             LineArrays(*join(line, (_I0, _F02, _F02, _I0), measured=True)),
-            FixedArrays(*join(fixed, (_I0, _F02, _I0), measured=True)))
+            FixedArrays(*join(fixed, (_I0, _F02, _I0), measured=True)),
+            frictions, tension)
         if (previous is not None and previous.supported and previous.n == n
                 and previous.solver == self.solver and previous.zero_copy and self.zero_copy
                 and len(previous.constraints) == len(self.constraints)
@@ -366,12 +394,14 @@ class Packed:
 
     @property
     def extra(self) -> bool | None:
-        """True if the system has angular springs, mouse springs or fixed points, else None:
-        the fused step's version for None compiles none of their loops, and refuses blocks
-        that hold any (the reference then steps them). None for the cloths, the force-mode
-        ClothSlide and SliderCrank and ClothPin; True for ChainSwing and the spring modes."""
+        """True if the system has angular springs, mouse springs, fixed points, table
+        friction or tension-only springs, else None: the fused step's version for None
+        compiles none of their loops, and refuses blocks that hold any (the reference then
+        steps them). None for the cloths, the force-mode ClothSlide and SliderCrank and
+        ClothPin; True for ChainSwing and the spring modes."""
         b = self.blocks
-        if len(b.angular.a) or len(b.mouse.particle) or len(b.fixed.particles):
+        if (len(b.angular.a) or len(b.mouse.particle) or len(b.fixed.particles)
+                or len(b.friction.particles) or len(b.tension.i)):
             return True
         return None
 
@@ -397,7 +427,10 @@ class Packed:
             return all(len(a) == len(arrays[0]) for a in arrays)
 
         grav, wall, spring = blocks.gravity, blocks.wall, blocks.spring
+        fric, tension = blocks.friction, blocks.tension
         return (aligned((grav.particles, grav.block)) and inside(grav.block, len(grav.g))
+                and aligned(fric[:-1]) and inside(fric.block, len(fric.params))
+                and fric.params.shape[1:] == (2,) and aligned(tension)
                 and aligned((wall.particles, wall.block)) and aligned((wall.normal, wall.params))
                 and inside(wall.block, len(wall.normal)) and aligned(blocks.constant)
                 and aligned(spring[:-1]) and aligned(blocks.angular) and aligned(blocks.drag)
@@ -407,7 +440,8 @@ class Packed:
                     grav.particles, blocks.constant.particles, spring.i, spring.j,
                     blocks.angular.a, blocks.angular.b, blocks.angular.c,
                     blocks.drag.particles, wall.particles, blocks.circle.particles,
-                    blocks.rod.a, blocks.rod.b, blocks.line.particles, blocks.fixed.particles))
+                    blocks.rod.a, blocks.rod.b, blocks.line.particles, blocks.fixed.particles,
+                    fric.particles, tension.i, tension.j))
                 and all(inside(rows, m) for rows in (blocks.circle.row, blocks.rod.row,
                                                      blocks.line.row))
                 and inside(blocks.fixed.row, m - 1)

@@ -99,6 +99,27 @@ class MouseArrays(NamedTuple):
     kd: np.ndarray  #: (k,) N s/m
 
 
+class FrictionArrays(NamedTuple):
+    """Table friction on particle ``particles[e]`` with its block's ``params[block[e]]``,
+    switched off where ``lifted[e]``."""
+
+    particles: np.ndarray  #: (k,) int64
+    block: np.ndarray  #: (k,) int64, the row of ``params`` (one per friction block)
+    mu: np.ndarray  #: (k,) friction coefficients
+    lifted: np.ndarray  #: (k,) bool
+    params: np.ndarray  #: (blocks, 2): g (m/s^2), v_s (m/s)
+
+
+class TensionArrays(NamedTuple):
+    """Tension-only springs (strings) between ``i[e]`` and ``j[e]``."""
+
+    i: np.ndarray  #: (k,) int64
+    j: np.ndarray  #: (k,) int64
+    rest: np.ndarray  #: (k,) m
+    ks: np.ndarray  #: (k,) N/m
+    kd: np.ndarray  #: (k,) N s/m
+
+
 # ---------------------------------------------------------------------------------------------
 # constraint blocks: each element's first constraint row is ``row[e]`` (system block order)
 
@@ -152,6 +173,8 @@ class Blocks(NamedTuple):
     rod: RodArrays
     line: LineArrays
     fixed: FixedArrays
+    friction: FrictionArrays
+    tension: TensionArrays
 
 
 class Rows(NamedTuple):
@@ -282,10 +305,13 @@ class Elements(NamedTuple):
     rod: np.ndarray
     line: np.ndarray
     fixed: np.ndarray
+    friction: np.ndarray
+    tension: np.ndarray
 
 
 #: Each block type's position in :class:`Blocks` and :class:`Elements`.
-GRAVITY, CONSTANT, SPRING, ANGULAR, DRAG, WALL, MOUSE, CIRCLE, ROD, LINE, FIXED = range(11)
+(GRAVITY, CONSTANT, SPRING, ANGULAR, DRAG, WALL, MOUSE, CIRCLE, ROD, LINE, FIXED, FRICTION,
+ TENSION) = range(13)
 
 #: Entries of :attr:`Live.sizes`: the numbers of live particles, rows and components, then
 #: of live elements of each block type (from :data:`LIVE_ELEMENTS`, in the order of
@@ -385,7 +411,8 @@ if kernels.ENABLED:
                       SpringArrays(*t[SPRING]), AngularArrays(*t[ANGULAR]),
                       DragArrays(*t[DRAG]), WallArrays(*t[WALL]), MouseArrays(*t[MOUSE]),
                       CircleArrays(*t[CIRCLE]), RodArrays(*t[ROD]), LineArrays(*t[LINE]),
-                      FixedArrays(*t[FIXED]))
+                      FixedArrays(*t[FIXED]), FrictionArrays(*t[FRICTION]),
+                      TensionArrays(*t[TENSION]))
 
     @structref.register
     class RecordRefType(types.StructRef):

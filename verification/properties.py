@@ -32,6 +32,7 @@ from constrained_particles import (
     MouseSpring,
     ParticleSystem,
     Rod,
+    TableFriction,
     Wall,
 )
 
@@ -185,6 +186,51 @@ def internal_momentum_error(system: ParticleSystem, atol: float = 1e-9) -> float
             if isinstance(c, Rod):
                 fields.append((solver.J[rows].T @ solver.lam[rows]).reshape(x.shape))
     return max((max(_momentum_of(F, x, atol)) for F in fields), default=0.0)
+
+
+def stopping_distance(v0: Sequence[float], mu: float, g: float = 9.81, v_s: float = 0.05,
+                      mass: float = 1.0, method: str = "rk4", h: float = 1e-3,
+                      duration: float | None = None) -> float:
+    """How far (m) a particle of ``mass`` (kg) launched at velocity ``v0`` (m/s) slides on a
+    :class:`~constrained_particles.TableFriction` table (``mu``, ``g`` in m/s^2, ``v_s`` in
+    m/s) with nothing else acting, stepped by ``method`` at ``h`` (s) for ``duration`` (s;
+    default the Coulomb stopping time ``|v0| / (mu g)`` plus 30 time constants ``v_s / (mu g)``
+    of the damper below ``v_s``, which leaves under 1e-13 of its distance).
+
+    Coulomb friction's exact answer is ``|v0|^2 / (2 mu g)``; the regularised force's is
+    ``(|v0|^2 + v_s^2) / (2 mu g)`` for ``|v0| >= v_s`` (docs/physics.md "Table friction").
+
+    >>> d = stopping_distance((2.0, 0.0), mu=0.5, g=10.0, v_s=0.01)
+    >>> abs(d - 2.0**2 / (2 * 0.5 * 10.0)) <= 0.01**2 / (2 * 0.5 * 10.0) + 1e-6
+    True
+    """
+    speed = float(np.hypot(*v0))
+    if duration is None:
+        duration = speed / (mu * g) + 30 * v_s / (mu * g)
+    s = ParticleSystem()
+    s.add_particle((0.0, 0.0), v0, mass=mass)
+    s.add(TableFriction(mu=mu, g=g, v_s=v_s))
+    s.step(h, method, steps=max(1, int(np.ceil(duration / h))))
+    return float(np.hypot(*s.x[0]))
+
+
+def slack_spring_error(system: ParticleSystem) -> float:
+    """The largest force (N) or energy (J) of a slack tension-only spring of ``system`` (one
+    with ``|l| <= rest``, in a ``DampedSpring(tension_only=True)`` block), each spring
+    evaluated on its own at the current state, with its damping. Zero when the blocks are
+    right: a string carries nothing below its rest length."""
+    worst = 0.0
+    for block in system.forces:
+        if not (isinstance(block, DampedSpring) and block.tension_only):
+            continue
+        length = np.linalg.norm(system.x[block.i] - system.x[block.j], axis=1)
+        for e in np.flatnonzero(length <= block.rest):
+            one = DampedSpring(block.i[e], block.j[e], rest=block.rest[e], ks=block.ks[e],
+                               kd=block.kd[e], tension_only=True)
+            force = one.element_forces(system.x, system.v, system.mass)[1]
+            worst = max(worst, float(np.max(np.abs(force))),
+                        abs(one.potential(system.x, system.mass)))
+    return worst
 
 
 def run(system: ParticleSystem, method: str, h: float, steps: int, project: bool | None = None
