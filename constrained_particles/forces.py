@@ -154,7 +154,7 @@ class Gravity(Force):
 
 
 class ConstantForce(Force):
-    """A constant applied force (N) on chosen particles, e.g. the report's horizontal force.
+    """A constant applied force (N) on chosen particles, e.g. a push on a cloth's top row.
 
     ``force`` broadcasts to one (2,) vector per particle and may be rewritten between steps
     (the environments write their actions into it). Its work is external input, so it has
@@ -202,7 +202,7 @@ def _spring_arguments(x: Any, v: Any, F: Any, i: Any, j: Any, ks: Any, kd: Any, 
 class DampedSpring(Force):
     """Damped springs between particle pairs ``i`` and ``j``: one block for many springs.
 
-    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (report eq. 1 with its sign fixed):
+    With ``l = x_i - x_j`` and ``ldot = v_i - v_j`` (docs/physics.md, "Forces"):
     ``f_i = -[ks (|l| - rest) + kd (ldot . l)/|l|] l/|l|``, ``f_j = -f_i``, energy
     ``ks/2 (|l| - rest)^2``. ``rest`` (m) defaults to the current length, ``ks`` is in N/m and
     ``kd`` in N s/m. A spring of zero current length exerts no force (its direction is undefined).
