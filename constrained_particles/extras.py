@@ -25,12 +25,14 @@ EXTRA_OF: dict[str, str] = {
     "stable_baselines3": "rl",
     "torch": "rl",
     "tensorboard": "rl",
+    "ray": "ray",
+    "ray.tune": "ray",
 }
 
 
 #: importable module -> the distribution a user installs, where the names differ
 DISTRIBUTION: dict[str, str] = {"pygame": "pygame-ce", "PIL": "pillow",
-                                "stable_baselines3": "stable-baselines3"}
+                                "stable_baselines3": "stable-baselines3", "ray.tune": "ray[rllib]"}
 
 
 class MissingExtra(ImportError):

@@ -38,11 +38,11 @@ REGION = (226, 236, 250)
 def _pygame() -> Any:
     try:
         import pygame
-    except ImportError as exc:  # pragma: no cover - depends on the installed extras
+    except ImportError:  # pragma: no cover - depends on the installed extras
         from .extras import MissingExtra, install_hint
 
         raise MissingExtra("rendering needs the 'render' extra (missing: pygame-ce); "
-                           f"install it with {install_hint('render')}") from exc
+                           f"install it with {install_hint('render')}") from None
     return pygame
 
 

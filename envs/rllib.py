@@ -40,6 +40,8 @@ from typing import Any
 
 import gymnasium as gym
 
+from constrained_particles.extras import require
+
 from .task import task_spec, task_specs
 
 __all__ = ["configure", "make_env", "register"]
@@ -80,6 +82,7 @@ def register(env_ids: Iterable[str] | None = None) -> tuple[str, ...]:
     every worker process of the cluster (the one it is connected to, or the next one started).
     Registering again replaces the entry with an identical one.
     """
+    require("ray.tune", command="envs.rllib.register")
     from ray.tune.registry import register_env
 
     if env_ids is None:

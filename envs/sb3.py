@@ -41,8 +41,16 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
-from stable_baselines3.common.vec_env import VecEnv
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
+
+from constrained_particles.extras import require
+
+require("stable_baselines3", command="envs.sb3")  # (one line naming the extra, if missing)
+
+from stable_baselines3.common.vec_env import VecEnv  # noqa: E402
+from stable_baselines3.common.vec_env.base_vec_env import (  # noqa: E402
+    VecEnvIndices,
+    VecEnvStepReturn,
+)
 
 __all__ = ["GymnasiumVecEnv", "to_sb3"]
 

@@ -37,6 +37,21 @@ class _Rendering:
         return None
 
 
+def _headless_driver() -> None:
+    """On a machine with no display to open a window on (and no ``SDL_VIDEODRIVER`` chosen),
+    let SDL draw ``"human"`` frames into its dummy driver, saying so once, instead of printing
+    its own errors while it probes drivers that cannot work (``XDG_RUNTIME_DIR``, ...)."""
+    import os
+    import sys
+
+    if (os.environ.get("SDL_VIDEODRIVER") or not sys.platform.startswith("linux")
+            or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return
+    os.environ["SDL_VIDEODRIVER"] = "dummy"
+    gym.logger.warn("no display (DISPLAY and WAYLAND_DISPLAY are unset): render_mode='human' "
+                    "draws into an invisible window; use render_mode='rgb_array' to get frames")
+
+
 class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
     """A single environment: its task with one copy. Subclasses set ``task_class``."""
 
@@ -132,6 +147,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         import pygame
 
         if self._window is None:
+            _headless_driver()
             pygame.display.init()
             pygame.display.set_caption(type(self).__name__)
             self._window = pygame.display.set_mode(FRAME_SIZE)

@@ -58,6 +58,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from constrained_particles.extras import require
+
 from .checks import check_positive
 from .task import check_env_kwargs, check_env_mode, task_spec
 
@@ -377,6 +379,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     directory beside it and renamed to ``out`` only once complete (a failure, a full disk or
     an interrupt leaves no ``out``). Returns the contents of ``out/config.json``.
     """
+    require("stable_baselines3", "torch", command="envs.train.train")
     import stable_baselines3
     import torch
     from stable_baselines3.common.logger import Logger, make_output_format
@@ -629,6 +632,7 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
     (:func:`load_policy`), the observation statistics read as plain arrays
     (:class:`ObsNormalizer`); the pickles an older ``train`` wrote are never opened.
     """
+    require("stable_baselines3", "torch", command="envs.train.evaluate")
     config = read_run(out, which)
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
@@ -667,6 +671,7 @@ def convert_run(out: str | Path) -> list[str]:
     pickles, which runs any code they hold; only for directories you trust.** Writes the
     policy and normalization files and a new ``config.json`` (the old one kept as
     ``config.v1.json``); the pickles stay. Returns the names of the files written."""
+    require("stable_baselines3", "torch", command="envs.train.convert_run")
     import pickle
 
     out = Path(out)

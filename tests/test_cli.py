@@ -206,6 +206,34 @@ def test_missing_extra_is_one_line_before_any_work(argv, hidden, extra, monkeypa
     assert not (tmp_path / "out" / "report.md").exists() and not (tmp_path / "x.gif").exists()
 
 
+def test_the_python_api_names_a_missing_extra_in_one_short_exception(monkeypatch, tmp_path):
+    """Without the rl (or ray) extra, the Python entry points raise one MissingExtra naming
+    the extra and how to install it, before any work and with no chained traceback."""
+    import importlib
+
+    from constrained_particles.extras import MissingExtra
+
+    monkeypatch.setitem(sys.modules, "stable_baselines3", None)
+    monkeypatch.delitem(sys.modules, "envs.sb3", raising=False)
+    calls = [lambda: importlib.import_module("envs.sb3")]
+    from envs import train
+
+    calls += [lambda: train.train("ClothSlide-v0", "ppo", 0, tmp_path / "run"),
+              lambda: train.evaluate(tmp_path)]
+    for call in calls:
+        with pytest.raises(MissingExtra) as exc:
+            call()
+        text = str(exc.value)
+        assert "'rl' extra" in text and 'pip install -e ".[rl]"' in text and "\n" not in text
+        assert exc.value.__cause__ is None
+    assert not (tmp_path / "run").exists()
+    monkeypatch.setitem(sys.modules, "ray", None)
+    import envs.rllib
+
+    with pytest.raises(MissingExtra, match="'ray' extra"):
+        envs.rllib.register()
+
+
 def test_python_m_verification_reports_a_missing_extra(monkeypatch, capsys):
     from verification.__main__ import run
 
@@ -235,6 +263,24 @@ def test_verify_passes_progress_to_the_measurement(monkeypatch, capsys):
     assert cli.main(["verify", "orders", "--json"]) == 0
     assert cli.main(["verify", "orders", "--json", "--quiet"]) == 0
     assert seen == [True, False]
+
+
+def test_verify_orders_ends_with_a_verdict_against_theory(monkeypatch, capsys):
+    """The table ends with one verdict line; an order off theory is named and exits 1."""
+    import verification.orders as orders
+
+    def result(order, theory=2):
+        return orders.OrderResult("pendulum", "midpoint", theory, [0.01, 0.005], [1e-4, 2.5e-5],
+                                  [0.1, 0.2], order)
+
+    for measured, code, words in ((2.05, 0, "all 1 observed orders agree"),
+                                  (1.4, 1, "1 of 1 observed orders differ")):
+        monkeypatch.setattr(orders, "measure_orders", lambda quick, progress, m=measured:
+                            {"pendulum": {"midpoint": result(m)}})
+        assert cli.main(["verify", "orders", "--quiet"]) == code
+        last = capsys.readouterr().out.strip().splitlines()[-1]
+        assert last.startswith("verdict: ") and words in last, last
+        assert ("pendulum/midpoint 1.40 (theory 2)" in last) == (code == 1)
 
 
 def test_demo_takes_env_keywords_checked_before_any_work(capsys):

@@ -327,3 +327,25 @@ def test_a_failed_constructor_leaves_no_warning_behind(monkeypatch: pytest.Monke
         half = object.__new__(cls)
         half.close()
         half.close()
+
+
+def test_human_rendering_without_a_display_uses_the_dummy_driver_and_says_so(monkeypatch):
+    """No display and no SDL_VIDEODRIVER: SDL gets its dummy driver (no probing of drivers
+    that print errors such as XDG_RUNTIME_DIR's), with one warning; with a display, nothing
+    is changed."""
+    import sys
+
+    from envs.single import _headless_driver
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the display variables are Linux's")
+    for name in ("SDL_VIDEODRIVER", "DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("DISPLAY", ":0")
+    _headless_driver()
+    assert "SDL_VIDEODRIVER" not in __import__("os").environ
+    monkeypatch.delenv("DISPLAY")
+    with pytest.warns(UserWarning, match="no display"):
+        _headless_driver()
+    assert __import__("os").environ["SDL_VIDEODRIVER"] == "dummy"
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")  # (restored by monkeypatch afterwards)

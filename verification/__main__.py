@@ -91,10 +91,14 @@ def main(args: argparse.Namespace) -> int:
     require(*NEEDS[args.verify_command], command=f"cparticles verify {args.verify_command}")
     progress = progress_enabled(args)
     if args.verify_command == "orders":
-        from .orders import measure_orders, orders_summary, orders_table
+        from .orders import measure_orders, orders_summary, orders_table, orders_verdict
 
         results = measure_orders(quick=args.quick, progress=progress)
-        print(json.dumps(orders_summary(results)) if args.json else orders_table(results))
+        verdict, agree = orders_verdict(results)
+        print(json.dumps(orders_summary(results)) if args.json
+              else f"{orders_table(results)}\n\n{verdict}")
+        if not agree:
+            return 1
     elif args.verify_command == "pymunk":
         from .pymunk_check import compare_all, pymunk_table
 

@@ -274,10 +274,31 @@ def orders_table(results: dict[str, dict[str, OrderResult]]) -> str:
         for method, r in per_method.items():
             hs = ", ".join(f"{h:.3g}" for h in r.hs)
             errs = ", ".join(f"{e:.2e}" for e in r.errors)
-            ok = "" if r.theory is None or abs(r.order - r.theory) <= 0.2 else " (off)"
+            ok = ("" if r.theory is None or abs(r.order - r.theory) <= ORDER_TOLERANCE
+                  else " (off)")
             lines.append(f"| {name} | {method} | {r.theory if r.theory is not None else '?'} | "
                          f"{hs} | {errs} | {r.order:.2f}{ok} |")
     return "\n".join(lines)
+
+
+#: How far (in order) an observed order may lie from theory and still agree with it.
+ORDER_TOLERANCE = 0.2
+
+
+def orders_verdict(results: dict[str, dict[str, OrderResult]]) -> tuple[str, bool]:
+    """One line saying how many observed orders agree with theory (within
+    :data:`ORDER_TOLERANCE`), naming those that do not; and whether all do."""
+    checked = [(name, m, r) for name, per in results.items() for m, r in per.items()
+               if r.theory is not None]
+    off = [f"{name}/{m} {r.order:.2f} (theory {r.theory})" for name, m, r in checked
+           if not abs(r.order - r.theory) <= ORDER_TOLERANCE]
+    unknown = sum(r.theory is None for per in results.values() for r in per.values())
+    extra = f"; {unknown} without a theoretical order" if unknown else ""
+    if off:
+        return (f"verdict: {len(off)} of {len(checked)} observed orders differ from theory by "
+                f"more than {ORDER_TOLERANCE}: {', '.join(off)}{extra}"), False
+    return (f"verdict: all {len(checked)} observed orders agree with theory within "
+            f"{ORDER_TOLERANCE}{extra}"), True
 
 
 def orders_summary(results: dict[str, dict[str, OrderResult]]) -> dict[str, dict[str, float]]:
