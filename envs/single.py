@@ -8,8 +8,10 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from . import goals
 from .base import FRAME_SIZE, ParticleTask
 from .checks import check_options, check_seed, check_task_kwargs
+from .goals import check_obs_mode
 
 
 def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
@@ -59,14 +61,18 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
                                           "render_fps": 20}
 
-    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+    def __init__(self, render_mode: str | None = None, *, obs_mode: str = "state",
+                 **kwargs: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
-        check_task_kwargs(self.task_class, kwargs, also=("render_mode",))
+        #: ``"state"`` (a flat Box) or ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals)
+        self.obs_mode = check_obs_mode(obs_mode)
+        check_task_kwargs(self.task_class, kwargs, also=("render_mode", "obs_mode"))
         self.task = self.task_class(1, **kwargs)
         self.action_space = self.task.single_action_space
-        self.observation_space = self.task.single_observation_space
+        self.observation_space = (self.task.single_observation_space if obs_mode == "state"
+                                  else goals.goal_space(self.task))
         self.render_mode = render_mode
         self.metadata = {**self.metadata,
                          "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
@@ -81,7 +87,15 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         info = {k: v for k, v in values.items() if k != "speed"}
         info["diverged"] = diverged.item()
         self._last, self._values = m, values
+        if self.obs_mode == "goal":
+            return {k: v[0] for k, v in goals.goal_observation(self.task, obs).items()}, info
         return obs[0], info
+
+    def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+        """The goal-mode reward of goals ``(..., k)``, batched or not (for hindsight
+        relabelling; :func:`envs.goals.compute_reward`): what :meth:`step` returns in
+        ``obs_mode="goal"``."""
+        return goals.compute_reward(self.task, achieved_goal, desired_goal, info)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -103,9 +117,12 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         self.task.apply(a)
         diverged = self.task.simulate()
         obs, info = self._result(diverged, ~diverged)
-        reward = self.task.reward_one(self._last, self._values)
-        if info["diverged"]:  # the episode ends (terminated) and pays for its remaining time
-            reward -= self.task.divergence_penalty
+        if self.obs_mode == "goal":
+            reward = self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        else:
+            reward = self.task.reward_one(self._last, self._values)
+            if info["diverged"]:  # the episode ends (terminated) and pays for its remaining time
+                reward -= self.task.divergence_penalty
         terminated = info["is_success"] or info["diverged"]
         if self.render_mode == "human":
             self.render()

@@ -25,8 +25,10 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from . import goals
 from .base import ParticleTask
 from .checks import check_options, check_positive, check_seed, check_task_kwargs
+from .goals import check_obs_mode
 from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
@@ -61,15 +63,18 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, *, num_threads: int = DEFAULT_THREADS,
-                 **kwargs: Any) -> None:
+                 obs_mode: str = "state", **kwargs: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
         threads = check_positive("num_threads", num_threads, integer=True)
         self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
                                                 integer=True)
-        check_task_kwargs(self.task_class, kwargs,
-                          also=("num_envs", "max_episode_steps", "render_mode", "num_threads"))
+        #: ``"state"`` (a flat Box) or ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals)
+        self.obs_mode = check_obs_mode(obs_mode)
+        check_task_kwargs(self.task_class, kwargs, also=("num_envs", "max_episode_steps",
+                                                         "render_mode", "num_threads",
+                                                         "obs_mode"))
         self.task = self.task_class(num_envs, **kwargs)
         self.task.episode_steps = self.max_episode_steps  # (what divergence pays for)
         #: The threads the copies' physics is stepped on (``ParticleSystem.threads``).
@@ -81,7 +86,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self.metadata = {**self.metadata,
                          "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
         self.single_action_space = self.task.single_action_space
-        self.single_observation_space = self.task.single_observation_space
+        self.single_observation_space = (self.task.single_observation_space
+                                         if obs_mode == "state" else goals.goal_space(self.task))
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._renderer = None
@@ -142,8 +148,18 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         """Step every copy; copies that ended on the previous step are reset instead."""
         if self._rngs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
+        resetting = self._autoreset.copy()
         obs, reward, terminated, truncated, m, diverged = self._step_measured(actions)
-        return obs, reward, terminated, truncated, self._info(m, diverged)
+        info = self._info(m, diverged)
+        if self.obs_mode == "goal":
+            obs = goals.goal_observation(self.task, obs)
+            reward = self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+            reward[resetting] = 0.0  # (a copy's first observation after its autoreset)
+        return obs, reward, terminated, truncated, info
+
+    def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+        """The goal-mode reward of goals ``(..., k)`` (:func:`envs.goals.compute_reward`)."""
+        return goals.compute_reward(self.task, achieved_goal, desired_goal, info)
 
     def _step_measured(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                     np.ndarray, dict[str, np.ndarray],
@@ -197,6 +213,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
         m, obs = self.task.measure_observe(stepped)
+        if self.obs_mode == "goal":
+            obs = goals.goal_observation(self.task, obs)
         return obs, self._info(m, diverged), m
 
     def _info(self, m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:

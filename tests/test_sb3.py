@@ -361,3 +361,22 @@ def test_a_sac_policy_is_rebuilt_from_its_settings(tmp_path):
     res = evaluate(run, episodes=3)
     want = summarize(run_episodes(sb3_policy(model), "SliderCrank-v0", 3, 2_000_000))
     assert {k: res[k] for k in want} == want
+
+
+def test_sac_with_hindsight_relabelling_runs_on_goal_observations():
+    """SB3's HerReplayBuffer takes the goal mode as it takes Gymnasium-Robotics' tasks: SAC
+    trains through it, and the rewards of relabelled samples are the env's compute_reward of
+    their goals (an integration check, not a learning curve)."""
+    from stable_baselines3 import SAC, HerReplayBuffer
+
+    env = gym.make("SliderCrank-v0", obs_mode="goal", max_episode_steps=40)
+    model = SAC("MultiInputPolicy", env, replay_buffer_class=HerReplayBuffer,
+                replay_buffer_kwargs={"n_sampled_goal": 4, "goal_selection_strategy": "future"},
+                learning_starts=64, batch_size=32, seed=0,
+                policy_kwargs={"net_arch": [16, 16]})
+    model.learn(96)
+    batch = model.replay_buffer.sample(64)
+    obs = batch.next_observations
+    expected = env.unwrapped.compute_reward(obs["achieved_goal"].numpy(),
+                                            obs["desired_goal"].numpy(), {})
+    assert np.array_equal(batch.rewards.numpy().ravel(), expected.astype(np.float32))
