@@ -97,6 +97,24 @@ def _diverged(info: Any, shape: tuple[int, ...]) -> np.ndarray:
     return np.zeros(shape, bool)
 
 
+class GoalModeOnly:
+    """A method that exists only on an env made with ``obs_mode="goal"``: elsewhere reading it
+    raises AttributeError, so ``hasattr(env, "compute_reward")`` (how Stable-Baselines3's and
+    Gymnasium-Robotics' checkers tell a goal-conditioned env) is False in the other modes."""
+
+    def __init__(self, method: Any) -> None:
+        self.method = method
+        self.__doc__ = method.__doc__
+        self.__name__ = method.__name__
+
+    def __get__(self, obj: Any, owner: Any = None) -> Any:
+        if obj is None:
+            return self
+        if getattr(obj, "obs_mode", None) != "goal":
+            raise AttributeError(f"{self.__name__} exists only with obs_mode='goal'")
+        return self.method.__get__(obj, owner)
+
+
 def compute_reward(task: Any, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
     """The goal-mode reward (see the module docstring) of goals ``(..., k)`` in normalized
     coordinates: ``-1.0`` where they are farther apart than ``goal_tolerance`` metres, else

@@ -91,6 +91,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
             return {k: v[0] for k, v in goals.goal_observation(self.task, obs).items()}, info
         return obs[0], info
 
+    @goals.GoalModeOnly
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
         """The goal-mode reward of goals ``(..., k)``, batched or not (for hindsight
         relabelling; :func:`envs.goals.compute_reward`): what :meth:`step` returns in

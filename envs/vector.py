@@ -157,6 +157,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             reward[resetting] = 0.0  # (a copy's first observation after its autoreset)
         return obs, reward, terminated, truncated, info
 
+    @goals.GoalModeOnly
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
         """The goal-mode reward of goals ``(..., k)`` (:func:`envs.goals.compute_reward`)."""
         return goals.compute_reward(self.task, achieved_goal, desired_goal, info)

@@ -115,3 +115,19 @@ def test_obs_mode_is_checked():
     with pytest.raises(ValueError, match="obs_mode"):
         gym.make_vec("ClothSlide-v0", num_envs=2, vectorization_mode="vector_entry_point",
                      obs_mode=None)
+
+
+def test_compute_reward_only_in_goal_mode():
+    """SB3's and Gymnasium-Robotics' checkers call an env with ``compute_reward`` a goal env:
+    the method exists in goal mode only."""
+    env = gym.make("ClothSlide-v0")
+    assert not hasattr(env.unwrapped, "compute_reward")
+    env.close()
+    genv = gym.make("ClothSlide-v0", obs_mode="goal")
+    assert hasattr(genv.unwrapped, "compute_reward")
+    genv.close()
+    for mode, has in (("state", False), ("goal", True)):
+        vec = gym.make_vec("SliderCrank-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                           obs_mode=mode)
+        assert hasattr(vec.unwrapped, "compute_reward") is has
+        vec.close()
