@@ -187,6 +187,11 @@ class Packed(NamedTuple):
     sides: np.ndarray  #: (L,) int64, the vertices of a disk's polygon
     units: np.ndarray  #: (L, MAX_SIDES, 2) float64, a disk polygon's unit vertices
     powers: np.ndarray  #: (L, DEPTH_CAP + 1) float64, ``(1 - alpha)^k``, multiplied in order
+    edges: np.ndarray  #: (E, 2) int64, the polygon layers' edges, each once: (lo, hi) indices
+    edge_start: np.ndarray  #: (L + 1,) int64, layer l's edges are ``edges[edge_start[l]:...]``
+    incidence: np.ndarray  #: (I,) int64, the cells (numbered in their layer) along each edge
+    sense: np.ndarray  #: (I,) float64, +1 where the cell goes from lo to hi, -1 the other way
+    incidence_start: np.ndarray  #: (E + 1,) int64, edge e's cells are ``incidence[...]``
 
 
 def _disk_polygon(radius: float) -> tuple[int, float, np.ndarray]:
@@ -275,6 +280,9 @@ def pack(layers: Sequence[Layer], scale: float, channels: int) -> Packed:
     start = np.concatenate([[0], np.cumsum([c * a for c, a in zip(counts, arity,
                                                                    strict=True)])])[:-1]
     flat = [r[1].ravel() for r in rows]
+    shared = [_shared_edges(r[1] if r[0] == POLYGONS else r[1][:0, :0]) for r in rows]
+    edge_start = np.cumsum([0] + [len(e[0]) for e in shared])
+    incidence_start = np.cumsum([0] + [len(c) for e in shared for c in e[1]])
     return Packed(kind=np.array([r[0] for r in rows], dtype=np.int64),
                   count=np.array(counts, dtype=np.int64),
                   arity=np.array(arity, dtype=np.int64),
@@ -288,7 +296,34 @@ def pack(layers: Sequence[Layer], scale: float, channels: int) -> Packed:
                   units=np.array([r[6] for r in rows], dtype=np.float64).reshape(
                       len(rows), MAX_SIDES, 2),
                   powers=np.array([_powers(r[3]) for r in rows], dtype=np.float64).reshape(
-                      len(rows), DEPTH_CAP + 1))
+                      len(rows), DEPTH_CAP + 1),
+                  edges=np.concatenate([e[0] for e in shared] + [np.zeros((0, 2), np.int64)]),
+                  edge_start=edge_start.astype(np.int64),
+                  incidence=np.array([c for e in shared for cells in e[1] for c in cells],
+                                     dtype=np.int64),
+                  sense=np.array([d for e in shared for signs in e[2] for d in signs],
+                                 dtype=np.float64),
+                  incidence_start=incidence_start.astype(np.int64))
+
+
+def _shared_edges(cells: np.ndarray) -> tuple[np.ndarray, list[list[int]], list[list[float]]]:
+    """The edges of polygons ``cells`` (m, k), each once as (lo, hi) point indices (E, 2), in
+    order of first appearance, with the cells along each and +1 where a cell goes from lo
+    to hi, -1 the other way."""
+    found: dict[tuple[int, int], int] = {}
+    along: list[list[int]] = []
+    signs: list[list[float]] = []
+    for cell, corners in enumerate(cells.tolist()):
+        for j, a in enumerate(corners):
+            b = corners[(j + 1) % len(corners)]
+            key = (min(a, b), max(a, b))
+            if key not in found:
+                found[key] = len(along)
+                along.append([])
+                signs.append([])
+            along[found[key]].append(cell)
+            signs[found[key]].append(1.0 if a <= b else -1.0)
+    return np.array(list(found), dtype=np.int64).reshape(-1, 2), along, signs
 
 
 def _points(points: Any, packed: Packed) -> np.ndarray:
@@ -419,16 +454,22 @@ def mean_clamp(ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     return np.where(np.abs(du) < STRAIGHT, mid, full)
 
 
-def _vertices_reference(points: np.ndarray, packed: Packed, layer: int,
-                        transform: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel vertices (N, m, sides, 2) of every shape of ``layer`` in every copy, and which
-    ones are drawn (N, m) (finite, within :data:`FAR`, segments of nonzero length)."""
+def _pixels_reference(points: np.ndarray, transform: tuple[float, float, float]
+                      ) -> np.ndarray:
+    """Pixel coordinates ``(ox + s x, oy - s y)`` of ``points`` (..., 2) (m)."""
     ox, oy, s = transform
+    return np.stack([ox + s * points[..., 0], oy - s * points[..., 1]], axis=-1)
+
+
+def _shapes_reference(pixels: np.ndarray, packed: Packed, layer: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel vertices (N, m, sides, 2) of every shape of ``layer`` in every copy of ``pixels``
+    (N, n, 2), and which ones are drawn (N, m) (finite, within :data:`FAR`, segments of
+    nonzero length)."""
     kind, arity = packed.kind[layer], packed.arity[layer]
     first = packed.start[layer]
     idx = packed.index[first:first + packed.count[layer] * arity].reshape(-1, arity)
-    u = ox + s * points[:, idx, 0]
-    v = oy - s * points[:, idx, 1]
+    u, v = pixels[:, idx, 0], pixels[:, idx, 1]
     drawn = np.ones(u.shape[:2], dtype=bool)
     if kind == POLYGONS:
         verts = np.stack([u, v], axis=-1)
@@ -437,8 +478,7 @@ def _vertices_reference(points: np.ndarray, packed: Packed, layer: int,
         dx, dy = bx - ax, by - ay
         length = np.sqrt(dx * dx + dy * dy)
         hw = packed.size[layer]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            nx, ny = -dy / length * hw, dx / length * hw
+        nx, ny = -dy / length * hw, dx / length * hw
         verts = np.stack([np.stack([ax + nx, ay + ny], -1), np.stack([bx + nx, by + ny], -1),
                           np.stack([bx - nx, by - ny], -1), np.stack([ax - nx, ay - ny], -1)],
                          axis=2)
@@ -453,78 +493,91 @@ def _vertices_reference(points: np.ndarray, packed: Packed, layer: int,
     return verts, drawn
 
 
-def _orientation(verts: np.ndarray) -> np.ndarray:
-    """+1 or -1 (0 for no area): the sign of the signed area of polygons ``verts`` (..., k, 2),
-    which makes each polygon's coverage positive whichever way round its vertices go."""
+def _orientation(verts: np.ndarray, drawn: np.ndarray) -> np.ndarray:
+    """+1 or -1, the sign of the signed area of each polygon ``verts`` (..., k, 2) (0 for no
+    area or not ``drawn``): it makes each polygon's coverage positive whichever way round its
+    vertices go."""
     k = verts.shape[-2]
     twice = np.zeros(verts.shape[:-2])
     for e in range(k):
         a, b = verts[..., e, :], verts[..., (e + 1) % k, :]
         twice = twice + (a[..., 0] * b[..., 1] - b[..., 0] * a[..., 1])
-    return np.sign(twice)
+    return np.where(drawn, np.sign(twice), 0.0)
 
 
-def _add_polygon_reference(verts: np.ndarray, orient: float, D: np.ndarray
-                           ) -> tuple[int, int, int, int]:
-    """Add polygon ``verts`` (k, 2) (pixels), signed by ``orient``, to the row differences ``D``
-    (H, W + 1), whose running sums along each row are then the depth; return the rows and
-    columns ``(r0, r1, c0, c1)`` it covers (empty: ``r0 >= r1``).
+def _add_edge_reference(a: np.ndarray, b: np.ndarray, w: float, D: np.ndarray,
+                        box: list[int]) -> None:
+    """Add the edge from ``a`` to ``b`` (pixels), weighted by ``w`` (the sum of the signed
+    orientations of the polygons it bounds), to the row differences ``D`` (H, W + 1), whose
+    running sums along each row are the depth; grow ``box`` (r0, r1, c0, c1): the rows
+    ``[r0, r1)`` and columns ``[c0, c1]`` written.
 
-    Each edge piece in a row adds ``g(c) - g(c - 1)`` at the columns it crosses, with ``g(c) =
-    h (mean_clamp(xl - c, xh - c) - 1)`` (``h`` its signed height in the row), ``-h`` right
-    of it and 0 left of it; columns left of the image gather into column 0."""
+    In each row the edge's piece, from ``xl`` to ``xh`` over a height ``h`` (signed, times
+    ``w``), leaves the depth ``g(c) = h (mean_clamp(xl - c, xh - c) - 1)`` in column ``c``
+    (Green's theorem: the coverage of a pixel is the sum over the boundary of ``clamp(x - c, 0,
+    1) dy``, here less ``h``, so that it is 0 left of the piece and ``-h`` right of it): it adds
+    ``g(c) - g(c - 1)`` at the columns it crosses, columns left of the image gathered into
+    column 0."""
     height, width = D.shape[0], D.shape[1] - 1
-    c0, c1 = max(0, math.floor(verts[:, 0].min())), min(width, math.ceil(verts[:, 0].max()))
-    r0, r1 = max(0, math.floor(verts[:, 1].min())), min(height, math.ceil(verts[:, 1].max()))
-    if c0 >= c1 or r0 >= r1 or orient == 0.0:
-        return 0, 0, 0, 0
-    rows = np.arange(r0, r1, dtype=np.float64)
-    k = len(verts)
-    for e in range(k):
-        (ax, ay), (bx, by) = verts[e], verts[(e + 1) % k]
-        if abs(by - ay) < FLAT:
-            continue
-        top, bottom, sign = (ay, by, 1.0) if ay < by else (by, ay, -1.0)
-        lo, hi = np.maximum(top, rows), np.minimum(bottom, rows + 1.0)
-        slope = (bx - ax) / (by - ay)
-        xl, xh = ax + (lo - ay) * slope, ax + (hi - ay) * slope
-        h = orient * sign * (hi - lo)
-        first = np.maximum(np.floor(np.clip(np.minimum(xl, xh), -1.0, width + 1.0)), 0.0)
-        edge = np.ceil(np.clip(np.maximum(xl, xh), -1.0, width + 1.0))
-        last = np.minimum(edge, float(width))
-        live = (hi > lo) & (first <= width - 1)
-        runs = np.where(live, last - first + 1.0, 0.0).astype(np.int64)
-        if not runs.sum():
-            continue
-        row = np.repeat(np.arange(r0, r1), runs)
-        at = np.repeat(np.cumsum(runs) - runs, runs)
-        col = np.repeat(first, runs) + (np.arange(runs.sum()) - at)
-        pick = np.repeat(np.arange(r1 - r0), runs)
-        hh = h[pick]
-        g = np.where(col < edge[pick],
-                     hh * (mean_clamp(xl[pick] - col, xh[pick] - col) - 1.0), -hh)
-        prev = np.where(np.arange(len(g)) == at, 0.0, np.concatenate([[0.0], g[:-1]]))
-        D[row, col.astype(np.int64)] += g - prev
-    return r0, r1, c0, c1
+    (ax, ay), (bx, by) = a, b
+    if abs(by - ay) < FLAT:
+        return
+    top, bottom, sign = (ay, by, 1.0) if ay < by else (by, ay, -1.0)
+    rows = np.arange(max(0, math.floor(top)), min(height, math.ceil(bottom)))
+    lo, hi = np.maximum(top, rows), np.minimum(bottom, rows + 1.0)
+    slope = (bx - ax) / (by - ay)
+    xl, xh = ax + (lo - ay) * slope, ax + (hi - ay) * slope
+    h = w * sign * (hi - lo)
+    first = np.maximum(np.floor(np.clip(np.minimum(xl, xh), -1.0, width + 1.0)), 0.0)
+    edge = np.ceil(np.clip(np.maximum(xl, xh), -1.0, width + 1.0))
+    last = np.minimum(edge, float(width))
+    live = (hi > lo) & (first <= width - 1)
+    if not live.any():
+        return
+    box[0], box[1] = min(box[0], int(rows[live].min())), max(box[1], int(rows[live].max()) + 1)
+    box[2], box[3] = min(box[2], int(first[live].min())), max(box[3], int(last[live].max()))
+    runs = np.where(live, last - first + 1.0, 0.0).astype(np.int64)
+    pick = np.repeat(np.arange(len(rows)), runs)
+    at = np.repeat(np.cumsum(runs) - runs, runs)
+    col = first[pick] + (np.arange(runs.sum()) - at)
+    g = np.where(col < edge[pick],
+                 h[pick] * (mean_clamp(xl[pick] - col, xh[pick] - col) - 1.0), -h[pick])
+    prev = np.where(np.arange(len(g)) == at, 0.0, np.concatenate([[0.0], g[:-1]]))
+    D[rows[pick], col.astype(np.int64)] += g - prev
 
 
-def _layer_reference(verts: np.ndarray, drawn: np.ndarray, D: np.ndarray
-                     ) -> tuple[np.ndarray, int, int, int, int]:
-    """Every drawn polygon of a layer (``verts`` (m, sides, 2), ``drawn`` (m,)) through ``D``:
-    returns the depth over the rows and columns covered, ``(depth, r0, r1, c0, c1)``, and
-    leaves ``D`` zero."""
+def _layer_reference(pixels: np.ndarray, packed: Packed, layer: int, verts: np.ndarray,
+                     drawn: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """Layer ``layer`` of one copy (``pixels`` (n, 2); its shapes ``verts`` (m, sides, 2) and
+    ``drawn`` (m,)) through ``D``: returns the depth over the pixels covered and their box
+    ``[r0, r1, c0, c1]`` (rows ``[r0, r1)``, columns ``[c0, c1)``), and leaves ``D`` zero.
+
+    A polygon layer adds each edge of its cells once, weighted by the orientations of the
+    cells on either side (a flat cloth's inner edges weigh 0 and are skipped; a fold line 2);
+    segments and disks add their own polygons' edges."""
     height, width = D.shape[0], D.shape[1] - 1
-    r0, r1, c0, c1 = height, 0, width, 0
-    orient = _orientation(verts)
-    for shape in np.flatnonzero(drawn):
-        a0, a1, b0, b1 = _add_polygon_reference(verts[shape], orient[shape], D)
-        if a0 < a1:
-            r0, r1, c0, c1 = min(r0, a0), max(r1, a1), min(c0, b0), max(c1, b1)
+    box = [height, 0, width, 0]
+    orient = _orientation(verts, drawn)
+    if packed.kind[layer] == POLYGONS:
+        for e in range(packed.edge_start[layer], packed.edge_start[layer + 1]):
+            w = 0.0
+            for k in range(packed.incidence_start[e], packed.incidence_start[e + 1]):
+                w = w + orient[packed.incidence[k]] * packed.sense[k]
+            if w != 0.0:
+                lo, hi = packed.edges[e]
+                _add_edge_reference(pixels[lo], pixels[hi], w, D, box)
+    else:
+        for shape in np.flatnonzero(orient):
+            sides = verts.shape[1]
+            for j in range(sides):
+                _add_edge_reference(verts[shape, j], verts[shape, (j + 1) % sides],
+                                    orient[shape], D, box)
+    r0, r1, c0, c1 = box
     if r0 >= r1:
-        return np.zeros((0, 0)), r0, r1, c0, c1
+        return np.zeros((0, 0)), box
     depth = np.cumsum(D[r0:r1, c0:c1 + 1], axis=1)[:, :-1]  # (summed in order, as compiled)
     D[r0:r1, c0:c1 + 1] = 0.0
-    return depth, r0, r1, c0, c1
+    return depth, box
 
 
 def draw_reference(points: np.ndarray, packed: Packed, transform: tuple[float, float, float],
@@ -534,23 +587,25 @@ def draw_reference(points: np.ndarray, packed: Packed, transform: tuple[float, f
     ``transform = (ox, oy, s)`` (pixels, pixels, pixels per metre)."""
     height, width = out.shape[1:3]
     D = np.zeros((height, width + 1))
-    shapes = [_vertices_reference(points[start:stop], packed, layer, transform)
-              for layer in range(len(packed.kind))]
-    for i in range(start, stop):
-        out[i] = background
-        for layer, (verts, drawn) in enumerate(shapes):
-            d, r0, r1, c0, c1 = _layer_reference(verts[i - start], drawn[i - start], D)
-            if r0 >= r1:
-                continue
-            capped = np.minimum(d, float(DEPTH_CAP))
-            sheets = np.floor(capped)
-            T = packed.powers[layer][sheets.astype(np.int64).clip(0)] * (
-                1.0 - packed.alpha[layer] * (capped - sheets))
-            a = 1.0 - T
-            old = out[i, r0:r1, c0:c1].astype(np.float64)
-            new = old + (packed.colour[layer] - old) * a[..., None]
-            new = np.minimum(np.floor(new + 0.5), 255.0).astype(np.uint8)
-            out[i, r0:r1, c0:c1] = np.where((d > EMPTY)[..., None], new, out[i, r0:r1, c0:c1])
+    with np.errstate(all="ignore"):  # (positions not finite or far: those shapes are skipped)
+        pixels = _pixels_reference(points[start:stop], transform)
+        shapes = [_shapes_reference(pixels, packed, layer) for layer in range(len(packed.kind))]
+        for i in range(start, stop):
+            out[i] = background
+            for layer, (verts, drawn) in enumerate(shapes):
+                d, (r0, r1, c0, c1) = _layer_reference(pixels[i - start], packed, layer,
+                                                       verts[i - start], drawn[i - start], D)
+                if r0 >= r1:
+                    continue
+                capped = np.minimum(d, float(DEPTH_CAP))
+                sheets = np.floor(capped)
+                T = packed.powers[layer][sheets.astype(np.int64).clip(0)] * (
+                    1.0 - packed.alpha[layer] * (capped - sheets))
+                a = 1.0 - T
+                old = out[i, r0:r1, c0:c1].astype(np.float64)
+                new = old + (packed.colour[layer] - old) * a[..., None]
+                new = np.minimum(np.floor(new + 0.5), 255.0).astype(np.uint8)
+                out[i, r0:r1, c0:c1] = np.where((d > EMPTY)[..., None], new, old)
 
 
 def union_reference(points: np.ndarray, packed: Packed, transform: tuple[float, float, float],
@@ -559,19 +614,22 @@ def union_reference(points: np.ndarray, packed: Packed, transform: tuple[float, 
     (m^2) of the union of layer 0's polygons into ``areas``, and the per-pixel fractions into
     ``maps`` (N, H, W) unless it has no copies (its shape gives H and W)."""
     D = np.zeros((maps.shape[1], maps.shape[2] + 1))
-    verts, drawn = _vertices_reference(points[start:stop], packed, 0, transform)
     s = transform[2]
-    for i in range(start, stop):
-        if maps.shape[0]:
-            maps[i] = 0.0
-        d, r0, r1, c0, c1 = _layer_reference(verts[i - start], drawn[i - start], D)
-        if r0 >= r1:
-            areas[i] = 0.0
-            continue
-        fraction = np.where(d > EMPTY, np.minimum(d, 1.0), 0.0)
-        areas[i] = np.cumsum(fraction.ravel())[-1] / (s * s)  # (summed in order, as compiled)
-        if maps.shape[0]:
-            maps[i, r0:r1, c0:c1] = fraction
+    with np.errstate(all="ignore"):  # (positions not finite or far: those cells are skipped)
+        pixels = _pixels_reference(points[start:stop], transform)
+        verts, drawn = _shapes_reference(pixels, packed, 0)
+        for i in range(start, stop):
+            if maps.shape[0]:
+                maps[i] = 0.0
+            d, (r0, r1, c0, c1) = _layer_reference(pixels[i - start], packed, 0,
+                                                   verts[i - start], drawn[i - start], D)
+            if r0 >= r1:
+                areas[i] = 0.0
+                continue
+            fraction = np.where(d > EMPTY, np.minimum(d, 1.0), 0.0)
+            areas[i] = np.cumsum(fraction.ravel())[-1] / (s * s)  # (in order, as compiled)
+            if maps.shape[0]:
+                maps[i, r0:r1, c0:c1] = fraction
 
 
 # ------------------------------------------------------------------------ compiled entries
@@ -592,27 +650,19 @@ if kernels.ENABLED:
         return (fb - fa) / du
 
     @njit
-    def _vertices(points: np.ndarray, i: int, index: np.ndarray, base: int, kind: int,
-                  arity: int, size: float, sides: int, units: np.ndarray, layer: int,
-                  transform: tuple[float, float, float], verts: np.ndarray
-                  ) -> int:  # pragma: no cover - compiled
-        """Write the shape whose indices start at ``index[base]``, of layer ``layer`` (its
-        ``kind``, ``arity``, ``size``, ``sides``), in copy ``i`` into ``verts`` (pixels) as
-        :func:`_vertices_reference` does; return its vertex count, 0 when it is skipped.
-        (The packed record's fields arrive one by one: reading arrays out of a record inside
-        the loops costs Numba a reference count each time, some 20 times the work.)"""
-        ox, oy, s = transform
-        if kind == POLYGONS:
-            count = arity
-            for j in range(arity):
-                q = index[base + j]
-                verts[j, 0] = ox + s * points[i, q, 0]
-                verts[j, 1] = oy - s * points[i, q, 1]
-        elif kind == SEGMENTS:
+    def _vertices(pixels: np.ndarray, index: np.ndarray, base: int, kind: int, size: float,
+                  sides: int, units: np.ndarray, layer: int,
+                  verts: np.ndarray) -> int:  # pragma: no cover - compiled
+        """The segment or disk whose indices start at ``index[base]`` (``kind``; its layer's
+        ``size``, ``sides`` and ``units``) in ``verts`` (pixels), from one copy's ``pixels``
+        (n, 2), as :func:`_shapes_reference` makes them; returns the vertex count, 0 when the
+        shape is skipped. (The packed record's fields arrive one by one: reading arrays out of
+        a record inside the loops costs Numba a reference count each time, some 20 times the
+        work.)"""
+        if kind == SEGMENTS:
             count = 4
             a, b = index[base], index[base + 1]
-            ax, ay = ox + s * points[i, a, 0], oy - s * points[i, a, 1]
-            bx, by = ox + s * points[i, b, 0], oy - s * points[i, b, 1]
+            ax, ay, bx, by = pixels[a, 0], pixels[a, 1], pixels[b, 0], pixels[b, 1]
             dx, dy = bx - ax, by - ay
             length = math.sqrt(dx * dx + dy * dy)
             if not length > 0.0:
@@ -625,7 +675,7 @@ if kernels.ENABLED:
         else:
             count = sides
             c = index[base]
-            cx, cy = ox + s * points[i, c, 0], oy - s * points[i, c, 1]
+            cx, cy = pixels[c, 0], pixels[c, 1]
             for j in range(count):
                 verts[j, 0] = cx + size * units[layer, j, 0]
                 verts[j, 1] = cy + size * units[layer, j, 1]
@@ -635,65 +685,104 @@ if kernels.ENABLED:
         return count
 
     @njit
-    def _add_polygon(verts: np.ndarray, count: int, D: np.ndarray,
-                     box: np.ndarray) -> None:  # pragma: no cover - compiled
-        """:func:`_add_polygon_reference` of ``verts[:count]`` (its orientation computed here,
-        as :func:`_orientation` does), growing ``box`` (r0, r1, c0, c1)."""
+    def _add_edge(ax: float, ay: float, bx: float, by: float, w: float, D: np.ndarray,
+                  rows: np.ndarray, span: np.ndarray) -> None:  # pragma: no cover - compiled
+        """:func:`_add_edge_reference` of the edge from ``(ax, ay)`` to ``(bx, by)``, growing
+        ``rows`` (r0, r1), the rows written, and ``span[r]`` (c0, c1), the columns written
+        in row r (the running sums then skip the rest of the layer's box, where ``D`` is 0 and
+        the depth stays below :data:`EMPTY`: the same bytes)."""
         height, width = D.shape[0], D.shape[1] - 1
-        twice = 0.0
-        xmin, xmax, ymin, ymax = verts[0, 0], verts[0, 0], verts[0, 1], verts[0, 1]
-        for e in range(count):
-            f = e + 1 if e + 1 < count else 0
-            twice = twice + (verts[e, 0] * verts[f, 1] - verts[f, 0] * verts[e, 1])
-            xmin, xmax = min(xmin, verts[e, 0]), max(xmax, verts[e, 0])
-            ymin, ymax = min(ymin, verts[e, 1]), max(ymax, verts[e, 1])
-        c0, c1 = max(0, math.floor(xmin)), min(width, math.ceil(xmax))
-        r0, r1 = max(0, math.floor(ymin)), min(height, math.ceil(ymax))
-        if c0 >= c1 or r0 >= r1 or twice == 0.0:
+        if abs(by - ay) < FLAT:
             return
-        orient = 1.0 if twice > 0.0 else -1.0
-        box[0], box[1] = min(box[0], r0), max(box[1], r1)
-        box[2], box[3] = min(box[2], c0), max(box[3], c1)
-        for e in range(count):
-            ax, ay = verts[e, 0], verts[e, 1]
-            f = e + 1 if e + 1 < count else 0
-            bx, by = verts[f, 0], verts[f, 1]
-            if abs(by - ay) < FLAT:
+        top, bottom, sign = (ay, by, 1.0) if ay < by else (by, ay, -1.0)
+        slope = (bx - ax) / (by - ay)
+        for r in range(max(0, math.floor(top)), min(height, math.ceil(bottom))):
+            lo, hi = max(top, float(r)), min(bottom, float(r + 1))
+            if not hi > lo:
                 continue
-            top, bottom, sign = (ay, by, 1.0) if ay < by else (by, ay, -1.0)
-            slope = (bx - ax) / (by - ay)
-            for r in range(max(r0, math.floor(top)), min(r1, math.ceil(bottom))):
-                lo, hi = max(top, float(r)), min(bottom, float(r + 1))
-                if not hi > lo:
-                    continue
-                xl, xh = ax + (lo - ay) * slope, ax + (hi - ay) * slope
-                h = orient * sign * (hi - lo)
-                first = max(math.floor(min(max(min(xl, xh), -1.0), width + 1.0)), 0)
-                if first > width - 1:
-                    continue
-                edge = math.ceil(min(max(max(xl, xh), -1.0), width + 1.0))
-                prev = 0.0
-                for c in range(first, min(edge, width) + 1):
-                    g = h * (_mean_clamp(xl - c, xh - c) - 1.0) if c < edge else -h
-                    D[r, c] += g - prev
-                    prev = g
+            xl, xh = ax + (lo - ay) * slope, ax + (hi - ay) * slope
+            h = w * sign * (hi - lo)
+            first = max(math.floor(min(max(min(xl, xh), -1.0), width + 1.0)), 0)
+            if first > width - 1:
+                continue
+            edge = math.ceil(min(max(max(xl, xh), -1.0), width + 1.0))
+            last = min(edge, width)
+            rows[0], rows[1] = min(rows[0], r), max(rows[1], r + 1)
+            span[r, 0], span[r, 1] = min(span[r, 0], first), max(span[r, 1], last)
+            prev = 0.0
+            for c in range(first, last + 1):
+                g = h * (_mean_clamp(xl - c, xh - c) - 1.0) if c < edge else -h
+                D[r, c] += g - prev
+                prev = g
 
     @njit
-    def _layer(points: np.ndarray, i: int, packed: tuple, layer: int,
-               transform: tuple[float, float, float], D: np.ndarray, verts: np.ndarray,
-               box: np.ndarray) -> None:  # pragma: no cover - compiled
-        """Every shape of ``layer`` in copy ``i`` into ``D``; ``box`` (r0, r1, c0, c1) the
-        pixels covered (empty: ``r0 >= r1``). The caller sums ``D`` along rows and zeroes it.
-        ``packed`` is a :class:`Packed` as a plain tuple."""
-        kind, count, arity, start, index, size, _, _, sides, units, _ = packed
-        box[0], box[1], box[2], box[3] = D.shape[0], 0, D.shape[1] - 1, 0
+    def _layer(pixels: np.ndarray, packed: tuple, layer: int, orient: np.ndarray,
+               D: np.ndarray, verts: np.ndarray, rows: np.ndarray,
+               span: np.ndarray) -> None:  # pragma: no cover - compiled
+        """:func:`_layer_reference` up to the running sums: every shape of ``layer`` in one
+        copy (``pixels`` (n, 2)) into ``D``, ``rows`` (r0, r1) the rows written (empty: ``r0
+        >= r1``) and ``span[r]`` (c0, c1) the columns ``[c0, c1]`` of row r. The caller sums
+        ``D`` along the rows and zeroes it and ``span`` (to ``(W, 0)``). ``packed`` is a
+        :class:`Packed` as a plain tuple."""
+        (kind, count, arity, start, index, size, _, _, sides, units, _, edges, edge_start,
+         incidence, sense, incidence_start) = packed
+        rows[0], rows[1] = D.shape[0], 0
         k, m, step, first = kind[layer], count[layer], arity[layer], start[layer]
-        radius, corners = size[layer], sides[layer]
+        if k == POLYGONS:
+            for cell in range(m):
+                twice, inside = 0.0, True
+                for j in range(step):
+                    p = index[first + cell * step + j]
+                    q = index[first + cell * step + (j + 1 if j + 1 < step else 0)]
+                    twice = twice + (pixels[p, 0] * pixels[q, 1] - pixels[q, 0] * pixels[p, 1])
+                    inside = inside and abs(pixels[p, 0]) <= FAR and abs(pixels[p, 1]) <= FAR
+                orient[cell] = 0.0 if not inside or twice == 0.0 else (
+                    1.0 if twice > 0.0 else -1.0)
+            for e in range(edge_start[layer], edge_start[layer + 1]):
+                w = 0.0
+                for j in range(incidence_start[e], incidence_start[e + 1]):
+                    w = w + orient[incidence[j]] * sense[j]
+                if w != 0.0:
+                    a, b = edges[e, 0], edges[e, 1]
+                    _add_edge(pixels[a, 0], pixels[a, 1], pixels[b, 0], pixels[b, 1], w, D,
+                              rows, span)
+            return
         for shape in range(m):
-            n = _vertices(points, i, index, first + shape * step, k, step, radius, corners,
-                          units, layer, transform, verts)
-            if n > 0:
-                _add_polygon(verts, n, D, box)
+            n = _vertices(pixels, index, first + shape * step, k, size[layer], sides[layer],
+                          units, layer, verts)
+            twice = 0.0
+            for j in range(n):
+                f = j + 1 if j + 1 < n else 0
+                twice = twice + (verts[j, 0] * verts[f, 1] - verts[f, 0] * verts[j, 1])
+            if n == 0 or twice == 0.0:
+                continue
+            w = 1.0 if twice > 0.0 else -1.0
+            for j in range(n):
+                f = j + 1 if j + 1 < n else 0
+                _add_edge(verts[j, 0], verts[j, 1], verts[f, 0], verts[f, 1], w, D, rows,
+                          span)
+
+    @njit
+    def _scratch(height: int, width: int, points: np.ndarray, count: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                            np.ndarray]:  # pragma: no cover - compiled
+        """The working arrays of one call: the row differences ``D`` (H, W + 1), a shape's
+        vertices, the rows written, each row's columns written (``(W, 0)``: none), one copy's
+        points in pixels, the orientations of a layer's cells."""
+        span = np.empty((height, 2), dtype=np.int64)
+        span[:, 0], span[:, 1] = width, 0
+        return (np.zeros((height, width + 1)), np.zeros((MAX_SIDES, 2)),
+                np.zeros(2, dtype=np.int64), span, np.zeros((points.shape[1], 2)),
+                np.zeros(max(count.max(), 1) if count.shape[0] else 1))
+
+    @njit
+    def _pixels(points: np.ndarray, i: int, transform: tuple[float, float, float],
+                pixels: np.ndarray) -> None:  # pragma: no cover - compiled
+        """Copy ``i``'s points in pixel coordinates, as :func:`_pixels_reference`."""
+        ox, oy, s = transform
+        for q in range(points.shape[1]):
+            pixels[q, 0] = ox + s * points[i, q, 0]
+            pixels[q, 1] = oy - s * points[i, q, 1]
 
     @njit(nogil=True)
     def _draw_range(points: np.ndarray, packed: tuple, transform: tuple[float, float, float],
@@ -701,30 +790,31 @@ if kernels.ENABLED:
                     stop: int) -> None:  # pragma: no cover - compiled
         """Compiled :func:`draw_reference` (``packed``: a :class:`Packed` as a plain tuple)."""
         height, width, channels = out.shape[1], out.shape[2], out.shape[3]
-        alphas, colours, powers = packed[6], packed[7], packed[10]
-        D = np.zeros((height, width + 1))
-        verts = np.zeros((MAX_SIDES, 2))
-        box = np.zeros(4, dtype=np.int64)
+        count, alphas, colours, powers = packed[1], packed[6], packed[7], packed[10]
+        D, verts, rows, span, pixels, orient = _scratch(height, width, points, count)
         flat = background.reshape(height * width * channels)
         for i in range(start, stop):
-            out[i].reshape(height * width * channels)[:] = flat
+            image = out[i].reshape(height * width * channels)
+            image[:] = flat
+            _pixels(points, i, transform, pixels)
             for layer in range(alphas.shape[0]):
-                _layer(points, i, packed, layer, transform, D, verts, box)
+                _layer(pixels, packed, layer, orient, D, verts, rows, span)
                 alpha = alphas[layer]
-                for r in range(box[0], box[1]):
+                for r in range(rows[0], rows[1]):
                     d = 0.0
-                    for c in range(box[2], box[3] + 1):
+                    for c in range(span[r, 0], span[r, 1] + 1):
                         d += D[r, c]
                         D[r, c] = 0.0
-                        if d > EMPTY and c < box[3]:
+                        if d > EMPTY and c < span[r, 1]:
                             capped = min(d, float(DEPTH_CAP))
                             sheets = int(capped)
-                            a = 1.0 - powers[layer, sheets] * (
-                                1.0 - alpha * (capped - sheets))
+                            a = 1.0 - powers[layer, sheets] * (1.0 - alpha * (capped - sheets))
+                            at = (r * width + c) * channels
                             for ch in range(channels):
-                                old = float(out[i, r, c, ch])
+                                old = float(image[at + ch])
                                 new = old + (colours[layer, ch] - old) * a
-                                out[i, r, c, ch] = min(int(new + 0.5), 255)
+                                image[at + ch] = min(int(new + 0.5), 255)
+                    span[r, 0], span[r, 1] = width, 0
 
     @njit(nogil=True)
     def _union_range(points: np.ndarray, packed: tuple, transform: tuple[float, float, float],
@@ -732,23 +822,24 @@ if kernels.ENABLED:
                      stop: int) -> None:  # pragma: no cover - compiled
         """Compiled :func:`union_reference` (``packed``: a :class:`Packed` as a plain
         tuple)."""
-        D = np.zeros((maps.shape[1], maps.shape[2] + 1))
-        verts = np.zeros((MAX_SIDES, 2))
-        box = np.zeros(4, dtype=np.int64)
+        width = maps.shape[2]
+        D, verts, rows, span, pixels, orient = _scratch(maps.shape[1], width, points, packed[1])
         s = transform[2]
         for i in range(start, stop):
             if maps.shape[0]:
                 maps[i] = 0.0
-            _layer(points, i, packed, 0, transform, D, verts, box)
+            _pixels(points, i, transform, pixels)
+            _layer(pixels, packed, 0, orient, D, verts, rows, span)
             total = 0.0
-            for r in range(box[0], box[1]):
+            for r in range(rows[0], rows[1]):
                 d = 0.0
-                for c in range(box[2], box[3] + 1):
+                for c in range(span[r, 0], span[r, 1] + 1):
                     d += D[r, c]
                     D[r, c] = 0.0
-                    if c < box[3]:
+                    if c < span[r, 1]:
                         fraction = min(d, 1.0) if d > EMPTY else 0.0
                         total += fraction
                         if maps.shape[0]:
                             maps[i, r, c] = fraction
+                span[r, 0], span[r, 1] = width, 0
             areas[i] = total / (s * s)
