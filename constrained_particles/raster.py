@@ -225,7 +225,10 @@ def _layer_row(layer: Layer, number: int, scale: float, channels: int
     if layer.kind not in KINDS:
         raise ValueError(f"{where}.kind must be one of {sorted(KINDS)}, got {layer.kind!r}")
     kind = KINDS[layer.kind]
-    index = np.asarray(layer.index)
+    try:
+        index = np.asarray(layer.index)
+    except ValueError as exc:  # (ragged)
+        raise ValueError(f"{where}.index must be a rectangular array of integers") from exc
     if index.dtype.kind not in "iu" and index.size:
         raise ValueError(f"{where}.index must hold integers, got dtype {index.dtype}")
     index = index.astype(np.int64)
@@ -415,7 +418,10 @@ def coverage(points: Any, cells: Any, view: View, *, maps: bool = False
     """
     if not isinstance(view, View):
         raise ValueError(f"view must be a raster.View, got {type(view).__name__}")
-    cells = np.asarray(cells)
+    try:
+        cells = np.asarray(cells)
+    except ValueError as exc:  # (ragged)
+        raise ValueError("cells must be a rectangular (m, k) array of integers") from exc
     if cells.ndim != 2:
         raise ValueError(f"cells must have shape (m, k), got {cells.shape}")
     packed = pack([Layer("polygons", cells, (0, 0, 0))], view.scale, 1)
@@ -530,11 +536,16 @@ def _add_edge_reference(a: np.ndarray, b: np.ndarray, w: float, D: np.ndarray,
     h = w * sign * (hi - lo)
     first = np.maximum(np.floor(np.clip(np.minimum(xl, xh), -1.0, width + 1.0)), 0.0)
     edge = np.ceil(np.clip(np.maximum(xl, xh), -1.0, width + 1.0))
-    last = np.minimum(edge, float(width))
+    last = np.maximum(np.minimum(edge, float(width)), first)  # (left of the image: column 0)
     live = (hi > lo) & (first <= width - 1)
+    right = (hi > lo) & (first > width - 1)  # right of the image: the depth runs on to its edge
+    if (live | right).any():
+        written = rows[live | right]
+        box[0], box[1] = min(box[0], int(written.min())), max(box[1], int(written.max()) + 1)
+    if right.any():
+        box[3] = width
     if not live.any():
         return
-    box[0], box[1] = min(box[0], int(rows[live].min())), max(box[1], int(rows[live].max()) + 1)
     box[2], box[3] = min(box[2], int(first[live].min())), max(box[3], int(last[live].max()))
     runs = np.where(live, last - first + 1.0, 0.0).astype(np.int64)
     pick = np.repeat(np.arange(len(rows)), runs)
@@ -703,10 +714,12 @@ if kernels.ENABLED:
             xl, xh = ax + (lo - ay) * slope, ax + (hi - ay) * slope
             h = w * sign * (hi - lo)
             first = max(math.floor(min(max(min(xl, xh), -1.0), width + 1.0)), 0)
-            if first > width - 1:
+            if first > width - 1:  # right of the image: the depth runs on to its edge
+                rows[0], rows[1] = min(rows[0], r), max(rows[1], r + 1)
+                span[r, 1] = width
                 continue
             edge = math.ceil(min(max(max(xl, xh), -1.0), width + 1.0))
-            last = min(edge, width)
+            last = max(min(edge, width), first)
             rows[0], rows[1] = min(rows[0], r), max(rows[1], r + 1)
             span[r, 0], span[r, 1] = min(span[r, 0], first), max(span[r, 1], last)
             prev = 0.0
