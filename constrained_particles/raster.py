@@ -444,6 +444,58 @@ def coverage_bound(perimeter: float, pieces: int, view: View) -> float:
     return math.sqrt(2.0) * perimeter * h + pieces * h * h
 
 
+# ------------------------------------------------------------------------ scalar geometry
+# Plain Python on floats, called as they are by the reference and compiled by Numba for the
+# compiled entries: one formula, the same operations in the same order, the same bits.
+def crossing(ax: float, ay: float, bx: float, by: float, cx: float, cy: float, dx: float,
+             dy: float) -> float:
+    """Where segment AB properly crosses segment CD, as the fraction ``t`` of the way from A
+    to B (``X = A + t (B - A)``), or -1 when they do not cross (touching does not count)."""
+    d1 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # C, D on either side of line AB
+    d2 = (bx - ax) * (dy - ay) - (by - ay) * (dx - ax)
+    d3 = (dx - cx) * (ay - cy) - (dy - cy) * (ax - cx)  # A, B on either side of line CD
+    d4 = (dx - cx) * (by - cy) - (dy - cy) * (bx - cx)
+    if d1 * d2 < 0.0 and d3 * d4 < 0.0:
+        return d3 / (d3 - d4)
+    return -1.0
+
+
+def lobes(q: np.ndarray) -> tuple[bool, np.ndarray]:
+    """Whether the quad ``q`` (4, 2) is turned inside out (a bow-tie: AB crosses CD, or BC
+    crosses DA) and, if so, its two lobes as triangles (2, 3, 2). A cell whose side crosses
+    the opposite one covers both lobes once; by its winding number one lobe would count
+    negative."""
+    ax, ay, bx, by = q[0, 0], q[0, 1], q[1, 0], q[1, 1]
+    cx, cy, dx, dy = q[2, 0], q[2, 1], q[3, 0], q[3, 1]
+    out = np.zeros((2, 3, 2))
+    corners = np.zeros((5, 2))  # A, B, C, D and the crossing X
+    corners[:4] = q[:4]
+    t = crossing(ax, ay, bx, by, cx, cy, dx, dy)
+    if t >= 0.0:
+        corners[4, 0], corners[4, 1] = ax + t * (bx - ax), ay + t * (by - ay)
+        order = ((4, 1, 2), (4, 3, 0))  # XBC and XDA
+    else:
+        t = crossing(bx, by, cx, cy, dx, dy, ax, ay)
+        if t < 0.0:
+            return False, out
+        corners[4, 0], corners[4, 1] = bx + t * (cx - bx), by + t * (cy - by)
+        order = ((0, 1, 4), (4, 2, 3))  # ABX and XCD
+    for k in range(2):
+        for j in range(3):
+            out[k, j, 0], out[k, j, 1] = corners[order[k][j], 0], corners[order[k][j], 1]
+    return True, out
+
+
+def turn(p: np.ndarray, count: int) -> float:
+    """+1 or -1, the sign of the signed area of polygon ``p[:count]`` (pixels), 0 for none:
+    the weight that makes its coverage positive whichever way round it goes."""
+    twice = 0.0
+    for e in range(count):
+        f = e + 1 if e + 1 < count else 0
+        twice = twice + (p[e, 0] * p[f, 1] - p[f, 0] * p[e, 1])
+    return 0.0 if twice == 0.0 else (1.0 if twice > 0.0 else -1.0)
+
+
 # ------------------------------------------------------------------------ numpy reference
 def _ramp(u: np.ndarray) -> np.ndarray:
     """The integral of ``clamp(t, 0, 1)`` from 0 to ``u``."""
@@ -564,12 +616,20 @@ def _layer_reference(pixels: np.ndarray, packed: Packed, layer: int, verts: np.n
     ``[r0, r1, c0, c1]`` (rows ``[r0, r1)``, columns ``[c0, c1)``), and leaves ``D`` zero.
 
     A polygon layer adds each edge of its cells once, weighted by the orientations of the
-    cells on either side (a flat cloth's inner edges weigh 0 and are skipped; a fold line 2);
-    segments and disks add their own polygons' edges."""
+    cells on either side (a flat cloth's inner edges weigh 0 and are skipped; a fold line 2),
+    and a quad turned inside out as its two lobes (:func:`lobes`); segments and disks add
+    their own polygons' edges."""
     height, width = D.shape[0], D.shape[1] - 1
     box = [height, 0, width, 0]
     orient = _orientation(verts, drawn)
+    tangled = []
     if packed.kind[layer] == POLYGONS:
+        if verts.shape[1] == 4:  # bow-ties: out of the shared edges, drawn as their two lobes
+            for cell in np.flatnonzero(orient):
+                twisted, parts = lobes(verts[cell])
+                if twisted:
+                    orient[cell] = 0.0
+                    tangled.append(parts)
         for e in range(packed.edge_start[layer], packed.edge_start[layer + 1]):
             w = 0.0
             for k in range(packed.incidence_start[e], packed.incidence_start[e + 1]):
@@ -577,6 +637,11 @@ def _layer_reference(pixels: np.ndarray, packed: Packed, layer: int, verts: np.n
             if w != 0.0:
                 lo, hi = packed.edges[e]
                 _add_edge_reference(pixels[lo], pixels[hi], w, D, box)
+        for parts in tangled:
+            for part in parts:
+                w = turn(part, 3)
+                for j in range(3 if w else 0):
+                    _add_edge_reference(part[j], part[(j + 1) % 3], w, D, box)
     else:
         for shape in np.flatnonzero(orient):
             sides = verts.shape[1]
@@ -648,7 +713,13 @@ _draw_range = None  #: compiled :func:`draw_reference`, or None when the compile
 _union_range = None  #: compiled :func:`union_reference`, or None
 
 if kernels.ENABLED:
+    from numba.extending import register_jitable
+
     from .jit import njit
+
+    register_jitable(crossing)  # (for lobes, compiled as it is)
+    _lobes = njit(lobes)
+    _turn = njit(turn)
 
     @njit
     def _mean_clamp(ua: float, ub: float) -> float:  # pragma: no cover - compiled
@@ -730,7 +801,7 @@ if kernels.ENABLED:
 
     @njit
     def _layer(pixels: np.ndarray, packed: tuple, layer: int, orient: np.ndarray,
-               D: np.ndarray, verts: np.ndarray, rows: np.ndarray,
+               tangled: np.ndarray, D: np.ndarray, verts: np.ndarray, rows: np.ndarray,
                span: np.ndarray) -> None:  # pragma: no cover - compiled
         """:func:`_layer_reference` up to the running sums: every shape of ``layer`` in one
         copy (``pixels`` (n, 2)) into ``D``, ``rows`` (r0, r1) the rows written (empty: ``r0
@@ -751,6 +822,14 @@ if kernels.ENABLED:
                     inside = inside and abs(pixels[p, 0]) <= FAR and abs(pixels[p, 1]) <= FAR
                 orient[cell] = 0.0 if not inside or twice == 0.0 else (
                     1.0 if twice > 0.0 else -1.0)
+                tangled[cell] = False
+                if step == 4 and orient[cell] != 0.0:
+                    for j in range(4):
+                        p = index[first + cell * step + j]
+                        verts[j, 0], verts[j, 1] = pixels[p, 0], pixels[p, 1]
+                    twisted, _ = _lobes(verts)
+                    if twisted:
+                        orient[cell], tangled[cell] = 0.0, True
             for e in range(edge_start[layer], edge_start[layer + 1]):
                 w = 0.0
                 for j in range(incidence_start[e], incidence_start[e + 1]):
@@ -759,6 +838,19 @@ if kernels.ENABLED:
                     a, b = edges[e, 0], edges[e, 1]
                     _add_edge(pixels[a, 0], pixels[a, 1], pixels[b, 0], pixels[b, 1], w, D,
                               rows, span)
+            for cell in range(m):
+                if not tangled[cell]:
+                    continue
+                for j in range(4):
+                    p = index[first + cell * step + j]
+                    verts[j, 0], verts[j, 1] = pixels[p, 0], pixels[p, 1]
+                _, parts = _lobes(verts)
+                for part in parts:
+                    w = _turn(part, 3)
+                    for j in range(3 if w != 0.0 else 0):
+                        f = j + 1 if j + 1 < 3 else 0
+                        _add_edge(part[j, 0], part[j, 1], part[f, 0], part[f, 1], w, D, rows,
+                                  span)
             return
         for shape in range(m):
             n = _vertices(pixels, index, first + shape * step, k, size[layer], sides[layer],
@@ -778,15 +870,16 @@ if kernels.ENABLED:
     @njit
     def _scratch(height: int, width: int, points: np.ndarray, count: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                            np.ndarray]:  # pragma: no cover - compiled
+                            np.ndarray, np.ndarray]:  # pragma: no cover - compiled
         """The working arrays of one call: the row differences ``D`` (H, W + 1), a shape's
         vertices, the rows written, each row's columns written (``(W, 0)``: none), one copy's
-        points in pixels, the orientations of a layer's cells."""
+        points in pixels, the orientations of a layer's cells and which are bow-ties."""
         span = np.empty((height, 2), dtype=np.int64)
         span[:, 0], span[:, 1] = width, 0
+        most = max(count.max(), 1) if count.shape[0] else 1
         return (np.zeros((height, width + 1)), np.zeros((MAX_SIDES, 2)),
                 np.zeros(2, dtype=np.int64), span, np.zeros((points.shape[1], 2)),
-                np.zeros(max(count.max(), 1) if count.shape[0] else 1))
+                np.zeros(most), np.zeros(most, dtype=np.bool_))
 
     @njit
     def _pixels(points: np.ndarray, i: int, transform: tuple[float, float, float],
@@ -804,14 +897,14 @@ if kernels.ENABLED:
         """Compiled :func:`draw_reference` (``packed``: a :class:`Packed` as a plain tuple)."""
         height, width, channels = out.shape[1], out.shape[2], out.shape[3]
         count, alphas, colours, powers = packed[1], packed[6], packed[7], packed[10]
-        D, verts, rows, span, pixels, orient = _scratch(height, width, points, count)
+        D, verts, rows, span, pixels, orient, tangled = _scratch(height, width, points, count)
         flat = background.reshape(height * width * channels)
         for i in range(start, stop):
             image = out[i].reshape(height * width * channels)
             image[:] = flat
             _pixels(points, i, transform, pixels)
             for layer in range(alphas.shape[0]):
-                _layer(pixels, packed, layer, orient, D, verts, rows, span)
+                _layer(pixels, packed, layer, orient, tangled, D, verts, rows, span)
                 alpha = alphas[layer]
                 for r in range(rows[0], rows[1]):
                     d = 0.0
@@ -836,13 +929,14 @@ if kernels.ENABLED:
         """Compiled :func:`union_reference` (``packed``: a :class:`Packed` as a plain
         tuple)."""
         width = maps.shape[2]
-        D, verts, rows, span, pixels, orient = _scratch(maps.shape[1], width, points, packed[1])
+        D, verts, rows, span, pixels, orient, tangled = _scratch(maps.shape[1], width, points,
+                                                                 packed[1])
         s = transform[2]
         for i in range(start, stop):
             if maps.shape[0]:
                 maps[i] = 0.0
             _pixels(points, i, transform, pixels)
-            _layer(pixels, packed, 0, orient, D, verts, rows, span)
+            _layer(pixels, packed, 0, orient, tangled, D, verts, rows, span)
             total = 0.0
             for r in range(rows[0], rows[1]):
                 d = 0.0

@@ -319,11 +319,14 @@ def test_a_crumpled_cloth_lies_between_and_matches_sampling_within_the_bound(see
     flat_area = (0.1 * (n - 1)) ** 2
     assert 0.1 * flat_area < measured < flat_area
     truth = union_by_sampling(squeeze, cells, view.box, 1000)
-    # the union's boundary is made of cell edges: their total length bounds its perimeter
+    # the union's boundary is made of cell edges: their total length bounds its perimeter,
+    # for the raster's bound and the sampling's (the samples are 1 mm apart)
     lengths = np.linalg.norm(squeeze[cells] - squeeze[np.roll(cells, -1, 1)], axis=2).sum()
-    sampling = 4 * lengths * 1e-3  # (a sample row or column per edge crossing, 1 mm apart)
+    sampling = math.sqrt(2) * lengths * 1e-3 + cells.size * 1e-6
     assert truth - sampling <= measured <= truth + coverage_bound(lengths, cells.size, view) \
         + sampling
+    finer = coverage(squeeze[None], cells, View(view.box, height=512, width=512))[0]
+    assert truth - sampling <= finer <= measured + 1e-12
 
 
 def test_coverage_does_not_depend_on_where_the_cloth_lies_or_which_way_it_turns():
