@@ -63,8 +63,10 @@ edges, numpy over pixels.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -81,6 +83,8 @@ POLYGONS, SEGMENTS, DISKS = 0, 1, 2
 MAX_SIDES = 64  #: most vertices of one polygon (cells, triangles, the polygon of a disk)
 SAGITTA = 0.05  #: px, how far a disk's polygon may stray from its circle
 DEPTH_CAP = 64  #: layers of one colour beyond which more do not darken a pixel
+SNAP = 1e-9  #: a depth this close to a whole number of sheets (one or more) counts as that number
+TABLED = 4  #: sheets up to which a layer's colours over each byte are tabled (the same bytes)
 EMPTY = 1e-9  #: depth below which a pixel counts as uncovered (below a byte's rounding)
 FAR = 1e9  #: px; a shape with a vertex further than this from the origin (or not finite) is skipped
 #: px; an edge spanning less than this vertically is left out (its area, below this times the
@@ -187,6 +191,7 @@ class Packed(NamedTuple):
     sides: np.ndarray  #: (L,) int64, the vertices of a disk's polygon
     units: np.ndarray  #: (L, MAX_SIDES, 2) float64, a disk polygon's unit vertices
     powers: np.ndarray  #: (L, DEPTH_CAP + 1) float64, ``(1 - alpha)^k``, multiplied in order
+    table: np.ndarray  #: (L, TABLED + 1, 256, C) uint8, a byte under k whole sheets
     edges: np.ndarray  #: (E, 2) int64, the polygon layers' edges, each once: (lo, hi) indices
     edge_start: np.ndarray  #: (L + 1,) int64, layer l's edges are ``edges[edge_start[l]:...]``
     incidence: np.ndarray  #: (I,) int64, the cells (numbered in their layer) along each edge
@@ -213,6 +218,23 @@ def _powers(alpha: float) -> list[float]:
     for _ in range(DEPTH_CAP):
         out.append(out[-1] * (1.0 - alpha))
     return out
+
+
+def _blend(old: np.ndarray, colour: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Bytes ``old`` (..., C) with ``colour`` (C,) laid over at opacity ``a`` (...,), rounded:
+    ``floor(old + (colour - old) a + 1/2)``, at most 255."""
+    old = old.astype(np.float64)
+    new = old + (colour - old) * a[..., None]
+    return np.minimum(np.floor(new + 0.5), 255.0).astype(np.uint8)
+
+
+def _table(alpha: float, colour: np.ndarray) -> np.ndarray:
+    """Each byte (256, C) under k = 0 .. :data:`TABLED` whole sheets of ``colour`` at opacity
+    ``alpha``: :func:`_blend` at ``a = 1 - (1 - alpha)^k``, worked out as for any depth."""
+    powers = _powers(alpha)
+    old = np.repeat(np.arange(256.0)[:, None], len(colour), axis=1)
+    return np.array([_blend(old, colour, np.full(256, 1.0 - powers[k] * (1.0 - alpha * 0.0)))
+                     for k in range(TABLED + 1)])
 
 
 def _layer_row(layer: Layer, number: int, scale: float, channels: int
@@ -300,6 +322,8 @@ def pack(layers: Sequence[Layer], scale: float, channels: int) -> Packed:
                       len(rows), MAX_SIDES, 2),
                   powers=np.array([_powers(r[3]) for r in rows], dtype=np.float64).reshape(
                       len(rows), DEPTH_CAP + 1),
+                  table=np.array([_table(r[3], r[4]) for r in rows], dtype=np.uint8).reshape(
+                      len(rows), TABLED + 1, 256, channels),
                   edges=np.concatenate([e[0] for e in shared] + [np.zeros((0, 2), np.int64)]),
                   edge_start=edge_start.astype(np.int64),
                   incidence=np.array([c for e in shared for cells in e[1] for c in cells],
@@ -339,6 +363,13 @@ def _points(points: Any, packed: Packed) -> np.ndarray:
         raise ValueError(f"points has {p.shape[1]} points per copy but the layers use index "
                          f"{packed.index.max()}")
     return np.ascontiguousarray(p, dtype=np.float64)
+
+
+def _threads(threads: int) -> int:
+    """``threads``, checked."""
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise ValueError(f"threads must be a whole number >= 1, got {threads!r}")
+    return int(threads)
 
 
 def _span(start: int, stop: int | None, copies: int) -> tuple[int, int]:
@@ -384,10 +415,11 @@ class Scene:
         return self.view.height, self.view.width, self.channels
 
     def draw(self, points: Any, out: np.ndarray | None = None, *, start: int = 0,
-             stop: int | None = None) -> np.ndarray:
+             stop: int | None = None, threads: int = 1) -> np.ndarray:
         """Draw copies ``[start, stop)`` (default all) of ``points`` (N, n, 2) (m) into ``out``
         (N, height, width, channels) uint8, C-contiguous (None: a new zeroed array) and return
-        it; other copies of ``out`` are left as they are."""
+        it; other copies of ``out`` are left as they are. ``threads`` > 1 splits the copies
+        into that many ranges drawn at once (the same bytes)."""
         p = _points(points, self.packed)
         if out is None:
             out = np.zeros((p.shape[0], *self.shape), dtype=np.uint8)
@@ -398,15 +430,35 @@ class Scene:
                              f"{(p.shape[0], *self.shape)}, got "
                              f"{getattr(out, 'shape', None)} {getattr(out, 'dtype', type(out))}")
         lo, hi = _span(start, stop, p.shape[0])
+        threads = _threads(threads)
         ox, oy = self.view.origin
         if kernels.ENABLED:  # (a plain tuple: Numba types it faster than a named one)
-            _draw_range(p, tuple(self.packed), (ox, oy, self.view.scale), self.image, out, lo, hi)
+            _split(_draw_range, (p, tuple(self.packed), (ox, oy, self.view.scale), self.image,
+                                 out), lo, hi, threads)
         else:
             draw_reference(p, self.packed, (ox, oy, self.view.scale), self.image, out, lo, hi)
         return out
 
 
-def coverage(points: Any, cells: Any, view: View, *, maps: bool = False
+@functools.cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The threads that draw ranges of copies at once (made once per count)."""
+    return ThreadPoolExecutor(threads, thread_name_prefix="raster")
+
+
+def _split(entry: Any, args: tuple, start: int, stop: int, threads: int) -> None:
+    """``entry(*args, lo, hi)`` over ``[start, stop)``, in ``threads`` ranges at once (the
+    compiled entries release the GIL; each writes only its own copies)."""
+    cuts = np.linspace(start, stop, min(int(threads), max(stop - start, 1)) + 1).astype(int)
+    if len(cuts) <= 2:
+        entry(*args, start, stop)
+        return
+    for job in [_pool(len(cuts) - 1).submit(entry, *args, int(lo), int(hi))
+                for lo, hi in zip(cuts[:-1], cuts[1:], strict=True)]:
+        job.result()
+
+
+def coverage(points: Any, cells: Any, view: View, *, maps: bool = False, threads: int = 1
              ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Area (m^2) of the union of ``cells`` (m, k) (polygons by particle index) of each copy
     of ``points`` (N, n, 2) (m) within the image of ``view``, measured on its pixels: each
@@ -415,6 +467,7 @@ def coverage(points: Any, cells: Any, view: View, *, maps: bool = False
     Never below the true area, and above it by at most :func:`coverage_bound` (see the module
     docstring); exact (to rounding) for cells that do not overlap. With ``maps``, returns
     ``(areas (N,), maps (N, height, width))``, the per-pixel fractions ``min(1, d)``.
+    ``threads`` as in :meth:`Scene.draw`.
     """
     if not isinstance(view, View):
         raise ValueError(f"view must be a raster.View, got {type(view).__name__}")
@@ -426,11 +479,13 @@ def coverage(points: Any, cells: Any, view: View, *, maps: bool = False
         raise ValueError(f"cells must have shape (m, k), got {cells.shape}")
     packed = pack([Layer("polygons", cells, (0, 0, 0))], view.scale, 1)
     p = _points(points, packed)
+    threads = _threads(threads)
     areas = np.zeros(p.shape[0])
     pixels = np.zeros((p.shape[0] if maps else 0, view.height, view.width))
     ox, oy = view.origin
     if kernels.ENABLED:
-        _union_range(p, tuple(packed), (ox, oy, view.scale), pixels, areas, 0, p.shape[0])
+        _split(_union_range, (p, tuple(packed), (ox, oy, view.scale), pixels, areas), 0,
+               p.shape[0], threads)
     else:
         union_reference(p, packed, (ox, oy, view.scale), pixels, areas, 0, p.shape[0])
     return (areas, pixels) if maps else areas
@@ -458,6 +513,14 @@ def crossing(ax: float, ay: float, bx: float, by: float, cx: float, cy: float, d
     if d1 * d2 < 0.0 and d3 * d4 < 0.0:
         return d3 / (d3 - d4)
     return -1.0
+
+
+def twisted(q: np.ndarray) -> bool:
+    """Whether the quad ``q`` (4, 2) is turned inside out: a bow-tie, AB crossing CD or BC
+    crossing DA (as :func:`lobes` finds, without making the lobes)."""
+    return (crossing(q[0, 0], q[0, 1], q[1, 0], q[1, 1], q[2, 0], q[2, 1], q[3, 0], q[3, 1])
+            >= 0.0 or crossing(q[1, 0], q[1, 1], q[2, 0], q[2, 1], q[3, 0], q[3, 1], q[0, 0],
+                               q[0, 1]) >= 0.0)
 
 
 def lobes(q: np.ndarray) -> tuple[bool, np.ndarray]:
@@ -508,8 +571,10 @@ def mean_clamp(ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     du = ub - ua
     with np.errstate(divide="ignore", invalid="ignore"):
         full = (_ramp(ub) - _ramp(ua)) / du
-    mid = np.minimum(np.maximum(0.5 * (ua + ub), 0.0), 1.0)
-    return np.where(np.abs(du) < STRAIGHT, mid, full)
+    mid = 0.5 * (ua + ub)  # (exact within one pixel: no division)
+    within = (ua >= 0.0) & (ua <= 1.0) & (ub >= 0.0) & (ub <= 1.0)
+    return np.where(np.abs(du) < STRAIGHT, np.minimum(np.maximum(mid, 0.0), 1.0),
+                    np.where(within, mid, full))
 
 
 def _pixels_reference(points: np.ndarray, transform: tuple[float, float, float]
@@ -626,10 +691,9 @@ def _layer_reference(pixels: np.ndarray, packed: Packed, layer: int, verts: np.n
     if packed.kind[layer] == POLYGONS:
         if verts.shape[1] == 4:  # bow-ties: out of the shared edges, drawn as their two lobes
             for cell in np.flatnonzero(orient):
-                twisted, parts = lobes(verts[cell])
-                if twisted:
+                if twisted(verts[cell]):
                     orient[cell] = 0.0
-                    tangled.append(parts)
+                    tangled.append(lobes(verts[cell])[1])
         for e in range(packed.edge_start[layer], packed.edge_start[layer + 1]):
             w = 0.0
             for k in range(packed.incidence_start[e], packed.incidence_start[e + 1]):
@@ -673,14 +737,14 @@ def draw_reference(points: np.ndarray, packed: Packed, transform: tuple[float, f
                                                        verts[i - start], drawn[i - start], D)
                 if r0 >= r1:
                     continue
+                whole = np.floor(d + 0.5)
+                d = np.where((whole >= 1.0) & (np.abs(d - whole) <= SNAP), whole, d)
                 capped = np.minimum(d, float(DEPTH_CAP))
                 sheets = np.floor(capped)
                 T = packed.powers[layer][sheets.astype(np.int64).clip(0)] * (
                     1.0 - packed.alpha[layer] * (capped - sheets))
-                a = 1.0 - T
-                old = out[i, r0:r1, c0:c1].astype(np.float64)
-                new = old + (packed.colour[layer] - old) * a[..., None]
-                new = np.minimum(np.floor(new + 0.5), 255.0).astype(np.uint8)
+                old = out[i, r0:r1, c0:c1]
+                new = _blend(old, packed.colour[layer], 1.0 - T)
                 out[i, r0:r1, c0:c1] = np.where((d > EMPTY)[..., None], new, old)
 
 
@@ -717,7 +781,8 @@ if kernels.ENABLED:
 
     from .jit import njit
 
-    register_jitable(crossing)  # (for lobes, compiled as it is)
+    register_jitable(crossing)  # (for lobes and twisted, compiled as they are)
+    _twisted = njit(twisted)
     _lobes = njit(lobes)
     _turn = njit(turn)
 
@@ -727,6 +792,8 @@ if kernels.ENABLED:
         du = ub - ua
         if abs(du) < STRAIGHT:
             return min(max(0.5 * (ua + ub), 0.0), 1.0)
+        if 0.0 <= ua <= 1.0 and 0.0 <= ub <= 1.0:
+            return 0.5 * (ua + ub)
         fa = 0.0 if ua <= 0.0 else (0.5 * ua * ua if ua < 1.0 else ua - 0.5)
         fb = 0.0 if ub <= 0.0 else (0.5 * ub * ub if ub < 1.0 else ub - 0.5)
         return (fb - fa) / du
@@ -808,7 +875,7 @@ if kernels.ENABLED:
         >= r1``) and ``span[r]`` (c0, c1) the columns ``[c0, c1]`` of row r. The caller sums
         ``D`` along the rows and zeroes it and ``span`` (to ``(W, 0)``). ``packed`` is a
         :class:`Packed` as a plain tuple."""
-        (kind, count, arity, start, index, size, _, _, sides, units, _, edges, edge_start,
+        (kind, count, arity, start, index, size, _, _, sides, units, _, _, edges, edge_start,
          incidence, sense, incidence_start) = packed
         rows[0], rows[1] = D.shape[0], 0
         k, m, step, first = kind[layer], count[layer], arity[layer], start[layer]
@@ -827,8 +894,7 @@ if kernels.ENABLED:
                     for j in range(4):
                         p = index[first + cell * step + j]
                         verts[j, 0], verts[j, 1] = pixels[p, 0], pixels[p, 1]
-                    twisted, _ = _lobes(verts)
-                    if twisted:
+                    if _twisted(verts):
                         orient[cell], tangled[cell] = 0.0, True
             for e in range(edge_start[layer], edge_start[layer + 1]):
                 w = 0.0
@@ -896,12 +962,16 @@ if kernels.ENABLED:
                     stop: int) -> None:  # pragma: no cover - compiled
         """Compiled :func:`draw_reference` (``packed``: a :class:`Packed` as a plain tuple)."""
         height, width, channels = out.shape[1], out.shape[2], out.shape[3]
-        count, alphas, colours, powers = packed[1], packed[6], packed[7], packed[10]
+        count, alphas, colours, powers, table = packed[1], packed[6], packed[7], packed[10], \
+            packed[11]
         D, verts, rows, span, pixels, orient, tangled = _scratch(height, width, points, count)
-        flat = background.reshape(height * width * channels)
+        size = height * width * channels
+        flat = background.reshape(size)
+        words = size // 8 * 8  # (copied eight bytes at a time: a byte loop is three times slower)
         for i in range(start, stop):
-            image = out[i].reshape(height * width * channels)
-            image[:] = flat
+            image = out[i].reshape(size)
+            image[:words].view(np.uint64)[:] = flat[:words].view(np.uint64)
+            image[words:] = flat[words:]
             _pixels(points, i, transform, pixels)
             for layer in range(alphas.shape[0]):
                 _layer(pixels, packed, layer, orient, tangled, D, verts, rows, span)
@@ -912,10 +982,16 @@ if kernels.ENABLED:
                         d += D[r, c]
                         D[r, c] = 0.0
                         if d > EMPTY and c < span[r, 1]:
-                            capped = min(d, float(DEPTH_CAP))
+                            at = (r * width + c) * channels
+                            whole = int(d + 0.5)
+                            snap = whole >= 1 and abs(d - whole) <= SNAP
+                            if snap and whole <= TABLED:
+                                for ch in range(channels):
+                                    image[at + ch] = table[layer, whole, image[at + ch], ch]
+                                continue
+                            capped = min(float(whole) if snap else d, float(DEPTH_CAP))
                             sheets = int(capped)
                             a = 1.0 - powers[layer, sheets] * (1.0 - alpha * (capped - sheets))
-                            at = (r * width + c) * channels
                             for ch in range(channels):
                                 old = float(image[at + ch])
                                 new = old + (colours[layer, ch] - old) * a

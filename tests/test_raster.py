@@ -220,9 +220,20 @@ def test_a_copy_gets_the_same_bytes_whatever_the_batch():
     scene.draw(points, out, start=2, stop=5)
     assert np.array_equal(out[2:5], batch[2:5])
     assert np.all(out[:2] == 7) and np.all(out[5:] == 7)
+    assert np.array_equal(scene.draw(points, threads=4), batch)
+    assert np.array_equal(scene.draw(points, threads=20), batch)
     points[4, :, :] = np.nan  # another copy's points change nothing in copy 3
     scene.draw(points, out)
     assert np.array_equal(out[3], batch[3])
+
+
+def test_coverage_is_the_same_on_threads():
+    rng = np.random.default_rng(4)
+    _, points, cells = scene_and_points(rng, 7)
+    view = View((-0.5, -0.5, 0.5, 0.5), height=32, width=32)
+    one = coverage(points, cells, view, maps=True)
+    three = coverage(points, cells, view, maps=True, threads=3)
+    assert np.array_equal(one[0], three[0]) and np.array_equal(one[1], three[1])
 
 
 @pytest.mark.parametrize(("height", "width", "channels"),
@@ -361,13 +372,14 @@ def bad(**change):
     args = {"box": (0.0, 0.0, 1.0, 1.0), "height": 8, "width": 8, "channels": 3,
             "background": (255, 255, 255), "kind": "polygons", "index": [[0, 1, 2]],
             "colour": (1, 2, 3), "opacity": 1.0, "size": 0.1, "unit": "m",
-            "points": np.zeros((1, 3, 2)), "out": None, "start": 0, "stop": None}
+            "points": np.zeros((1, 3, 2)), "out": None, "start": 0, "stop": None, "threads": 1}
     args.update(change)
     view = View(args["box"], height=args["height"], width=args["width"])
     layer = Layer(args["kind"], args["index"], args["colour"], args["opacity"], args["size"],
                   args["unit"])
     scene = Scene([layer], view, channels=args["channels"], background=args["background"])
-    scene.draw(args["points"], args["out"], start=args["start"], stop=args["stop"])
+    scene.draw(args["points"], args["out"], start=args["start"], stop=args["stop"],
+               threads=args["threads"])
 
 
 @pytest.mark.parametrize(("change", "named"), [
@@ -387,6 +399,7 @@ def bad(**change):
     ({"out": np.zeros((1, 8, 8, 3))}, "out"), ({"out": np.zeros((2, 8, 8, 3), np.uint8)}, "out"),
     ({"out": np.zeros((1, 8, 8, 3), np.uint8)[:, ::-1]}, "out"),
     ({"start": -1}, "start"), ({"stop": 2}, "stop"), ({"start": 1.0}, "start"),
+    ({"threads": 0}, "threads"), ({"threads": 1.5}, "threads"),
 ])
 def test_bad_input_is_a_value_error_naming_the_argument(change, named):
     with pytest.raises(ValueError, match=named):
