@@ -7,7 +7,8 @@ two grippers, 0.03 m), in a view ``--box`` metres wide (1.2 m: the cloth spans 2
 pixels). Timed, as medians of alternated rounds (each entry timed once per round, round after
 round, so a change in the machine's load moves them all alike):
 
-- a batch of ``--copies`` images (512) at 64 x 64, RGB and grey, in one call on this thread;
+- a batch of ``--copies`` images (512) at 64 x 64, RGB and grey, in one call on this thread,
+  and RGB split over two threads (``threads=2``);
 - the same batch's coverage (the union of the cells, issue 51) on a 64 x 64 raster;
 - one image (a batch of one) at 64 x 64 RGB against pygame drawing the same cloth system
   (``Renderer.rgb_array``, 600 x 400) and shrinking it to 64 x 64 (``smoothscale``);
@@ -117,6 +118,8 @@ def measure(copies: int, repeats: int, seconds: float, box: float) -> dict[str, 
     one, out_one = points[:1], rgb.draw(points[:1])
     calls = {
         f"batch of {copies}, 64x64 RGB": lambda: rgb.draw(points, out_rgb),
+        f"batch of {copies}, 64x64 RGB, 2 threads": lambda: rgb.draw(points, out_rgb,
+                                                                     threads=2),
         f"batch of {copies}, 64x64 grey": lambda: grey.draw(points, out_grey),
         f"coverage of {copies}, 64x64": lambda: raster.coverage(points, cells, view(64, box)),
         "one image, 64x64 RGB": lambda: rgb.draw(one, out_one),
@@ -178,13 +181,13 @@ def main() -> None:
         picture(args.picture, args.box)
         return
     figures = measure(args.copies, args.repeats, args.seconds, args.box)
-    print(f"{'entry':<48} {'us per call':>12} {'us per image':>13}")
+    print(f"{'entry':<52} {'us per call':>12} {'us per image':>13}")
     for name, seconds in figures.items():
         if seconds is None:
-            print(f"{name:<48} {'(failed)':>12}")
+            print(f"{name:<52} {'(failed)':>12}")
             continue
         per = args.copies if name.startswith(("batch", "coverage")) else 1
-        print(f"{name:<48} {seconds * 1e6:>12.1f} {seconds * 1e6 / per:>13.2f}")
+        print(f"{name:<52} {seconds * 1e6:>12.1f} {seconds * 1e6 / per:>13.2f}")
     print(json.dumps({"machine": platform.processor() or platform.machine(),
                       "copies": args.copies, "box_m": args.box,
                       "seconds": figures}, indent=1))

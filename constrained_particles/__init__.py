@@ -8,7 +8,7 @@
 >>> s.step(1e-3, method="rk4")
 """
 
-from . import scenes
+from . import raster, scenes
 from .constraints import CircularWire, Constraint, FixedPoint, HorizontalWire, LineWire, Rod
 from .forces import (
                      AngularSpring,
