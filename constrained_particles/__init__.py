@@ -32,5 +32,5 @@ __all__ = [
     "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
     "FixedPoint", "Force", "Gravity", "HorizontalWire", "ImplicitSolveError", "LineWire",
     "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "RattleSolveError", "Rod", "Shape",
-    "SimulationDiverged", "Wall", "force_jacobians", "scenes",
+    "SimulationDiverged", "Wall", "force_jacobians", "raster", "scenes",
 ]
