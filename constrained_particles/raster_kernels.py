@@ -38,7 +38,6 @@ STRAIGHT = 1e-6  #: px; below this change across a pixel the coverage uses the e
 LUMA = (0.299, 0.587, 0.114)  #: the weights of a grey image's channel (ITU-R BT.601)
 
 
-
 class Packed(NamedTuple):
     """A scene's layers as the compiled entries read them (one row per layer)."""
 
@@ -347,11 +346,11 @@ _draw_range = None  #: compiled :func:`draw_reference`, or None when the compile
 _union_range = None  #: compiled :func:`union_reference`, or None
 
 if kernels.ENABLED:
-    from numba.extending import register_jitable
-
     from .jit import njit
 
-    register_jitable(crossing)  # (for lobes and twisted, compiled as they are)
+    # (rebound to its compiled self, which the compiled lobes and twisted call; the
+    # reference's calls then run it compiled too: the same operations, the same bits)
+    crossing = njit(crossing)
     _twisted = njit(twisted)
     _lobes = njit(lobes)
     _turn = njit(turn)
