@@ -8,7 +8,7 @@
 >>> s.step(1e-3, method="rk4")
 """
 
-from . import scenes
+from . import raster, scenes
 from .constraints import CircularWire, Constraint, FixedPoint, HorizontalWire, LineWire, Rod
 from .forces import (
                      AngularSpring,
@@ -33,5 +33,5 @@ __all__ = [
     "AngularSpring", "CircularWire", "ConstantForce", "Constraint", "DampedSpring", "Drag",
     "FixedPoint", "Force", "Gravity", "HorizontalWire", "ImplicitSolveError", "LineWire",
     "METHODS", "MouseSpring", "ORDERS", "ParticleSystem", "RattleSolveError", "Rod", "Shape",
-    "SimulationDiverged", "TableFriction", "Wall", "force_jacobians", "scenes",
+    "SimulationDiverged", "TableFriction", "Wall", "force_jacobians", "raster", "scenes",
 ]
