@@ -78,8 +78,10 @@ def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
                    "--action-mode", mode, "--no-progress")
         if timesteps is not None:
             cmd += ["--timesteps", str(timesteps)]
-        out.mkdir(parents=True, exist_ok=True)
-        with open(out / "train.log", "w") as log:
+        runs.mkdir(parents=True, exist_ok=True)
+        # (beside the run: train takes only a new or empty directory, and renames its own
+        # into place when complete)
+        with open(runs / f"{out.name}.train.log", "w") as log:
             subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT,
                            timeout=timeout)
     config = json.loads((out / "config.json").read_text())

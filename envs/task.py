@@ -140,11 +140,13 @@ SAC_BASE: dict[str, Any] = {
     "ent_coef": "auto"}
 
 
-def ppo(n_timesteps: int, net_arch: tuple[int, ...], **changes: Any) -> dict[str, Any]:
+def ppo(n_timesteps: int, net_arch: tuple[int, ...], log_std_init: float = -0.5,
+        **changes: Any) -> dict[str, Any]:
     """A PPO entry: :data:`PPO_BASE` with ``changes``, ``n_timesteps`` (the default budget, env
-    steps) and an MLP of ``net_arch`` hidden sizes starting from ``log_std_init = -0.5``."""
+    steps) and an MLP of ``net_arch`` hidden sizes whose Gaussian policy starts from a standard
+    deviation of ``exp(log_std_init)`` in action units."""
     return {**PPO_BASE, "n_timesteps": n_timesteps, **changes,
-            "policy_kwargs": {"net_arch": list(net_arch), "log_std_init": -0.5}}
+            "policy_kwargs": {"net_arch": list(net_arch), "log_std_init": log_std_init}}
 
 
 def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256), **changes: Any

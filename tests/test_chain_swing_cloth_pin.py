@@ -219,6 +219,29 @@ def test_scripted_spring_balances_the_push_at_rest():
     assert info["distance"] < 0.2 * task.goal_tolerance
 
 
+def test_plan_distance_credits_the_drawing_on_its_step():
+    """No springs: the plan is the wall's stop. The scripted spring plans the goal, so the
+    drawing step's reward carries the plan's gain, and at rest the plan is where the cloth is."""
+    env = gym.make("ClothPin-v1").unwrapped
+    task = env.task
+    agent = make_agent("scripted", env)
+    obs, _ = env.reset(seed=7)
+    x = task.positions()[0, :task.cloth_n, 0]
+    wall_stop = x.mean() + task.wall_x - x.max()
+    assert task.plan_distance()[0] == pytest.approx(abs(wall_stop - task.goal[0]), abs=1e-12)
+    before = task.plan_distance()[0]
+    obs, reward, _, _, info = env.step(agent(obs))
+    assert info["placed"] and info["plan_distance"] < 0.01
+    assert reward > 10 * (before - info["plan_distance"]) - 1.0
+    terminated = False
+    while not terminated:
+        obs, _, terminated, truncated, info = env.step(agent(obs))
+        assert not truncated
+    for _ in range(200):  # then let it come fully to rest, drawing nothing
+        obs, _, _, _, info = env.step(-np.ones(6, np.float32))
+    assert abs(info["plan_distance"] - info["distance"]) < 0.005
+
+
 def test_chain_walls_limit_the_carrier_and_the_chain_stays_intact():
     """Pressed against a wall, the carrier sits where the wall's spring balances the push:
     penetration ``max_force / kw`` on average (5 N on a 1000 N/m wall: 5 mm)."""
