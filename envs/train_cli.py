@@ -12,6 +12,7 @@ from pathlib import Path
 from constrained_particles.arguments import int_at_least, key_values, new_directory
 from constrained_particles.extras import require
 
+from . import pretrained
 from .task import check_env_kwargs, task_spec, task_specs
 from .train import (
     ALGOS,
@@ -124,7 +125,16 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles evaluate``."""
     parser.description = ("evaluate a run directory that cparticles train wrote, on held-out "
                           f"episodes (rl extra). {TRUST}")
-    parser.add_argument("dir", help="run directory written by cparticles train")
+    parser.add_argument("dir", nargs="?",
+                        help="run directory written by cparticles train (or --pretrained)")
+    shipped = sorted(pretrained.shipped())
+    parser.add_argument("--pretrained", metavar="ENV_ID",
+                        help="evaluate the agent shipped with the package for ENV_ID instead "
+                        "of a run directory (default: none; shipped: "
+                        f"{', '.join(f'{e} ({m})' for e, m in shipped) or 'none'})")
+    parser.add_argument("--action-mode",
+                        help="with --pretrained: the action mode of the shipped agent "
+                        "(default: the env's default mode)")
     parser.add_argument("--episodes", type=int_at_least(1), default=100,
                         help="number of episodes")
     parser.add_argument("--seed-start", type=int_at_least(0), default=HELD_OUT_SEED_START,
@@ -143,7 +153,19 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
                              ) -> None:
-    """Before any work: a run directory :func:`read_run` accepts, then the rl extra."""
+    """Before any work: a run directory :func:`read_run` accepts (given, or the shipped agent
+    that ``--pretrained`` names), then the rl extra."""
+    if (args.dir is None) == (args.pretrained is None):
+        parser.error("give a run directory or --pretrained ENV_ID (one of the two)")
+    if args.action_mode is not None and args.pretrained is None:
+        parser.error("argument --action-mode: only with --pretrained (a run directory has its "
+                     "own)")
+    if args.pretrained is not None:
+        try:
+            args.dir = str(pretrained.pretrained_dir(args.pretrained, args.action_mode))
+        except ValueError as exc:
+            name = "--action-mode" if str(exc).startswith("action_mode") else "--pretrained"
+            parser.error(f"argument {name}: {str(exc).split(': ', 1)[1]}")
     try:
         config = read_run(args.dir, "best" if args.best else "final")
     except ValueError as exc:

@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 
 import envs  # noqa: E402, F401
 from cparticles import cli  # noqa: E402
+from envs import pretrained  # noqa: E402
 from envs.agents import make_agent  # noqa: E402
 from envs.sb3 import to_sb3  # noqa: E402
 from envs.train import load_hyperparams  # noqa: E402
@@ -176,6 +177,33 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     with pytest.raises(SystemExit) as exc:
         cli.main(["evaluate", str(tmp_path / "nothing")])
     assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("key", sorted(pretrained.shipped()))
+def test_every_shipped_agent_still_solves_its_task(key, capsys, monkeypatch):
+    """A shipped agent keeps its published figure on the env as it is now: on 10 held-out
+    episodes its deterministic success is at least 0.7 of the figure in its published.json
+    (100 held-out episodes) (a change to the task that breaks the agent fails here)."""
+    env_id, mode = key
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    assert cli.main(["evaluate", "--pretrained", env_id, "--action-mode", mode,
+                     "--episodes", "10", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (res["env"], res["action_mode"], res["deterministic"]) == (env_id, mode, True)
+    published = json.loads((pretrained.shipped()[key] / "published.json").read_text())
+    assert published["deterministic"]["eval_episodes"] == 100
+    assert res["success_rate"] >= 0.7 * published["deterministic"]["success_rate"]
+
+
+def test_pretrained_names_what_is_shipped(capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    for argv in (["evaluate", "--pretrained", "NoSuchEnv-v0"], ["evaluate"],
+                 ["evaluate", "--pretrained", "ClothPin-v1", "--action-mode", "nope"],
+                 ["evaluate", "somewhere", "--pretrained", "ClothPin-v1"]):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(argv)
+        assert exc.value.code == 2
+        assert "Traceback" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "spring"), ("ClothPin-v1", None)])

@@ -1,0 +1,63 @@
+"""Pretrained agents shipped with the package: ``cparticles evaluate --pretrained ENV_ID``.
+
+Each agent is a run directory of ``cparticles train`` kept under ``envs/pretrained/`` (the
+folder is named ``<env id>-<action mode>``): ``config.json`` (the run's settings, JSON),
+``policy.pt`` (the policy's weights, a PyTorch state dict of tensors read with
+``weights_only``) and, when the run normalized its observations, ``normalization.npz`` (plain
+arrays). Loading one runs no code stored in it, as for any run directory
+(:func:`envs.train.evaluate`); ``evaluations.json`` keeps the run's periodic evaluations and
+``published.json`` its figures on 100 held-out episodes (seeds from 2,000,000), deterministic
+and stochastic, as the baselines table gives them.
+
+>>> from envs.pretrained import shipped
+>>> all(path.is_dir() for path in shipped().values())
+True
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+#: The folder holding the shipped run directories.
+ROOT = Path(__file__).with_name("pretrained")
+
+
+def shipped() -> dict[tuple[str, str], Path]:
+    """The shipped agents: ``{(env id, action mode): run directory}``, read from each folder's
+    ``config.json`` (folders without one are ignored)."""
+    found: dict[tuple[str, str], Path] = {}
+    if not ROOT.is_dir():
+        return found
+    for folder in sorted(ROOT.iterdir()):
+        config = folder / "config.json"
+        if not config.is_file():
+            continue
+        with open(config, encoding="utf-8") as f:
+            data = json.load(f)
+        found[(str(data.get("env")), str(data.get("action_mode")))] = folder
+    return found
+
+
+def pretrained_dir(env_id: str, action_mode: str | None = None) -> Path:
+    """The run directory of the shipped agent for ``env_id`` in ``action_mode`` (default: the
+    env's default mode if an agent is shipped for it, else its only shipped mode). ValueError
+    naming the argument, with what is shipped, when there is none."""
+    agents = shipped()
+    modes = [mode for (env, mode) in agents if env == env_id]
+    if not modes:
+        have = ", ".join(f"{e} ({m})" for e, m in agents) or "none"
+        raise ValueError(f"env_id: no pretrained agent is shipped for {env_id!r} "
+                         f"(shipped: {have})")
+    if action_mode is None:
+        from .task import task_spec
+
+        try:
+            default = task_spec(env_id).action_modes[0]
+        except ValueError:
+            default = modes[0]
+        action_mode = default if default in modes else modes[0]
+    if (env_id, action_mode) not in agents:
+        raise ValueError(f"action_mode: no pretrained agent for {env_id!r} in mode "
+                         f"{action_mode!r} (shipped modes: {', '.join(modes)})")
+    return agents[(env_id, action_mode)]
