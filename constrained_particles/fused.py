@@ -188,12 +188,12 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     x_out = np.empty_like(start.x)
     v_out = np.empty_like(start.v)
     if pieces is None:
-        status, failed = fused_steps(code, rattle, *p.variant, int(steps), h, _F0, _NO_COUNTS,
-                                     tuple(start), x_out, v_out, tuple(settings), refs.engine,
+        status, failed = fused_steps(code, rattle, *p.variant, (int(steps), h, _F0, _NO_COUNTS),
+                                     tuple(start), (x_out, v_out), tuple(settings), refs.engine,
                                      None)
         return int(status), x_out, v_out, int(failed)
-    status, failed = fused_split(code, rattle, *p.variant, h, h / pieces, pieces * int(steps),
-                                 tuple(start), x_out, v_out, tuple(settings), refs.engine,
+    status, failed = fused_split(code, rattle, *p.variant, (h, h / pieces, pieces * int(steps)),
+                                 tuple(start), (x_out, v_out), tuple(settings), refs.engine,
                                  p.live_ref)
     return int(status), x_out, v_out, int(failed)
 
@@ -219,12 +219,12 @@ def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, step
         state = (x[lo:hi], v[lo:hi], mass[lo:hi], inv_mass[lo:hi], lam_r)
         if pieces is None:
             calls.append(functools.partial(
-                fused_steps, code, rattle, *sp.variant, steps, h, _F0, _NO_COUNTS, state,
-                x_out[lo:hi], v_out[lo:hi], plain_settings, sp.refs.engine, None))
+                fused_steps, code, rattle, *sp.variant, (steps, h, _F0, _NO_COUNTS), state,
+                (x_out[lo:hi], v_out[lo:hi]), plain_settings, sp.refs.engine, None))
         else:
             calls.append(functools.partial(
-                fused_split, code, rattle, *sp.variant, h, hp[lo:hi], counts[lo:hi], state,
-                x_out[lo:hi], v_out[lo:hi], plain_settings, sp.refs.engine, sp.live_ref))
+                fused_split, code, rattle, *sp.variant, (h, hp[lo:hi], counts[lo:hi]), state,
+                (x_out[lo:hi], v_out[lo:hi]), plain_settings, sp.refs.engine, sp.live_ref))
     results = part.crew().run(calls[0], calls[1:])
     failed = [(int(done), int(status) == DIVERGED) for status, done in results
               if int(status) != OK]
@@ -411,9 +411,10 @@ if kernels.ENABLED:
         return k
 
     @njit(nogil=True)
-    def fused_steps(method, rattle, large, runs, extra, steps, h, hp, counts, state, x_out, v_out,
-                    settings, engine, live):  # pragma: no cover - compiled
-        """``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
+    def fused_steps(method, rattle, large, runs, extra, schedule, state, out, settings, engine,
+                    live):  # pragma: no cover - compiled
+        """With ``schedule = (steps, h, hp, counts)`` and ``out = (x_out, v_out)``:
+        ``steps`` steps of ``h`` seconds from ``state`` into ``x_out, v_out``, or of
         ``hp[q]`` seconds for particle q if ``hp`` is not empty, with the integrator that
         ``method, rattle`` give as :func:`integrator_args` makes them: RATTLE if ``rattle`` is
         not None (Numba compiles a version per pattern of None and drops the other branches
@@ -446,7 +447,8 @@ if kernels.ENABLED:
         The entry and the step loop are one function: each compiled function that calls
         another has the callee's code optimised again inside its own (docs/compile_time.md),
         so a level between the entry and the loop would optimise the acceleration once more."""
-        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
+        steps, h, hp, counts = schedule
+        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, out))
         start, xo, vo = State(*b_state), b_out[0], b_out[1]
         cfg = Settings(*settings)
         blocks, rows, ws = engine.blocks, engine.rows, engine.work
@@ -508,8 +510,8 @@ if kernels.ENABLED:
                 _gate(step, b_counts, rows, blocks, live)
             if rattle is not None:
                 # (a step after the first starts where the one before ended: fresh factors)
-                if not _rattle(x, v, xs, vs, h, start, cfg, blocks, rows, ws, large, runs,
-                               extra, step > 0):
+                if not _rattle(x, v, xs, vs, h, start, cfg, engine, large, runs, extra,
+                               step > 0):
                     return FALLBACK, step
             elif method == 0 or method == 3:  # euler / symplectic_euler
                 if not _accel(x, v, a1, start, cfg, blocks, rows, ws, live, large, runs,
@@ -599,15 +601,17 @@ if kernels.ENABLED:
         return OK, steps
 
     @njit(nogil=True)
-    def fused_split(method, rattle, large, runs, extra, h, hp, counts, state, x_out, v_out,
-                    settings, engine, live):  # pragma: no cover - compiled
-        """A split step: particle q takes ``counts[q]`` steps of ``hp[q]`` seconds (arguments
-        as for :func:`fused_steps`, ``live`` the pack's live workspace). First the steps only
+    def fused_split(method, rattle, large, runs, extra, schedule, state, out, settings, engine,
+                    live):  # pragma: no cover - compiled
+        """A split step: with ``schedule = (h, hp, counts)``, particle q takes ``counts[q]``
+        steps of ``hp[q]`` seconds (the other arguments as for :func:`fused_steps`, ``live``
+        the pack's live workspace). First the steps only
         some particles take (masked), while their data are likely still in cache from the
         last call, then every particle's common steps (unmasked). Each particle takes its own
         steps in its own order, so the order of the two passes changes no bit, and each
         independent group of particles is stepped exactly as it would be alone."""
-        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, (x_out, v_out)))
+        h, hp, counts = schedule
+        b_hp, b_counts, b_state, b_out = borrowed((hp, counts, state, out))
         n = b_state[0].shape[0]
         if b_counts.shape[0] != n:
             return FALLBACK, 0
@@ -615,16 +619,17 @@ if kernels.ENABLED:
             return OK, 0
         first, total = b_counts.min(), b_counts.max()
         if first == total:  # every particle takes every step
-            return fused_steps(method, rattle, large, runs, extra, total, h, b_hp, b_counts,
-                               b_state, b_out[0], b_out[1], settings, engine, None)
+            return fused_steps(method, rattle, large, runs, extra, (total, h, b_hp, b_counts),
+                               b_state, b_out, settings, engine, None)
         ws = engine.work
         x_mid, v_mid = ws.x_mid, ws.v_mid
-        status, done = fused_steps(method, rattle, large, runs, extra, total - first, h, b_hp,
-                                   b_counts - first, b_state, x_mid, v_mid, settings, engine,
-                                   live)
+        status, done = fused_steps(method, rattle, large, runs, extra,
+                                   (total - first, h, b_hp, b_counts - first), b_state,
+                                   (x_mid, v_mid), settings, engine, live)
         if status != OK:
             return status, done
         middle = (x_mid, v_mid, b_state[2], b_state[3], b_state[4])
-        status, more = fused_steps(method, rattle, large, runs, extra, first, h, b_hp,
-                                   b_counts, middle, b_out[0], b_out[1], settings, engine, None)
+        status, more = fused_steps(method, rattle, large, runs, extra,
+                                   (first, h, b_hp, b_counts), middle, b_out, settings, engine,
+                                   None)
         return status, done + more

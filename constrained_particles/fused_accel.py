@@ -398,8 +398,8 @@ if kernels.ENABLED:
                 a, b, c = ang.a[e], ang.b[e], ang.c[e]
                 fax, fay, fbx, fby, fcx, fcy = angular_element(
                     x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[c, 0] - x[b, 0], x[c, 1] - x[b, 1],
-                    v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1], ang.k[e], ang.kd[e],
-                    ang.rest[e])
+                    v[a, 0], v[a, 1], v[b, 0], v[b, 1], v[c, 0], v[c, 1],
+                    (ang.k[e], ang.kd[e], ang.rest[e]))
                 F[a, 0] += fax
                 F[a, 1] += fay
                 F[b, 0] += fbx
@@ -715,7 +715,7 @@ if kernels.ENABLED:
         return True
 
     @njit
-    def _rattle(x, v, xs, vs, h, state, settings, blocks, rows, ws, large, runs, extra, fresh):
+    def _rattle(x, v, xs, vs, h, state, settings, engine, large, runs, extra, fresh):
         # pragma: no cover - compiled
         """One RATTLE step of ``h`` seconds from (x, v) into (xs, vs), as
         :func:`constrained_particles.rattle.rattle` does it; False where the reference must
@@ -728,7 +728,9 @@ if kernels.ENABLED:
         they converge alike, to the same root). The velocity solve factorises ``J(x1) W
         J(x1)^T``, which is the next step's ``J(x0) W J(x0)^T``: with ``fresh`` True (the
         step before, in the same call, ended at ``x``) ``ws.L`` holds it already, and a step
-        costs one factorisation."""
+        costs one factorisation. ``engine``: the :class:`~.records.Engine` (its ``blocks``,
+        ``rows`` and workspace)."""
+        blocks, rows, ws = engine.blocks, engine.rows, engine.work
         mass, inv_mass, tol = state.mass, state.inv_mass, settings.tol
         f0, f1 = ws.a1, ws.a2  # (stage buffers: RATTLE's force and predicted velocity)
         C, Cdot, Jv, Jdv, J0, b, dl = ws.C, ws.Cdot, ws.Jv, ws.Jdv, ws.J0, ws.b, ws.dl

@@ -72,11 +72,15 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
 
         @njit
         def angular_element(ux: float, uy: float, wx: float, wy: float, vax: float, vay: float,
-                            vbx: float, vby: float, vcx: float, vcy: float, k: float, kd: float,
-                            rest: float) -> tuple[float, float, float, float, float, float]:
+                            vbx: float, vby: float, vcx: float, vcy: float,
+                            spring: tuple[float, float, float]
+                            ) -> tuple[float, float, float, float, float, float]:
             # pragma: no cover - compiled
             """Forces (N) on a, b, c of an angular spring with arms ``u = x_a - x_b``,
-            ``w = x_c - x_b``: ``-(k d + kd thetadot) dtheta/dx_p``, ``d = wrap(theta - rest)``."""
+            ``w = x_c - x_b``: ``-(k d + kd thetadot) dtheta/dx_p``, ``d = wrap(theta - rest)``,
+            with ``spring = (k, kd, rest)``: stiffness (N m/rad), damping (N m s/rad) and rest
+            angle (rad)."""
+            k, kd, rest = spring
             theta = math.atan2(ux * wy - uy * wx, ux * wx + uy * wy)
             d = math.pi - ((math.pi - (theta - rest)) % (2.0 * math.pi))
             uu = ux * ux + uy * uy

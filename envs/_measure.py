@@ -283,19 +283,21 @@ if ENABLED:
                     for k in range(i * n, (i + 1) * n):
                         f += abs(fx[k])
                     wall_force[i] = f
-        _advance_hold(v, n, count, distance, blocked, wall_force, walls and task.wall_rest,
-                      rest, stepped, task.tolerance, task.rest_speed, task.hold_steps, success)
+        _advance_hold(v, task, distance, blocked, wall_force, walls and task.wall_rest, rest,
+                      stepped, success)
 
     @njit
-    def _advance_hold(v, n, count, distance, blocked, wall_force, wall_rest, rest, stepped,
-                      tolerance, rest_speed, hold_steps, success):  # pragma: no cover
+    def _advance_hold(v, task, distance, blocked, wall_force, wall_rest, rest, stepped,
+                      success):  # pragma: no cover
         """The rest test (``ParticleTask.advance_rest`` and the hold count): each ``stepped``
         copy's moving average velocities move ``alpha`` of the way to ``v`` (``rest = (hold,
-        mean_v, alpha)``); the copy is settled, and its count advances (else restarts at 0),
-        if ``distance`` (m) is below ``tolerance``, the RMS of the averages of its first
-        ``count`` particles below ``rest_speed`` (m/s), it is not ``blocked`` and (with
-        ``wall_rest``) its ``wall_force`` (N) is not positive. Writes ``success = hold >=
-        hold_steps`` for every copy."""
+        mean_v, alpha)``); the copy (``task.n`` particles) is settled, and its count advances
+        (else restarts at 0), if ``distance`` (m) is below ``task.tolerance``, the RMS of the
+        averages of its first ``task.count`` particles below ``task.rest_speed`` (m/s), it is
+        not ``blocked`` and (with ``wall_rest``) its ``wall_force`` (N) is not positive.
+        Writes ``success = hold >= task.hold_steps`` for every copy."""
+        n, count, tolerance = task.n, task.count, task.tolerance
+        rest_speed, hold_steps = task.rest_speed, task.hold_steps
         hold, mean_v, alpha = rest.hold, rest.mean_v, rest.alpha
         for i in range(distance.shape[0]):
             if stepped[i]:
@@ -478,16 +480,18 @@ if ENABLED:
         return True
 
     @njit
-    def _grab(x, n, envs, action, cx, cy, hx, hy, r2, reach, current, particles, anchors,
-              active):  # pragma: no cover - compiled
+    def _grab(x, n, envs, action, box, r2, reach, current, particles, anchors, active):
+        # pragma: no cover - compiled
         """The spring action of copies ``envs``: for each, the particle of the copy nearest the
-        grab point ``c + h * action[:2]`` (the first of equals; ``particles``, global indices),
+        grab point ``c + h * action[:2]`` (``box = (cx, cy, hx, hy)``, m: the view's centre and
+        half sizes; the first of equals; ``particles``, global indices),
         the target ``x_p + reach * u`` (``anchors[envs]``, m), ``u`` the pull ``action[2:]``
         scaled down onto the unit disc if longer than 1, and whether the particle is within
         ``sqrt(r2)`` metres of the grab point (``active[envs]``). ``anchors`` and ``active``
         are the mouse-spring block's own arrays, written in place; True if some copy's particle
         differs from its entry of ``current`` (the block's particle array), which the caller
         must then replace."""
+        cx, cy, hx, hy = box
         changed = False
         for e in range(envs.shape[0]):
             i = envs[e]
@@ -586,21 +590,23 @@ if ENABLED:
     # The two wrappers below are inlined into their callers (the entries): a compiled level of
     # their own would have LLVM optimise everything under it once more (docs/compile_time.md).
     @njit(inline="always")
-    def _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success,
-                          view, obs):  # pragma: no cover - compiled
-        """:func:`_measures` then :func:`_observe` (one call from Python instead of two)."""
+    def _measures_observe(state, task, blocks, walls, rest, stepped, blocked, out, success, view,
+                          obs):  # pragma: no cover - compiled
+        """:func:`_measures` then :func:`_observe` (one call from Python instead of two), with
+        ``state = (x, v, mass)``."""
+        x, v, mass = state
         _measures(x, v, mass, task, blocks, walls, rest, stepped, blocked, out, success)
         _observe(x, v, task.n, task.goal, view, obs)
 
     @njit(inline="always")
-    def _crank_measures_observe(crank, x, v, mass, task, blocks, walls, rest, stepped, out,
-                                success, view, obs):  # pragma: no cover - compiled
+    def _crank_measures_observe(crank, state, task, blocks, walls, rest, stepped, out, success,
+                                view, obs):  # pragma: no cover - compiled
         """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
         slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
         after a step in one call."""
-        _crank(x, task.n, task.goal, crank)
-        _measures_observe(x, v, mass, task, blocks, walls, rest, stepped, crank.below, out,
-                          success, view, obs)
+        _crank(state[0], task.n, task.goal, crank)
+        _measures_observe(state, task, blocks, walls, rest, stepped, crank.below, out, success,
+                          view, obs)
 
     # The entry points from Python take the pack's blocks by reference (Packed.refs) and their
     # own records in plain form (constrained_particles.records.plain: typed in C, about half
@@ -629,11 +635,13 @@ if ENABLED:
         return True
 
     @njit(nogil=True)
-    def _pin_measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked,
-                                    out, success, view, pin, obs):
+    def _pin_measures_observe_entry(state, task, blocks, walls, rest, stepped, blocked, out,
+                                    success, view, pin, obs):
         # pragma: no cover - compiled
         """:func:`_measures`, then :func:`_pin_observe`: ClothPin's bookkeeping after a step
-        in one call (False, writing nothing, unless :func:`_pin_fits`)."""
+        in one call (False, writing nothing, unless :func:`_pin_fits`); ``state = (x, v,
+        mass)``."""
+        x, v, mass = state
         b_task, b_rest, b_pin = borrowed((task, rest, pin))
         slots, goal = Pin(*b_pin), Goal(*b_task)
         if not _pin_fits(x, goal.n, goal.goal, slots, obs):
@@ -657,7 +665,7 @@ if ENABLED:
         episode, reward = finish.episode, finish.reward
         no_walls = episode.ended.shape[0] < 0  # (False as a run-time bool: a constant False
         # would compile the measures once more, for its own literal type)
-        _crank_measures_observe(finish.crank, x, v, mass, finish.task, blocks, no_walls,
+        _crank_measures_observe(finish.crank, (x, v, mass), finish.task, blocks, no_walls,
                                 finish.rest, finish.every, finish.out, finish.success,
                                 finish.frame, finish.obs)
         phi = finish.crank.to_go + finish.out[1]  # SliderCrank.potential
@@ -677,18 +685,18 @@ if ENABLED:
 
 
     @njit(nogil=True)
-    def _measures_observe_entry(x, v, mass, task, blocks, walls, rest, stepped, blocked, out,
+    def _measures_observe_entry(state, task, blocks, walls, rest, stepped, blocked, out,
                                 success, view, obs):  # pragma: no cover - compiled
         task, rest = borrowed((task, rest))
-        _measures_observe(x, v, mass, Goal(*task), blocks, walls, Rest(*rest),
-                          stepped, blocked, out, success, View(*view), obs)
+        _measures_observe(state, Goal(*task), blocks, walls, Rest(*rest), stepped, blocked,
+                          out, success, View(*view), obs)
 
     @njit(nogil=True)
-    def _crank_measures_observe_entry(crank, x, v, mass, task, blocks, walls, rest, stepped,
-                                      out, success, view, obs):  # pragma: no cover - compiled
+    def _crank_measures_observe_entry(crank, state, task, blocks, walls, rest, stepped, out,
+                                      success, view, obs):  # pragma: no cover - compiled
         crank, task, rest = borrowed((crank, task, rest))
-        _crank_measures_observe(Crank(*crank), x, v, mass, Goal(*task), blocks,
-                                walls, Rest(*rest), stepped, out, success, View(*view), obs)
+        _crank_measures_observe(Crank(*crank), state, Goal(*task), blocks, walls, Rest(*rest),
+                                stepped, out, success, View(*view), obs)
 
     @njit(nogil=True)
     def _crank_entry(x, n, goal, crank):  # pragma: no cover - compiled

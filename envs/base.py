@@ -457,7 +457,7 @@ class ParticleTask(SteppedCopies):
         elif self._grab_ready(act, envs, action, x := self.system.x):  # the spring action,
             particles = np.empty(len(envs), np.int64)  # compiled (the reference is below)
             c, h = self.center, self.half
-            if _measure.grab(x, self.n, envs, action, c[0], c[1], h[0], h[1],
+            if _measure.grab(x, self.n, envs, action, (c[0], c[1], h[0], h[1]),
                              self.grab_radius**2, self.spring_reach, act.particle, particles,
                              act.anchor, act.active):  # anchors and flags written in place
                 act.set_checked(envs, particles, act.anchor[envs], act.active[envs])
@@ -723,7 +723,7 @@ class ParticleTask(SteppedCopies):
             stepped, blocked = self._mask(stepped), self._mask(blocked)
             if not self._measures_ranges(post, rest, walls, stepped, blocked, out, success,
                                          view, obs):
-                _measure.measures_observe(x, v, mass, tuple(goal), p.refs.blocks, walls,
+                _measure.measures_observe((x, v, mass), tuple(goal), p.refs.blocks, walls,
                                           tuple(rest), stepped, blocked, out, success, view,
                                           obs)
             return _measured(out, success), out[4]
@@ -784,7 +784,7 @@ class ParticleTask(SteppedCopies):
                 out_r = np.empty((5, c1 - c0))
                 blocks.append((c0, c1, out_r))
                 calls.append(functools.partial(
-                    _measure.measures_observe, x[lo:hi], v[lo:hi], mass[lo:hi],
+                    _measure.measures_observe, (x[lo:hi], v[lo:hi], mass[lo:hi]),
                     tuple(goal._replace(goal=goal.goal[c0:c1])), sp.refs.blocks, walls,
                     tuple(rest._replace(hold=rest.hold[c0:c1], mean_v=rest.mean_v[lo:hi])),
                     stepped[c0:c1], blocked[c0:c1], out_r, success[c0:c1], view, obs[c0:c1]))

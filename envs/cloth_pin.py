@@ -481,7 +481,7 @@ class ClothPin(ShapedTask, ParticleTask):
             return self.measure(stepped), self.observe()
         out, success, obs = np.empty((5, N)), np.empty(N, bool), self._obs(N, nc, pin[0])
         if not _measure.pin_measures_observe(
-                x, v, mass, tuple(goal), p.refs.blocks, True, tuple(self._rest()),
+                (x, v, mass), tuple(goal), p.refs.blocks, True, tuple(self._rest()),
                 self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
                 obs):
             return self.measure(stepped), self.observe()

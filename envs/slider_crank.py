@@ -203,7 +203,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
         _measure.crank_measures_observe(
-            tuple(self._crank_record(values[5], values[6], flags[1])), x, v, mass, tuple(goal),
+            tuple(self._crank_record(values[5], values[6], flags[1])), (x, v, mass), tuple(goal),
             p.refs.blocks, False, tuple(self._rest()), self._mask(stepped), values[:5],
             flags[0], tuple(self._view()), obs)
         return m, obs

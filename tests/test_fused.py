@@ -616,8 +616,8 @@ def _fused_call(s: ParticleSystem, variant: tuple) -> tuple[int, np.ndarray, np.
     p, start, settings = fused.prepare(s, s.constraint_solver.lam.copy(), 1e-3)
     code, rattle = fused.integrator_args("midpoint")
     x_out, v_out = np.full_like(s.x, 7.0), np.full_like(s.v, 7.0)
-    status, _ = fused.fused_steps(code, rattle, *variant, 1, 1e-3, np.zeros(0),
-                                  np.zeros(0, np.int64), tuple(start), x_out, v_out,
+    status, _ = fused.fused_steps(code, rattle, *variant, (1, 1e-3, np.zeros(0),
+                                  np.zeros(0, np.int64)), tuple(start), (x_out, v_out),
                                   tuple(settings), p.refs.engine, None)
     return int(status), x_out, v_out
 
