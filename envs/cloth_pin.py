@@ -11,7 +11,7 @@ from gymnasium import spaces
 
 from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
 
-from . import _measure
+from . import cloth_pin_kernels
 from .base import OBS_LIMIT, ParticleTask, _measured
 from .checks import _owned, check_positive, check_range
 from .cloth_slide import _hanging_equilibrium
@@ -312,9 +312,9 @@ class ClothPin(ShapedTask, ParticleTask):
     def apply(self, actions: np.ndarray, idle: np.ndarray | None = None) -> None:
         """Place the springs that copies draw (``draw > 0``) on a cloth at rest, then switch
         the push on (off for ``idle`` copies, whose action is ignored). The drawings are
-        checked in one compiled pass (:func:`envs._measure.pin_draws`) where the arrays allow
-        it, else by :meth:`place`; the same springs either way (:meth:`still` refuses in
-        both)."""
+        checked in one compiled pass (:func:`envs.cloth_pin_kernels.pin_draws`) where the
+        arrays allow it, else by :meth:`place`; the same springs either way (:meth:`still`
+        refuses in both)."""
         if not np.count_nonzero(actions[:, 5] > 0):  # (the usual step: nobody draws)
             self.placed_now[:] = False
             super().apply(actions, idle)
@@ -356,7 +356,7 @@ class ClothPin(ShapedTask, ParticleTask):
         ends, ok = np.empty((N, 2), np.int64), np.empty(N, bool)
         c, h = self.center, self.half
         xmin, ymin, xmax, ymax = self.anchor_region
-        if not _measure.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
+        if not cloth_pin_kernels.pin_draws(state[0], actions, idle, self.placed, self.anchors_used,
                                   (n, nc, B, float(c[0]), float(c[1]), float(h[0]),
                                    float(h[1]), float(self.snap_radius**2), float(xmin),
                                    float(ymin), float(xmax), float(ymax)), ends, ok):
@@ -454,7 +454,7 @@ class ClothPin(ShapedTask, ParticleTask):
     def observe(self) -> np.ndarray:
         """Observations (num_envs, 4 nc + 1 + 7 max_springs) float32: the cloth's normalized
         positions and velocities, the goal, and one row per spring slot (see the env docs).
-        In one compiled pass (:func:`envs._measure.pin_observe`) where the arrays allow it,
+        In one compiled pass (:func:`envs.cloth_pin_kernels.pin_observe`) where the arrays allow it,
         else by the numpy reference :meth:`observe_reference`."""
         N, n, nc, goal = self.num_envs, self.n, self.cloth_n, self.goal  # (read once)
         state = self._compiled_state()
@@ -462,14 +462,15 @@ class ClothPin(ShapedTask, ParticleTask):
                else None)
         if pin is not None and len(state[0]) == N * n:
             obs = self._obs(N, nc, pin[0])
-            if _measure.pin_observe(state[0], state[1], n, goal, tuple(self._view()), pin, obs):
+            if cloth_pin_kernels.pin_observe(state[0], state[1], n, goal, tuple(self._view()),
+                                             pin, obs):
                 return obs
         return self.observe_reference()
 
     def measure_observe(self, stepped: np.ndarray | None = None
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`measure`, then :meth:`observe`: in one compiled call
-        (:func:`envs._measure.pin_measures_observe`) unless a subclass redefines either or
+        (:func:`envs.cloth_pin_kernels.pin_measures_observe`) unless a subclass redefines either or
         the arrays do not allow it; the same values either way."""
         post = self._compiled_post() if self._paths["measure_observe"] else None
         if post is None:
@@ -480,7 +481,7 @@ class ClothPin(ShapedTask, ParticleTask):
         if pin is None:
             return self.measure(stepped), self.observe()
         out, success, obs = np.empty((5, N)), np.empty(N, bool), self._obs(N, nc, pin[0])
-        if not _measure.pin_measures_observe(
+        if not cloth_pin_kernels.pin_measures_observe(
                 (x, v, mass), tuple(goal), p.refs.blocks, True, tuple(self._rest()),
                 self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
                 obs):
@@ -494,9 +495,10 @@ class ClothPin(ShapedTask, ParticleTask):
 
     def _pin(self, N: int, n: Any, nc: Any) -> tuple | None:
         """The spring slots of ``N`` copies of ``n`` particles, ``nc`` of them the cloth's (the
-        observed ones), as the compiled observation reads them (:class:`envs._measure.Pin` in
-        plain form); None where the numpy reference must run: sizes that are not ints with
-        ``0 < nc <= n``, or arrays not of the shapes and types it reads."""
+        observed ones), as the compiled observation reads them
+        (:class:`envs.cloth_pin_kernels.Pin` in plain form); None where the numpy reference
+        must run: sizes that are not ints with ``0 < nc <= n``, or arrays not of the shapes and
+        types it reads."""
         B, sp, placed = self.max_springs, self.springs, self.placed  # (read once)
         si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
         if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         #: The tracked coordinate is the slider's x (m).
         self.tracked_particles = np.array([1])
         #: ((copies, radius, rod), goals, their crank angles) last used by the compiled measure
-        #: (see _measure.crank); rebuilt when the copies or the geometry change
+        #: (see :func:`crank_measures`); rebuilt when the copies or the geometry change
         self._goal_angle: tuple[tuple, np.ndarray, np.ndarray] | None = None
         super().__init__(num_envs, action_mode=action_mode, dt=dt, substeps=substeps,
                          integrator=integrator, max_force=max_force, grab_radius=grab_radius,
@@ -103,7 +103,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         if (_measure.ENABLED and _owned(action, np.float64, (len(action), 1))
                 and _owned(x, np.float64, (len(action), self.n, 2))):  # compiled; the
             f = np.empty((len(action), 1, 2))  # reference is below
-            _measure.crank_push(x, action, self.max_force, f)
+            crank_push(x, action, self.max_force, f)
             return f
         crank = x[:, 0, :]
         tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
@@ -118,7 +118,7 @@ class SliderCrank(ShapedTask, ParticleTask):
                 and out.shape == (self.num_envs, 2)
                 and _owned(action, np.float64, (self.num_envs, 1))
                 and (state := self._compiled_state()) is not None):
-            _measure.crank_push(state[0].reshape(self.num_envs, self.n, 2), action,
+            crank_push(state[0].reshape(self.num_envs, self.n, 2), action,
                                 self.max_force, out.reshape(self.num_envs, 1, 2))
             return
         super()._write_forces(action, out)
@@ -180,7 +180,7 @@ class SliderCrank(ShapedTask, ParticleTask):
         state = self._compiled_state()
         if state is not None and _owned(g, np.float64, (N,)):
             height, to_go, below = np.empty(N), np.empty(N), np.empty(N, bool)
-            _measure.crank(state[0], self.n, g, tuple(self._crank_record(height, to_go, below)))
+            crank_measures(state[0], self.n, g, tuple(self._crank_record(height, to_go, below)))
         else:
             crank = self.positions()[:, 0]
             height = crank[:, 1].copy()
@@ -196,33 +196,33 @@ class SliderCrank(ShapedTask, ParticleTask):
     def measure_observe(self, stepped: np.ndarray | None = None
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`measure`, then :meth:`observe`: in one compiled call
-        (:func:`envs._measure.crank_measures_observe`) unless a subclass redefines either."""
+        (:func:`crank_measures_observe`) unless a subclass redefines either."""
         post = self._compiled_post() if self._paths["measure_observe"] else None
         if post is None:
             return super().measure_observe(stepped)
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
-        _measure.crank_measures_observe(
+        crank_measures_observe(
             tuple(self._crank_record(values[5], values[6], flags[1])), (x, v, mass), tuple(goal),
             p.refs.blocks, False, tuple(self._rest()), self._mask(stepped), values[:5],
             flags[0], tuple(self._view()), obs)
         return m, obs
 
     def _crank_record(self, height: np.ndarray, to_go: np.ndarray, below: np.ndarray
-                      ) -> _measure.Crank:
+                      ) -> Crank:
         """The compiled crank measure's geometry, outputs and goal-angle cache."""
         r = float(self.radius)
         seen, target = self._goal_angles()
-        return _measure.Crank(r, r**2, float(self.rod)**2, height, to_go, below, seen, target)
+        return Crank(r, r**2, float(self.rod)**2, height, to_go, below, seen, target)
 
     def _finish_record(self, goal: _measure.Goal, values: np.ndarray, flags: np.ndarray,
                        obs: np.ndarray, before: np.ndarray, steps: np.ndarray, max_steps: int
                        ) -> tuple:
-        """What the compiled end of a step writes (see :func:`envs._measure.crank_finish`) into
+        """What the compiled end of a step writes (see :func:`crank_finish`) into
         :meth:`_crank_outputs`' blocks ``values``, ``flags`` and ``obs``, in the plain form
         (``constrained_particles.records.plain``) in which the kernels take it."""
         success, below, terminated, truncated, ended = flags
-        return tuple(_measure.Finish(
+        return tuple(Finish(
             tuple(self._crank_record(values[5], values[6], below)), tuple(goal),
             tuple(self._rest()), self._every_copy, values[:5], success, tuple(self._view()), obs,
             tuple(_measure.Reward(before, float(self.shaping_scale), TIME_COST, SUCCESS_BONUS,
@@ -245,7 +245,7 @@ class SliderCrank(ShapedTask, ParticleTask):
     def _finish_step(self, steps: np.ndarray, max_steps: int) -> tuple | None:
         """After an env step that every copy took: :meth:`measure_observe` for all copies,
         :meth:`reward` and the episode counters (``steps`` advanced in place), in one compiled
-        call (:func:`envs._measure.crank_finish`). Returns ``(obs, measures, reward,
+        call (:func:`crank_finish`). Returns ``(obs, measures, reward,
         terminated, truncated, ended, number ended)``, or None where the general path must run
         (compiled bookkeeping off, or a subclass redefines a part of it)."""
         if not (self._paths["finish"] and steps.dtype == np.int64
@@ -257,7 +257,7 @@ class SliderCrank(ShapedTask, ParticleTask):
             return None
         p, goal, (x, v, mass) = post
         values, flags, obs, m = self._crank_outputs()
-        count = _measure.crank_finish(
+        count = crank_finish(
             x, v, mass, p.refs.blocks, self._finish_record(goal, values, flags, obs, before,
                                                             steps, max_steps))
         return obs, m, values[7], flags[2], flags[3], flags[4], count
@@ -472,6 +472,165 @@ class SliderCrankController(ScriptedAgent):
         tangent = np.stack([-crank[:, 1], crank[:, 0]], axis=1)
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
         return np.sum(F * tangent, axis=1, keepdims=True) / self.task.max_force
+
+# ------------------------------------------------------------------ compiled bookkeeping
+# SliderCrank's own kernels: its crank measures and force action, and its whole end of step in
+# one call, built on the generic measures and observation of envs._measure (the numpy reference
+# of each is the SliderCrank method that calls it).
+
+
+class Crank(NamedTuple):
+    """SliderCrank's crank geometry and per-copy crank measures (outputs filled in place)."""
+
+    r: float  #: crank radius (m)
+    r2: float  #: r^2 (m^2)
+    rod2: float  #: rod length squared (m^2)
+    height: np.ndarray  #: (N,) out: the crank's y (m)
+    to_go: np.ndarray  #: (N,) out: arc length to the goal's crank angle (m)
+    below: np.ndarray  #: (N,) bool out: the crank is not above the slider's wire
+    seen: np.ndarray  #: (N,) the goals the angles in ``target`` were computed for (NaN: none)
+    target: np.ndarray  #: (N,) the goal's crank angle (rad)
+
+
+class Finish(NamedTuple):
+    """Everything :func:`crank_finish` writes after SliderCrank's physics step."""
+
+    crank: Crank
+    task: _measure.Goal
+    rest: _measure.Rest
+    every: np.ndarray  #: (N,) bool, all True: the copies that stepped
+    out: np.ndarray  #: (5, N) out: the measures' rows (``_measures``)
+    success: np.ndarray  #: (N,) bool out
+    frame: _measure.View  #: the observation's normalization
+    obs: np.ndarray  #: (N, 4 n + 1) float32 out
+    reward: _measure.Reward
+    episode: Episode
+
+
+#: the compiled crank measures (None when ``_measure.ENABLED`` is False)
+crank_measures: Any = None
+crank_push: Any = None  #: the compiled force action (None when ``_measure.ENABLED`` is False)
+#: :func:`crank_measures`, then the measures with the crank's ``below`` as ``blocked``, then
+#: the observation, in one call (None when ``_measure.ENABLED`` is False)
+crank_measures_observe: Any = None
+#: :func:`crank_measures_observe`, the shaped reward and the episode counters of a step every
+#: copy took, in one call (None when ``_measure.ENABLED`` is False)
+crank_finish: Any = None
+
+if _measure.ENABLED:
+    from constrained_particles.jit import njit
+    from constrained_particles.records import borrowed
+
+    from ._measure import Episode, Goal, Rest, Reward, View, _measures_observe, _shaped_reward
+
+    @njit
+    def _crank(x, n, goal, crank):  # pragma: no cover - compiled
+        """SliderCrank's crank measures per copy (:class:`Crank`: particle 0 of each copy is
+        the crank, on a circle of radius ``r`` = sqrt(``r2``) m; the rod's length squared is
+        ``rod2``):
+        ``height`` its y (m), ``below`` whether it is not above the slider's wire, and
+        ``to_go`` the arc length (m) the short way round to the point above the wire that puts
+        the slider at ``goal``: ``r |wrap(acos((g^2 + r^2 - L^2) / (2 g r)) - theta)|``, the
+        difference wrapped into [-pi, pi] by a whole turn (the reference takes the angle of
+        ``exp(i d)``: the same to rounding). The goal's angle is kept in ``target`` and
+        recomputed only where ``goal`` differs from ``seen`` (the goals it was computed for;
+        NaN: never)."""
+        r, r2, rod2 = crank.r, crank.r2, crank.rod2
+        height, to_go, below, seen, target = (crank.height, crank.to_go, crank.below,
+                                              crank.seen, crank.target)
+        for i in range(goal.shape[0]):
+            px, py = x[i * n, 0], x[i * n, 1]
+            g = goal[i]
+            if not seen[i] == g:
+                target[i] = math.acos(min(max((g * g + r2 - rod2) / (2 * g * r), -1.0), 1.0))
+                seen[i] = g
+            d = target[i] - math.atan2(py, px)  # in [-pi, 2 pi]: one turn at most to wrap
+            if d > math.pi:
+                d -= 2.0 * math.pi
+            elif d < -math.pi:
+                d += 2.0 * math.pi
+            height[i] = py
+            below[i] = not py > 0.0
+            to_go[i] = r * abs(d)
+
+    @njit
+    def _crank_push(x, action, max_force, out):  # pragma: no cover - compiled
+        """SliderCrank's force action: ``out[i, 0] = action[i, 0] max_force t`` (N), ``t`` the
+        unit counter-clockwise tangent ``(-y, x) / |(x, y)|`` at copy ``i``'s crank ``x[i, 0]``
+        (positions (copies, n, 2), m)."""
+        for i in range(action.shape[0]):
+            px, py = x[i, 0, 0], x[i, 0, 1]
+            norm = math.sqrt(py * py + px * px)
+            f = action[i, 0] * max_force
+            out[i, 0, 0] = f * (-py / norm)
+            out[i, 0, 1] = f * (px / norm)
+
+    @njit(inline="always")
+    def _crank_measures_observe(crank, state, task, blocks, walls, rest, stepped, out, success,
+                                view, obs):  # pragma: no cover - compiled
+        """:func:`_crank`, :func:`_measures` with the copies whose crank is not above the
+        slider's wire as ``blocked``, and :func:`_observe`: SliderCrank's whole bookkeeping
+        after a step in one call."""
+        _crank(state[0], task.n, task.goal, crank)
+        _measures_observe(state, task, blocks, walls, rest, stepped, crank.below, out, success,
+                          view, obs)
+
+    @njit(inline="always")
+    def _finish_record(t):  # pragma: no cover - compiled
+        """The :class:`Finish` whose plain form is ``t`` (inlined: as a function of its own it
+        took a separate compile, about 1 s)."""
+        crank, task, rest, every, out, success, frame, obs, reward, episode = t
+        return Finish(Crank(*crank), Goal(*task), Rest(*rest), every, out, success,
+                      View(*frame), obs, Reward(*reward), Episode(*episode))
+
+    @njit(nogil=True)
+    def _crank_finish_entry(x, v, mass, blocks, plain_finish):  # pragma: no cover - compiled
+        """The end of a SliderCrank env step that every copy took (``plain_finish``: a
+        :class:`Finish` in plain form; one entry, with no compiled level of its own below it
+        for the records or the reward, as each level is optimised again in its callers): the
+        measures and observation (:func:`_crank_measures_observe`), the
+        shaped reward (:func:`_shaped_reward`, no penalties) of the potential ``Phi =
+        crank_to_go + speed`` (``SliderCrank.potential``; ``before`` becomes ``Phi``), and the
+        episode counters: ``steps`` advance, ``terminated = success``, ``truncated = steps >=
+        max_steps``, ``ended`` either. Returns how many copies ended."""
+        finish = _finish_record(borrowed(plain_finish))
+        episode, reward = finish.episode, finish.reward
+        no_walls = episode.ended.shape[0] < 0  # (False as a run-time bool: a constant False
+        # would compile the measures once more, for its own literal type)
+        _crank_measures_observe(finish.crank, (x, v, mass), finish.task, blocks, no_walls,
+                                finish.rest, finish.every, finish.out, finish.success,
+                                finish.frame, finish.obs)
+        phi = finish.crank.to_go + finish.out[1]  # SliderCrank.potential
+        success = finish.success
+        _shaped_reward(reward.before, phi, success, phi[:0], reward.scale, reward.time_cost,
+                       reward.bonus, reward.reward)
+        count = 0
+        steps, terminated, truncated, ended = (episode.steps, episode.terminated,
+                                               episode.truncated, episode.ended)
+        for i in range(steps.shape[0]):
+            steps[i] += 1
+            terminated[i] = success[i]
+            truncated[i] = steps[i] >= episode.max_steps
+            ended[i] = terminated[i] or truncated[i]
+            count += ended[i]
+        return count
+
+
+    @njit(nogil=True)
+    def _crank_measures_observe_entry(crank, state, task, blocks, walls, rest, stepped, out,
+                                      success, view, obs):  # pragma: no cover - compiled
+        crank, task, rest = borrowed((crank, task, rest))
+        _crank_measures_observe(Crank(*crank), state, Goal(*task), blocks, walls, Rest(*rest),
+                                stepped, out, success, View(*view), obs)
+
+    @njit(nogil=True)
+    def _crank_entry(x, n, goal, crank):  # pragma: no cover - compiled
+        _crank(x, n, goal, Crank(*crank))
+
+    crank_measures = _crank_entry
+    crank_push = _crank_push
+    crank_measures_observe = _crank_measures_observe_entry
+    crank_finish = _crank_finish_entry
 
 
 #: The task's declaration (see :mod:`envs.task`).

@@ -14,7 +14,7 @@ import pytest
 
 import envs.cloth_pin
 import envs.cloth_slide
-from envs import _measure
+from envs import _measure, cloth_pin_kernels
 
 
 def pin_action(task, a, b, ks: float = 1.0) -> np.ndarray:
@@ -129,7 +129,7 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
         else:
             pin[k] = pin[k].copy()
             pin[k][-1] = bad
-        assert not _measure.pin_observe(*args[:-1], tuple(pin), obs)
+        assert not cloth_pin_kernels.pin_observe(*args[:-1], tuple(pin), obs)
         assert np.all(obs == 7.0)  # nothing written
     # arrays of the wrong sizes: one copy's placed count only, a slot array short by one,
     # an observation one column short, and fewer particles than the copies hold
@@ -137,13 +137,13 @@ def test_cloth_pin_compiled_observation_refuses_a_spring_end_out_of_range():
     for k, short in ((1, pin[1][:1]), (4, pin[4][:-1]), (5, pin[5][:-1])):
         broken = list(pin)
         broken[k] = np.ascontiguousarray(short)
-        assert not _measure.pin_observe(*args[:-1], tuple(broken), obs)
+        assert not cloth_pin_kernels.pin_observe(*args[:-1], tuple(broken), obs)
     narrow = np.full((2, obs.shape[1] - 1), 7.0, np.float32)
-    assert not _measure.pin_observe(*args, narrow) and np.all(narrow == 7.0)
+    assert not cloth_pin_kernels.pin_observe(*args, narrow) and np.all(narrow == 7.0)
     few = np.ascontiguousarray(args[0][:-1])
-    assert not _measure.pin_observe(few, *args[1:], obs)
+    assert not cloth_pin_kernels.pin_observe(few, *args[1:], obs)
     assert np.all(obs == 7.0)
-    assert _measure.pin_observe(*args, obs)
+    assert cloth_pin_kernels.pin_observe(*args, obs)
     assert obs.tobytes() == task.observe_reference().tobytes()
 
 
@@ -159,7 +159,7 @@ def test_cloth_pin_compiled_drawing_check_refuses_arrays_of_the_wrong_sizes():
 
     def run(x=x, actions=actions, placed=task.placed, draw=draw):
         ends, ok = np.full((N, 2), 7, np.int64), np.ones(N, bool)
-        return _measure.pin_draws(x, actions, np.zeros(N, bool), placed, task.anchors_used,
+        return cloth_pin_kernels.pin_draws(x, actions, np.zeros(N, bool), placed, task.anchors_used,
                                   draw, ends, ok), ends, ok
 
     done, ends, ok = run()
