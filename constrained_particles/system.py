@@ -101,29 +101,39 @@ class ParticleSystem:
 
     Parameters
     ----------
-    solver : how the multipliers are solved for: ``"auto"`` (default: each connected component
-        of the constraint graph on its own, directly; a sparse Cholesky factorisation in a
-        fill-reducing order for components of more than 8 rows, linear time on chains and trees
-        of rods), ``"cg"`` (conjugate gradients, Jacobi preconditioner, warm start, for
-        components of more than 8 rows) or ``"direct"`` (one sparse LU of the whole system).
-    tol : relative residual tolerance of the multiplier solve (default 1e-10).
-    ks, kd : constraint feedback gains in 1/s^2 and 1/s (docs/physics.md, "The constraint
-        force"). The defaults pull drift
-        back critically damped with a 0.1 s time constant.
-    project : if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
-    divergence_limit : a step that produces a coordinate (m) or speed (m/s) above this, or a
+    solver
+        how the multipliers are solved for:
+        ``"auto"`` (default: each connected component of the constraint graph on its own,
+        directly; a sparse Cholesky factorisation in a fill-reducing order for components of
+        more than 8 rows, linear time on chains and trees of rods), ``"cg"`` (conjugate
+        gradients, Jacobi preconditioner, warm start, for components of more than 8 rows) or
+        ``"direct"`` (one sparse LU of the whole system).
+    tol
+        relative residual tolerance of the multiplier solve (default 1e-10).
+    ks, kd
+        constraint feedback gains in 1/s^2 and 1/s
+        (docs/physics.md, "The constraint force"). The defaults pull drift back critically
+        damped with a 0.1 s time constant.
+    project
+        if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
+    divergence_limit
+        a step that produces a coordinate (m) or speed (m/s) above this, or a
         non-finite one, raises :class:`SimulationDiverged`.
-    drift_correction : ``method="implicit_euler"`` only: the fraction beta in [0, 1] of the
+    drift_correction
+        ``method="implicit_euler"`` only: the fraction beta in [0, 1] of the
         constraint error C removed per step (its constraint rows ask ``J v = -(beta/h) C``).
-    compliance : ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
+    compliance
+        ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
         unit of lam (m/N for line wires and fixed points); 0 is a hard constraint, and a small
         value regularises redundant constraints. See :mod:`constrained_particles.implicit`.
-    implicit_solver : ``method="implicit_euler"`` only: ``"cg"`` (filtered preconditioned
+    implicit_solver
+        ``method="implicit_euler"`` only: ``"cg"`` (filtered preconditioned
         conjugate gradients, cost linear in the particle count), ``"direct"`` (sparse LU of the
         KKT system) or ``"auto"`` (default: CG from 1024 free coordinates up, where it is
         faster). Constraints CG cannot filter (rods between moving particles, compliance > 0)
         always take the direct solve. See :mod:`constrained_particles.implicit`.
-    residual_limit : a step whose new state leaves any constraint row by more than this many
+    residual_limit
+        a step whose new state leaves any constraint row by more than this many
         metres (its :meth:`~constrained_particles.Constraint.distance_error`: distance from the
         wire, from the pinned point, error of a rod's length) raises :class:`SimulationDiverged`
         and keeps the old state. Default ``inf`` (no check); the environments use 0.01 m.

@@ -26,7 +26,7 @@ class Shape(NamedTuple):
     ``kind`` is one of:
 
     - ``"segment"``: ``a`` start points (k, 2), ``b`` end points (k, 2), ``value`` e.g. strain;
-    - ``"arrow"``: ``a`` origins (k, 2), ``b`` force vectors in newtons (k, 2), ``value`` |f|;
+    - ``"arrow"``: ``a`` origins (k, 2), ``b`` force vectors in newtons (k, 2), ``value`` ``|f|``;
     - ``"circle"``: ``a`` centres (k, 2), ``value`` radii (k,);
     - ``"line"``: ``a`` points on the line (k, 2), ``b`` unit directions (k, 2);
     - ``"halfplane"``: ``a`` points on the boundary (k, 2), ``b`` outward unit normals (k, 2);

@@ -402,7 +402,7 @@ class Viewer:
         return steps
 
     def hud(self) -> list[str]:
-        """The heads-up lines: scene, integrator, dt, simulated time, energy, max |C|, fps,
+        """The heads-up lines: scene, integrator, dt, simulated time, energy, max ``|C|``, fps,
         then the state (running, paused, a message)."""
         C, _ = self.system.constraint_residual()
         worst = float(np.max(np.abs(C))) if C.size else 0.0

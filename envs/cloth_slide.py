@@ -22,7 +22,7 @@ __all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSli
            "ClothSlideVectorEnv"]
 
 #: Weight of the squeeze penalty: ``SQUEEZE_COST * q^2`` per step for the squeeze component
-#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, |q| <= 1).
+#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, ``|q| <= 1``).
 SQUEEZE_COST = 0.2
 
 

@@ -36,7 +36,7 @@ only for directories you trust) and writes the files above beside them.
 ``HELD_OUT_SEED_START`` is the convention of ``docs/baselines``), deterministic unless
 ``--stochastic``, and prints a summary; the last line of the output is one JSON object with
 ``success_rate``, ``mean_return``, ``mean_length``, ``episodes`` and diagnostics (for
-ClothSlide: the mean |squeeze| of the actions, the RMS speed near the goal, final distances and
+ClothSlide: the mean ``|squeeze|`` of the actions, the RMS speed near the goal, final distances and
 speeds of failed episodes).
 
 Requires the ``rl`` extra (stable-baselines3, torch).
