@@ -55,14 +55,14 @@ restoring force goes through a force Jacobian keeps ``1/(1 + (w h)^2)`` of its e
 Use it where stability at large steps matters more than energy (stiff cloth at 60 Hz); use
 ``rattle`` for long energy-conserving runs with constraints and ``rk4`` for short accurate ones
 (see :mod:`constrained_particles.integrators`). Walls are linearized only once a
-particle is inside: a particle arriving at speed ``|v|`` can penetrate about ``|v| h`` before the wall
-acts, and that stored energy appears within a step.
+particle is inside: a particle arriving at speed ``|v|`` can penetrate about ``|v| h`` before
+the wall acts, and that stored energy appears within a step.
 """
 
 from __future__ import annotations
 
 import weakref
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -506,7 +506,7 @@ def _assembly(system: ParticleSystem) -> _Assembly:
     return cached
 
 
-def last_solve(system: ParticleSystem) -> dict[str, Any]:
+def last_solve(system: ParticleSystem) -> dict[str, str | int]:
     """How ``system``'s latest implicit_euler step solved its linear system: ``solver``
     (``"cg"`` or ``"direct"``; ``""`` before the first step), ``cg_iterations`` (of that step's
     conjugate gradients, 0 for a direct solve) and ``cg_failures`` (steps since the topology

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -158,7 +158,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         values, goal = self._draw(rng)
         return np.array(values[:4]).reshape(2, 2), np.array(values[4:]).reshape(2, 2), goal
 
-    def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sample_starts(self, rngs: Sequence[np.random.Generator]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`sample_start` for each generator, stacked (the same draws and arithmetic,
         so bit for bit the same starts). A subclass that redefines ``sample_start`` or
         ``linkage`` gets the base version, which calls them."""
@@ -438,7 +439,7 @@ class SliderCrankVectorEnv(ParticleVectorEnv):
     task_class = SliderCrank
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: Any) -> None:
+                 render_mode: str | None = None, **kwargs: object) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
