@@ -9,9 +9,10 @@ order (:meth:`Constraint.evaluate`). Formulas follow docs/physics.md ("Constrain
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .terms import Shape, Term, as_index_array, as_param_array, as_unit_vectors
 
@@ -80,7 +81,8 @@ class CircularWire(_OneParticle):
 
     element_fields = ("center", "radius")
 
-    def __init__(self, particles: Any, center: Any = (0.0, 0.0), radius: Any = None) -> None:
+    def __init__(self, particles: ArrayLike, center: ArrayLike = (0.0, 0.0),
+                 radius: ArrayLike | None = None) -> None:
         self.particles = as_index_array("particles", particles)
         k = len(self.particles)
         self.center = as_param_array("center", center, k, width=2)
@@ -126,7 +128,7 @@ class Rod(Constraint):
     index_fields = ("a", "b")
     element_fields = ("length",)
 
-    def __init__(self, a: Any, b: Any, length: Any = None) -> None:
+    def __init__(self, a: ArrayLike, b: ArrayLike, length: ArrayLike | None = None) -> None:
         self.a = as_index_array("a", a)
         self.b = as_index_array("b", b)
         if len(self.a) != len(self.b):
@@ -178,7 +180,8 @@ class LineWire(_OneParticle):
 
     element_fields = ("point", "normal")
 
-    def __init__(self, particles: Any, direction: Any = (1.0, 0.0), point: Any = None) -> None:
+    def __init__(self, particles: ArrayLike, direction: ArrayLike = (1.0, 0.0),
+                 point: ArrayLike | None = None) -> None:
         self.particles = as_index_array("particles", particles)
         k = len(self.particles)
         d = as_unit_vectors("direction", direction, k)
@@ -213,7 +216,7 @@ class HorizontalWire(LineWire):
     ``height`` defaults to each particle's current height.
     """
 
-    def __init__(self, particles: Any, height: float | None = None) -> None:
+    def __init__(self, particles: ArrayLike, height: float | None = None) -> None:
         point = None if height is None else (0.0, float(as_param_array("height", height, 1)[0]))
         super().__init__(particles, direction=(1.0, 0.0), point=point)
 
@@ -234,7 +237,7 @@ class FixedPoint(Constraint):
     element_fields = ("point",)
     rows_per_element = 2
 
-    def __init__(self, particles: Any, point: Any = None) -> None:
+    def __init__(self, particles: ArrayLike, point: ArrayLike | None = None) -> None:
         self.particles = as_index_array("particles", particles)
         self.point = None if point is None else as_param_array("point", point, len(self.particles),
                                                                 width=2)

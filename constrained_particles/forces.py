@@ -8,9 +8,10 @@ Formulas follow docs/physics.md ("Forces").
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import kernels
 from .terms import (
@@ -134,7 +135,7 @@ class Gravity(Force):
     conservative = True
     state_independent = True
 
-    def __init__(self, g: Any = (0.0, -9.81), particles: Any = None) -> None:
+    def __init__(self, g: ArrayLike = (0.0, -9.81), particles: ArrayLike | None = None) -> None:
         self.g = as_param_array("g", g, 1, width=2)[0]
         self.particles = None if particles is None else as_index_array("particles", particles)
 
@@ -165,7 +166,7 @@ class ConstantForce(Force):
     element_fields = ("force",)
     state_independent = True
 
-    def __init__(self, particles: Any, force: Any) -> None:
+    def __init__(self, particles: ArrayLike, force: ArrayLike) -> None:
         self.particles = as_index_array("particles", particles)
         self.force = as_param_array("force", force, len(self.particles), width=2)
 
@@ -180,8 +181,8 @@ class ConstantForce(Force):
                       np.linalg.norm(self.force, axis=1))]
 
 
-def _spring_arguments(x: Any, v: Any, F: Any, i: Any, j: Any, ks: Any, kd: Any, rest: Any
-                      ) -> bool:
+def _spring_arguments(x: object, v: object, F: object, i: object, j: object, ks: object,
+                      kd: object, rest: object) -> bool:
     """Whether the compiled spring kernel may run on these arrays: it indexes without bounds
     checks, so every array must have the shape and dtype it assumes and every index must be
     inside ``x``."""
@@ -226,7 +227,8 @@ class DampedSpring(Force):
     #: True: the springs pull but never push (see the class docstring)
     tension_only: bool = False
 
-    def __init__(self, i: Any, j: Any, rest: Any = None, ks: Any = 1.0, kd: Any = 0.0,
+    def __init__(self, i: ArrayLike, j: ArrayLike, rest: ArrayLike | None = None,
+                 ks: ArrayLike = 1.0, kd: ArrayLike = 0.0,
                  tension_only: bool = False) -> None:
         self.tension_only = tension_only
         self.i = as_index_array("i", i)
@@ -240,7 +242,7 @@ class DampedSpring(Force):
         self.ks = as_param_array("ks", ks, k, nonnegative=True)
         self.kd = as_param_array("kd", kd, k, nonnegative=True)
 
-    def __setattr__(self, name: str, value: Any) -> None:
+    def __setattr__(self, name: str, value: object) -> None:
         if name == "tension_only" and not isinstance(value, (bool, np.bool_)):
             raise ArgumentTypeError(f"tension_only must be True or False, got {value!r}")
         super().__setattr__(name, bool(value) if name == "tension_only" else value)
@@ -358,8 +360,8 @@ class AngularSpring(Force):
     element_fields = ("rest", "k", "kd")
     conservative = True
 
-    def __init__(self, a: Any, b: Any, c: Any, rest: Any = None, k: Any = 1.0, kd: Any = 0.0
-                 ) -> None:
+    def __init__(self, a: ArrayLike, b: ArrayLike, c: ArrayLike, rest: ArrayLike | None = None,
+                 k: ArrayLike = 1.0, kd: ArrayLike = 0.0) -> None:
         self.a = as_index_array("a", a)
         self.b = as_index_array("b", b)
         self.c = as_index_array("c", c)
@@ -456,7 +458,7 @@ class Drag(Force):
 
     index_fields = ("particles",)
 
-    def __init__(self, kd: float = 0.1, particles: Any = None) -> None:
+    def __init__(self, kd: float = 0.1, particles: ArrayLike | None = None) -> None:
         self.kd = float(as_param_array("kd", kd, 1, nonnegative=True)[0])
         self.particles = None if particles is None else as_index_array("particles", particles)
 
@@ -479,7 +481,7 @@ class Drag(Force):
         return np.zeros(k), np.full(k, -self.kd)
 
 
-def _flags(name: str, value: Any, k: int) -> np.ndarray:
+def _flags(name: str, value: ArrayLike, k: int) -> np.ndarray:
     """``value`` (a bool or bools) as a writable (k,) bool array, else TypeError or ValueError
     naming ``name``."""
     try:
@@ -521,8 +523,8 @@ class TableFriction(Force):
     index_fields = ("particles",)
     element_fields = ("mu", "lifted")
 
-    def __init__(self, mu: Any = 0.5, particles: Any = None, g: float = 9.81,
-                 v_s: float = 0.05, lifted: Any = False) -> None:
+    def __init__(self, mu: ArrayLike = 0.5, particles: ArrayLike | None = None, g: float = 9.81,
+                 v_s: float = 0.05, lifted: ArrayLike = False) -> None:
         self.g = float(as_param_array("g", g, 1, positive=True)[0])
         self.v_s = float(as_param_array("v_s", v_s, 1, positive=True)[0])
         if particles is None:  # every particle, from the system's count when added (bind)
@@ -539,7 +541,7 @@ class TableFriction(Force):
             self.mu = as_param_array("mu", mu, k, nonnegative=True)
             self.lifted = _flags("lifted", lifted, k)
 
-    def __setattr__(self, name: str, value: Any) -> None:
+    def __setattr__(self, name: str, value: object) -> None:
         if name == "lifted" and not (isinstance(value, np.ndarray) and value.dtype == bool
                                      and value.ndim == 1):
             raise ArgumentTypeError(f"lifted must be a 1-D boolean array, got {value!r}")
@@ -566,18 +568,18 @@ class TableFriction(Force):
                              f"{len(self.mu)} and {len(self.lifted)}")
         super().bind(system)
 
-    def _elements_of(self, particles: Any) -> np.ndarray:
+    def _elements_of(self, particles: ArrayLike) -> np.ndarray:
         """The elements whose particle is one of ``particles`` (indices, validated)."""
         idx = as_index_array("particles", particles)
         if self.particles is None:
             raise ValueError("TableFriction: the block is not in a system yet (no particles)")
         return np.flatnonzero(np.isin(self.particles, idx))
 
-    def lift(self, particles: Any) -> None:
+    def lift(self, particles: ArrayLike) -> None:
         """Mark ``particles`` (indices) lifted: they feel no friction until :meth:`lower`."""
         self.lifted[self._elements_of(particles)] = True
 
-    def lower(self, particles: Any = None) -> None:
+    def lower(self, particles: ArrayLike | None = None) -> None:
         """Put ``particles`` (indices; default every particle) back on the table."""
         if particles is None:
             self.lifted[:] = False
@@ -640,8 +642,8 @@ class Wall(Force):
     index_fields = ("particles",)
     conservative = True
 
-    def __init__(self, normal: Any = (1.0, 0.0), offset: float = 0.0, kw: float = 1e4,
-                 cw: float = 1.0, particles: Any = None) -> None:
+    def __init__(self, normal: ArrayLike = (1.0, 0.0), offset: float = 0.0, kw: float = 1e4,
+                 cw: float = 1.0, particles: ArrayLike | None = None) -> None:
         self.normal = as_unit_vectors("normal", normal, 1)[0]
         self.offset = float(as_param_array("offset", offset, 1)[0])
         self.kw = float(as_param_array("kw", kw, 1, nonnegative=True)[0])
@@ -707,8 +709,9 @@ class MouseSpring(Force):
     element_fields = ("anchor", "active", "ks", "kd")
     conservative = True
 
-    def __init__(self, particle: Any = None, anchor: Any = None, ks: Any = 50.0,
-                 kd: Any = 1.0) -> None:
+    def __init__(self, particle: ArrayLike | None = None, anchor: ArrayLike | None = None,
+                 ks: ArrayLike = 50.0,
+                 kd: ArrayLike = 1.0) -> None:
         attached = particle is not None
         self.particle = as_index_array("particle", 0 if particle is None else particle)
         k = len(self.particle)
@@ -718,7 +721,7 @@ class MouseSpring(Force):
         self.kd = as_param_array("kd", kd, k, nonnegative=True)
         self.active = np.full(k, attached)
 
-    def __setattr__(self, name: str, value: Any) -> None:
+    def __setattr__(self, name: str, value: object) -> None:
         if name == "active" and value is not None:
             if not (isinstance(value, np.ndarray) and value.dtype == bool):
                 raise ArgumentTypeError(f"active must be a boolean array, got {value!r}")
@@ -740,7 +743,7 @@ class MouseSpring(Force):
             raise ValueError(f"MouseSpring: {name} holds unknown particle indices "
                              f"{idx[unknown].tolist()[:10]} (system has {n} particles)")
 
-    def _elements(self, elements: Any) -> np.ndarray:
+    def _elements(self, elements: ArrayLike) -> np.ndarray:
         idx = as_index_array("elements", elements)
         if np.any(idx >= len(self.particle)):
             raise ValueError(f"elements must be in [0, {len(self.particle)}), got {elements!r}")
@@ -763,8 +766,8 @@ class MouseSpring(Force):
         self.anchor[elements] = anchors
         self.active[elements] = active
 
-    def set(self, elements: Any, particles: Any = None, anchors: Any = None,
-            active: Any = None) -> None:
+    def set(self, elements: ArrayLike, particles: ArrayLike | None = None,
+            anchors: ArrayLike | None = None, active: ArrayLike | None = None) -> None:
         """Set springs ``elements`` at once: their ``particles`` (indices), ``anchors`` (m,
         (k, 2) or one point) and ``active`` flags (bools); ``None`` leaves a field as it is.
 
@@ -799,7 +802,7 @@ class MouseSpring(Force):
         if new_active is not None:
             self.active[idx] = new_active
 
-    def grab(self, particle: int, anchor: Any, element: int = 0) -> None:
+    def grab(self, particle: int, anchor: ArrayLike, element: int = 0) -> None:
         """Attach spring ``element`` to ``particle`` with its anchor at ``anchor`` (m).
 
         Validated first (nothing changes on an error); the index is checked against the
@@ -808,7 +811,7 @@ class MouseSpring(Force):
         self.set([as_index("element", element)], [as_index("particle", particle)],
                  as_param_array("anchor", anchor, 1, width=2), np.array([True]))
 
-    def move(self, anchor: Any, element: int = 0) -> None:
+    def move(self, anchor: ArrayLike, element: int = 0) -> None:
         """Move the anchor of spring ``element`` to ``anchor`` (m)."""
         self.set([as_index("element", element)], anchors=as_param_array("anchor", anchor, 1,
                                                                          width=2))

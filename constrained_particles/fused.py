@@ -109,8 +109,12 @@ _INTEGRATOR_ARGS = {name: (code, True if name == "rattle" else None)
                     for name, code in METHOD_CODES.items()}
 
 
+#: ``(x, v, mass, inv_mass)`` as a caller read them from the system
+StateArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
-            state: tuple[Any, Any, Any, Any] | None = None, checked: bool = False
+            state: StateArrays | None = None, checked: bool = False
             ) -> tuple[Packed, State, Settings] | None:
     """What :func:`fused_steps` needs of ``system``: its :class:`Packed` form (whose
     :attr:`~.packing.Packed.refs` it takes), the :class:`~.records.State` to step (``x, v,
@@ -155,7 +159,7 @@ def prepare(system: ParticleSystem, lam: np.ndarray, residual_limit: float,
 
 def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndarray,
         residual_limit: float, pieces: np.ndarray | None = None,
-        state: tuple[Any, Any, Any, Any] | None = None, checked: bool = False
+        state: StateArrays | None = None, checked: bool = False
         ) -> tuple[int, np.ndarray, np.ndarray, int]:
     """Run ``steps`` fused steps of ``method`` from the system's state.
 

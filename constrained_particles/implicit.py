@@ -16,7 +16,7 @@ solve is, with ``y = -p``::
 
 Then ``v1 = v0 + dv`` and ``x1 = x0 + h v1``. ``J``, ``C`` are taken at x0, so a linear
 constraint (a line wire, a fixed point) holds exactly after the step when ``beta = 1``; a curved
-one (circular wire, rod) is left off by O(h^2 |v|^2) and pulled back in the next step.
+one (circular wire, rod) is left off by O(h^2 ``|v|^2``) and pulled back in the next step.
 
 The forces are linearized with the semi-definite Jacobians (``definite=True`` of
 :meth:`~constrained_particles.forces.Force.jacobians`: no compressive transverse spring
@@ -55,14 +55,14 @@ restoring force goes through a force Jacobian keeps ``1/(1 + (w h)^2)`` of its e
 Use it where stability at large steps matters more than energy (stiff cloth at 60 Hz); use
 ``rattle`` for long energy-conserving runs with constraints and ``rk4`` for short accurate ones
 (see :mod:`constrained_particles.integrators`). Walls are linearized only once a
-particle is inside: a particle arriving at speed |v| can penetrate about |v| h before the wall
-acts, and that stored energy appears within a step.
+particle is inside: a particle arriving at speed ``|v|`` can penetrate about ``|v| h`` before
+the wall acts, and that stored energy appears within a step.
 """
 
 from __future__ import annotations
 
 import weakref
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -93,7 +93,7 @@ CG_FLOOR = 1e-300
 CG_MAX_ITERATIONS = 1000
 #: ``implicit_solver="auto"`` takes CG from this many free coordinates up (measured crossover).
 CG_MIN_COORDINATES = 1024
-#: Two rows on one particle whose gradients are this close to parallel (|sin| of their angle)
+#: Two rows on one particle whose gradients are this close to parallel (``|sin|`` of their angle)
 #: are left to the direct solve, which names them if they are redundant.
 PARALLEL_ROWS = 1e-9
 
@@ -506,7 +506,7 @@ def _assembly(system: ParticleSystem) -> _Assembly:
     return cached
 
 
-def last_solve(system: ParticleSystem) -> dict[str, Any]:
+def last_solve(system: ParticleSystem) -> dict[str, str | int]:
     """How ``system``'s latest implicit_euler step solved its linear system: ``solver``
     (``"cg"`` or ``"direct"``; ``""`` before the first step), ``cg_iterations`` (of that step's
     conjugate gradients, 0 for a direct solve) and ``cg_failures`` (steps since the topology

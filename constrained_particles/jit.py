@@ -313,7 +313,8 @@ def _cached(dispatcher: Any) -> Any:
     return dispatcher
 
 
-def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
+def njit(func: Callable[..., object] | None = None, **options: bool | str
+         ) -> Callable[..., object]:
     """``numba.njit(**options)`` with the disk cache described in the module docstring.
 
     Use as ``@njit`` or ``@njit(inline="always")``; ``cache`` is not an option (always on where
@@ -330,7 +331,7 @@ def njit(func: Callable[..., Any] | None = None, **options: Any) -> Any:
         raise ValueError("options: 'cache' is decided by constrained_particles.jit, not per call")
     options.setdefault("error_model", "numpy")
 
-    def decorate(f: Callable[..., Any]) -> Any:
+    def decorate(f: Callable[..., object]) -> Callable[..., object]:
         return _cached(numba.njit(**options)(f))
 
     return decorate if func is None else decorate(func)

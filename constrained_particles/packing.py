@@ -156,11 +156,11 @@ class PackRefs(NamedTuple):
     (:class:`~.records.RecordRef`), so that a call passes pointers instead of some sixty
     arrays."""
 
-    blocks: Any  #: the :class:`~.records.Blocks`, with the mouse springs' arrays below
-    rows: Any  #: the :class:`~.records.Rows`
-    work: Any  #: the :class:`~.records.Workspace` over ``Packed.backing``
+    blocks: object  #: the :class:`~.records.Blocks`, with the mouse springs' arrays below
+    rows: object  #: the :class:`~.records.Rows`
+    work: object  #: the :class:`~.records.Workspace` over ``Packed.backing``
     #: the three above as one :class:`~.records.Engine`, as the fused step takes them
-    engine: Any
+    engine: object
     #: the mouse springs' particles and ``active`` flags as the compiled code reads them: the
     #: pack's own copies, refreshed before each call (:meth:`Packed.take_mouse`)
     mouse_particle: np.ndarray
@@ -566,7 +566,7 @@ class Packed:
         return self._live
 
     @property
-    def live_ref(self) -> Any:
+    def live_ref(self) -> object:
         """:attr:`live` as compiled code takes it: held by reference
         (:class:`~.records.RecordRef`; made on first use)."""
         if self._live_ref is None:

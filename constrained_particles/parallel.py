@@ -42,18 +42,21 @@ import os
 import threading
 import time
 import weakref
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from . import kernels
 from .forces import MouseSpring
 from .packing import Packed
-from .terms import frozen
+from .terms import Term, frozen
 
 if TYPE_CHECKING:
     from .system import ParticleSystem
+
+#: what a call run on a range returns
+T = TypeVar("T")
 
 __all__ = ["CLOSE_SECONDS", "MIN_PARTICLES", "POLL_SECONDS", "SETTLED", "WAIT_SECONDS", "Crew",
            "Partition", "cuts", "wait_spins"]
@@ -241,7 +244,7 @@ class Crew:
                     if posted[i] == seq:
                         return
 
-    def run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
+    def run(self, first: Callable[[], T], others: list[Callable[[], T]]) -> list[T]:
         """``first()`` on this thread and ``others[i]()`` on thread i; every result once all
         have returned, raising the first error (this thread's first). RuntimeError if another
         caller is in a run or the crew is stopped; ValueError for more calls than threads."""
@@ -265,7 +268,7 @@ class Crew:
                 self._owner = None
                 self._lock.release()
 
-    def _run(self, first: Callable[[], Any], others: list[Callable[[], Any]]) -> list[Any]:
+    def _run(self, first: Callable[[], T], others: list[Callable[[], T]]) -> list[T]:
         posted, done = self._posted, self._done
         targets = []
         for i in range(len(others)):
@@ -339,7 +342,7 @@ class Crew:
                 t.join(max(0.0, deadline - time.monotonic()))
 
 
-def _spans(blocks: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:
+def _spans(blocks: Sequence[Term]) -> tuple[np.ndarray, np.ndarray] | None:
     """The lowest and highest particle of every element that couples particles (an element
     with two or more index fields), or None if a block refers to all particles implicitly
     with more than one field (nothing such exists today) or its index arrays are not one
@@ -357,7 +360,7 @@ def _spans(blocks: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:
     return np.concatenate(lows), np.concatenate(highs)
 
 
-def cuts(blocks: list[Any], n: int, k: int) -> list[int]:
+def cuts(blocks: Sequence[Term], n: int, k: int) -> list[int]:
     """Where ``n`` particles with elements ``blocks`` are cut into at most ``k`` ranges: the
     inner boundaries, increasing, each the allowed cut nearest its share ``i n / k`` (a cut
     at ``c`` is allowed when no element has particles both below ``c`` and at or above it).
@@ -561,7 +564,7 @@ class Partition:
                 and crew.size == len(self.packs) - 1):
             self._box[0], other._box[0] = crew, None
 
-    def map(self, calls: list[Callable[[], Any]]) -> list[Any]:
+    def map(self, calls: list[Callable[[], T]]) -> list[T]:
         """Run ``calls[r]()`` for every range r, each on the thread that steps the range (the
         first on the calling thread); every result once all have returned, raising the first
         error. For per-range work after a step (an environment's measures of the copies in

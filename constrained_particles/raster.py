@@ -79,6 +79,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import kernels
 from .raster_kernels import (
@@ -154,7 +155,7 @@ class View:
         """The area of one pixel (m^2)."""
         return 1.0 / (self.scale * self.scale)
 
-    def to_pixels(self, points: Any) -> np.ndarray:
+    def to_pixels(self, points: ArrayLike) -> np.ndarray:
         """World points (..., 2) in m -> pixel coordinates (..., 2): ``(ox + s x, oy - s y)``,
         column then row, the row growing downwards."""
         p = np.asarray(points, dtype=np.float64)
@@ -179,7 +180,7 @@ class Layer:
     """
 
     kind: str
-    index: Any
+    index: ArrayLike
     colour: tuple[float, float, float]
     opacity: float = 1.0
     size: float = 0.0
@@ -332,7 +333,7 @@ def _shared_edges(cells: np.ndarray) -> tuple[np.ndarray, list[list[int]], list[
     return np.array(list(found), dtype=np.int64).reshape(-1, 2), along, signs
 
 
-def _points(points: Any, packed: Packed) -> np.ndarray:
+def _points(points: ArrayLike, packed: Packed) -> np.ndarray:
     """``points`` as a C-contiguous float64 (N, n, 2) array, checked against the indices."""
     p = np.asarray(points)
     if p.dtype.kind not in "fiu" or p.ndim != 3 or p.shape[2] != 2:
@@ -393,7 +394,7 @@ class Scene:
         """One image's shape ``(height, width, channels)``."""
         return self.view.height, self.view.width, self.channels
 
-    def draw(self, points: Any, out: np.ndarray | None = None, *, start: int = 0,
+    def draw(self, points: ArrayLike, out: np.ndarray | None = None, *, start: int = 0,
              stop: int | None = None, threads: int = 1) -> np.ndarray:
         """Draw copies ``[start, stop)`` (default all) of ``points`` (N, n, 2) (m) into ``out``
         (N, height, width, channels) uint8, C-contiguous (None: a new zeroed array) and return
@@ -437,8 +438,8 @@ def _split(entry: Any, args: tuple, start: int, stop: int, threads: int) -> None
         job.result()
 
 
-def coverage(points: Any, cells: Any, view: View, *, maps: bool = False, threads: int = 1
-             ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+def coverage(points: ArrayLike, cells: ArrayLike, view: View, *, maps: bool = False,
+             threads: int = 1) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Area (m^2) of the union of ``cells`` (m, k) (polygons by particle index) of each copy
     of ``points`` (N, n, 2) (m) within the image of ``view``, measured on its pixels: each
     pixel counts ``min(1, d)`` of its area, ``d`` the sum of the cells' exact coverages of it.

@@ -60,7 +60,7 @@ if TYPE_CHECKING:
     from .system import ParticleSystem
 
 #: Convergence of the position solve: every row within this fraction of its component's size
-#: (the largest coordinate of its particles, m) of its constraint, as a distance |C_r| / |J_r|.
+#: (the largest coordinate of its particles, m) of its constraint, as a distance ``|C_r| / |J_r|``.
 POSITION_TOL = 1e-13
 #: A component whose residual stops falling (less than halved by an iteration) is accepted at
 #: its roundoff floor if every row is within this fraction of the component's size.

@@ -26,6 +26,7 @@ int64 particle indices (global, into the system's state) and are immutable once 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -202,9 +203,9 @@ class Engine(NamedTuple):
     """What the fused step reads of a packed system, each record held by reference
     (:class:`RecordRef`): one pointer crosses into compiled code instead of three."""
 
-    blocks: Any  #: the :class:`Blocks`
-    rows: Any  #: the :class:`Rows`
-    work: Any  #: the :class:`Workspace`
+    blocks: object  #: the :class:`Blocks` (a :data:`RecordRef`)
+    rows: object  #: the :class:`Rows` (a :data:`RecordRef`)
+    work: object  #: the :class:`Workspace` (a :data:`RecordRef`)
 
 
 class State(NamedTuple):
@@ -336,7 +337,7 @@ class Live(NamedTuple):
     seen: np.ndarray  #: (components,) bool, zeroed marks
 
 
-def plain(record: Any) -> Any:
+def plain(record: object) -> object:
     """``record`` with every named tuple in it (recursively) made a plain tuple: the form in
     which records cross into compiled code (see the module docstring)."""
     if isinstance(record, tuple):
@@ -345,25 +346,25 @@ def plain(record: Any) -> Any:
 
 
 #: compiled: a :class:`RecordRef` to the :class:`Blocks` whose :func:`plain` form is given
-blocks_ref: Any = None
+blocks_ref: Callable[[tuple], object] | None = None
 #: compiled: a :class:`RecordRef` to the :class:`Rows` whose :func:`plain` form is given
-rows_ref: Any = None
+rows_ref: Callable[[tuple], object] | None = None
 #: compiled: a :class:`RecordRef` to the :class:`Workspace` over the backing arrays of
 #: :func:`workspace`
-workspace_ref: Any = None
+workspace_ref: Callable[..., object] | None = None
 #: compiled: a :class:`RecordRef` to the :class:`Live` whose :func:`plain` form is given
-live_ref: Any = None
+live_ref: Callable[[tuple], object] | None = None
 #: compiled: a :class:`RecordRef` to the :class:`Engine` of three records held by reference
 #: (``blocks, rows, work``)
-engine_ref: Any = None
+engine_ref: Callable[..., object] | None = None
 #: compiled: a live set's ``(particles, rows, components, elements)`` (four Nones for None),
 #: read once by a kernel before its loops
-live_lists: Any = None
+live_lists: Callable[[object], tuple] | None = None
 #: compiled: a value with its arrays' reference counts detached (see ``_borrowed``)
-borrowed: Any = None
+borrowed: Callable[[object], object] | None = None
 #: the Python handle of a record held by reference (compiled path only; see the module
 #: docstring)
-RecordRef: Any = None
+RecordRef: type | None = None
 
 if kernels.ENABLED:
     from numba.core import cgutils, types
@@ -419,7 +420,8 @@ if kernels.ENABLED:
         """Numba's type of a record held by reference: the fields of a named tuple, in a
         reference-counted structure that crosses a call as one pointer."""
 
-        def preprocess_fields(self, fields: Any) -> Any:
+        def preprocess_fields(self, fields: Iterable[tuple[str, types.Type]]
+                              ) -> tuple[tuple[str, types.Type], ...]:
             return tuple((name, types.unliteral(typ)) for name, typ in fields)
 
     class _RecordRef(structref.StructRefProxy):
@@ -478,7 +480,7 @@ if kernels.ENABLED:
         return Live(mask, particles, rows, components, sizes, Elements(*elements), ptr, ranged,
                     comp_of, seen)
 
-    def _live_lists(live: Any) -> Any:
+    def _live_lists(live: object) -> tuple:
         """``(live.particles, live.rows, live.components, live.elements)``, or four Nones
         for a None ``live`` (compiled only). A kernel reads them once, before its loops: a
         field of a record held by reference is loaded (and its reference counted) at every

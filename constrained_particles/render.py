@@ -12,6 +12,7 @@ from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .terms import Shape
 
@@ -108,13 +109,13 @@ class Renderer:
         (x0, y1), (x1, y0) = self.pixel_to_world([[0, 0], self.size])
         return (x0, y0, x1, y1)
 
-    def world_to_pixel(self, points: Any) -> np.ndarray:
+    def world_to_pixel(self, points: ArrayLike) -> np.ndarray:
         """World points (k, 2) in metres -> pixel coordinates (k, 2), y pointing down."""
         p = np.asarray(points, dtype=float).reshape(-1, 2)
         return np.stack([self._origin[0] + p[:, 0] * self.scale,
                          self._origin[1] - p[:, 1] * self.scale], axis=1)
 
-    def pixel_to_world(self, pixels: Any) -> np.ndarray:
+    def pixel_to_world(self, pixels: ArrayLike) -> np.ndarray:
         """Pixel coordinates (k, 2) -> world points (k, 2) in metres."""
         q = np.asarray(pixels, dtype=float).reshape(-1, 2)
         return np.stack([(q[:, 0] - self._origin[0]) / self.scale,
@@ -154,11 +155,15 @@ class Renderer:
         if hud:
             self._hud(pg, surface, [hud] if isinstance(hud, str) else list(hud))
 
-    def rgb_array(self, system: ParticleSystem, **kwargs: Any) -> np.ndarray:
-        """Draw onto an off-screen surface (no display needed) and return (H, W, 3) uint8."""
+    def rgb_array(self, system: ParticleSystem, *, extra: Iterable[Shape] = (),
+                  forces: bool = True, constraint_forces: bool = False,
+                  hud: str | Sequence[str] | None = None) -> np.ndarray:
+        """Draw onto an off-screen surface (no display needed) and return (H, W, 3) uint8; the
+        keywords are :meth:`draw`'s."""
         pg = _pygame()
         surface = pg.Surface(self.size)
-        self.draw(surface, system, **kwargs)
+        self.draw(surface, system, extra=extra, forces=forces,
+                  constraint_forces=constraint_forces, hud=hud)
         return np.ascontiguousarray(pg.surfarray.array3d(surface).transpose(1, 0, 2))
 
     def _px(self, points: np.ndarray) -> list[tuple[float, float]]:

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from typing import Any, NoReturn
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import fused, parallel
 from .constraints import Constraint
@@ -42,7 +43,7 @@ _F64 = np.dtype(np.float64)  #: NumPy's float64 dtype (one object: compared by i
 
 
 #: every system that has a step lock (see :func:`_fresh_locks_after_fork`)
-_LOCKED: weakref.WeakSet[Any] = weakref.WeakSet()
+_LOCKED: weakref.WeakSet[object] = weakref.WeakSet()
 
 
 def _fresh_locks_after_fork() -> None:
@@ -59,14 +60,14 @@ if hasattr(os, "register_at_fork"):  # (not on Windows, which does not fork)
     os.register_at_fork(after_in_child=_fresh_locks_after_fork)
 
 
-def _flag(name: str, value: Any) -> bool:
+def _flag(name: str, value: object) -> bool:
     """``value`` as a bool, TypeError naming ``name`` for anything else (``"no"`` is not False)."""
     if not isinstance(value, (bool, np.bool_)):
         raise ArgumentTypeError(f"{name} must be True or False, got {value!r}")
     return bool(value)
 
 
-def check_dt(dt: Any) -> float:
+def check_dt(dt: float) -> float:
     """``dt`` (s) as a float in [MIN_DT, inf), TypeError or ValueError naming it otherwise."""
     if type(dt) is float and math.isfinite(dt) and dt >= MIN_DT:  # the usual case, quickly
         return dt
@@ -77,7 +78,8 @@ def check_dt(dt: Any) -> float:
     return float(dt)
 
 
-def _finite_vectors(name: str, value: Any, shape: tuple[int, ...], limit: float) -> np.ndarray:
+def _finite_vectors(name: str, value: ArrayLike, shape: tuple[int, ...], limit: float
+                    ) -> np.ndarray:
     arr = as_param_array(name, value, shape[0], width=2)
     if np.any(np.abs(arr) >= limit):
         raise ValueError(f"{name} must be within divergence_limit = {limit:g} in every "
@@ -101,29 +103,39 @@ class ParticleSystem:
 
     Parameters
     ----------
-    solver : how the multipliers are solved for: ``"auto"`` (default: each connected component
-        of the constraint graph on its own, directly; a sparse Cholesky factorisation in a
-        fill-reducing order for components of more than 8 rows, linear time on chains and trees
-        of rods), ``"cg"`` (conjugate gradients, Jacobi preconditioner, warm start, for
-        components of more than 8 rows) or ``"direct"`` (one sparse LU of the whole system).
-    tol : relative residual tolerance of the multiplier solve (default 1e-10).
-    ks, kd : constraint feedback gains in 1/s^2 and 1/s (docs/physics.md, "The constraint
-        force"). The defaults pull drift
-        back critically damped with a 0.1 s time constant.
-    project : if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
-    divergence_limit : a step that produces a coordinate (m) or speed (m/s) above this, or a
+    solver
+        how the multipliers are solved for:
+        ``"auto"`` (default: each connected component of the constraint graph on its own,
+        directly; a sparse Cholesky factorisation in a fill-reducing order for components of
+        more than 8 rows, linear time on chains and trees of rods), ``"cg"`` (conjugate
+        gradients, Jacobi preconditioner, warm start, for components of more than 8 rows) or
+        ``"direct"`` (one sparse LU of the whole system).
+    tol
+        relative residual tolerance of the multiplier solve (default 1e-10).
+    ks, kd
+        constraint feedback gains in 1/s^2 and 1/s
+        (docs/physics.md, "The constraint force"). The defaults pull drift back critically
+        damped with a 0.1 s time constant.
+    project
+        if True, every step ends with a projection back onto ``C = 0``, ``J v = 0``.
+    divergence_limit
+        a step that produces a coordinate (m) or speed (m/s) above this, or a
         non-finite one, raises :class:`SimulationDiverged`.
-    drift_correction : ``method="implicit_euler"`` only: the fraction beta in [0, 1] of the
+    drift_correction
+        ``method="implicit_euler"`` only: the fraction beta in [0, 1] of the
         constraint error C removed per step (its constraint rows ask ``J v = -(beta/h) C``).
-    compliance : ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
+    compliance
+        ``method="implicit_euler"`` only: constraint softness c >= 0 in units of C per
         unit of lam (m/N for line wires and fixed points); 0 is a hard constraint, and a small
         value regularises redundant constraints. See :mod:`constrained_particles.implicit`.
-    implicit_solver : ``method="implicit_euler"`` only: ``"cg"`` (filtered preconditioned
+    implicit_solver
+        ``method="implicit_euler"`` only: ``"cg"`` (filtered preconditioned
         conjugate gradients, cost linear in the particle count), ``"direct"`` (sparse LU of the
         KKT system) or ``"auto"`` (default: CG from 1024 free coordinates up, where it is
         faster). Constraints CG cannot filter (rods between moving particles, compliance > 0)
         always take the direct solve. See :mod:`constrained_particles.implicit`.
-    residual_limit : a step whose new state leaves any constraint row by more than this many
+    residual_limit
+        a step whose new state leaves any constraint row by more than this many
         metres (its :meth:`~constrained_particles.Constraint.distance_error`: distance from the
         wire, from the pinned point, error of a rod's length) raises :class:`SimulationDiverged`
         and keeps the old state. Default ``inf`` (no check); the environments use 0.01 m.
@@ -232,7 +244,7 @@ class ParticleSystem:
         """Boolean mask of immovable particles (n,)."""
         return self.inv_mass == 0
 
-    def add_particle(self, position: Any, velocity: Any = (0.0, 0.0), mass: float = 1.0,
+    def add_particle(self, position: ArrayLike, velocity: ArrayLike = (0.0, 0.0), mass: float = 1.0,
                      fixed: bool = False) -> int:
         """Add one particle at ``position`` (m) with ``velocity`` (m/s) and ``mass`` (kg).
 
@@ -240,8 +252,9 @@ class ParticleSystem:
         """
         return int(self.add_particles([position], [velocity], mass, fixed)[0])
 
-    def add_particles(self, positions: Any, velocities: Any = None, mass: Any = 1.0,
-                      fixed: Any = False) -> np.ndarray:
+    def add_particles(self, positions: ArrayLike, velocities: ArrayLike | None = None,
+                      mass: ArrayLike = 1.0,
+                      fixed: ArrayLike = False) -> np.ndarray:
         """Add k particles at once; ``positions`` (k, 2) m, ``velocities`` (k, 2) m/s (default 0),
         ``mass`` scalar or (k,) kg, ``fixed`` scalar or (k,) bool. Returns their indices."""
         try:
@@ -366,7 +379,7 @@ class ParticleSystem:
         out.__dict__.pop("_stepping", None)
         return out
 
-    def __getstate__(self) -> dict[str, Any]:
+    def __getstate__(self) -> dict[str, object]:
         # the compiled pack holds views of the blocks' arrays: rebuilt, never copied; a copy
         # gets its own step lock (made on first use)
         state = self.__dict__.copy()
@@ -509,7 +522,8 @@ class ParticleSystem:
     def _fused_step(self, h: float, method: str, steps: int, project: bool,
                     pieces: np.ndarray | None = None,
                     solver: ConstraintSolver | None = None,
-                    state: tuple[Any, Any, Any, Any, Any] | None = None,
+                    state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
+                    | None = None,
                     checked: bool = False) -> bool:
         """Take the steps on the fused kernel if it can (True); False, with nothing changed,
         if the reference path must. Raises SimulationDiverged, keeping the state. ``state``
@@ -591,7 +605,7 @@ class ParticleSystem:
         self._check_state(self.x, self.v, self.mass, self.inv_mass, self.t)
 
     @staticmethod
-    def _check_state(x: Any, v: Any, mass: Any, inv_mass: Any, t: Any) -> bool:
+    def _check_state(x: object, v: object, mass: object, inv_mass: object, t: object) -> bool:
         """:meth:`check_arrays` of state arrays read once by the caller. True in the usual
         case: exact ndarrays (no subclass) of float64, ``x`` and ``v`` of one (n, 2) shape,
         ``mass`` and ``inv_mass`` of (n,), ``t`` a finite float; then ``fused.prepare`` checks

@@ -12,9 +12,10 @@ from __future__ import annotations
 import copy
 import math
 import numbers
-from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
     from .system import ParticleSystem
@@ -26,7 +27,7 @@ class Shape(NamedTuple):
     ``kind`` is one of:
 
     - ``"segment"``: ``a`` start points (k, 2), ``b`` end points (k, 2), ``value`` e.g. strain;
-    - ``"arrow"``: ``a`` origins (k, 2), ``b`` force vectors in newtons (k, 2), ``value`` |f|;
+    - ``"arrow"``: ``a`` origins (k, 2), ``b`` force vectors in newtons (k, 2), ``value`` ``|f|``;
     - ``"circle"``: ``a`` centres (k, 2), ``value`` radii (k,);
     - ``"line"``: ``a`` points on the line (k, 2), ``b`` unit directions (k, 2);
     - ``"halfplane"``: ``a`` points on the boundary (k, 2), ``b`` outward unit normals (k, 2);
@@ -62,7 +63,7 @@ def frozen(arr: np.ndarray) -> np.ndarray:
     return np.frombuffer(arr.tobytes(), dtype=arr.dtype).reshape(arr.shape)
 
 
-def is_frozen(arr: Any) -> bool:
+def is_frozen(arr: object) -> bool:
     """True if ``arr`` is an array made by :func:`frozen` (or a view of one): read-only memory
     that nothing can make writeable again, so a check of its values holds for good."""
     if not isinstance(arr, np.ndarray) or arr.flags.writeable:
@@ -75,7 +76,7 @@ def is_frozen(arr: Any) -> bool:
     return isinstance(base, bytes)
 
 
-def as_index(name: str, value: Any) -> int:
+def as_index(name: str, value: ArrayLike) -> int:
     """``value`` as one particle index (an int >= 0), else TypeError or ValueError naming it."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral,
                                                                         numbers.Real)):
@@ -85,7 +86,7 @@ def as_index(name: str, value: Any) -> int:
     return int(value)
 
 
-def as_index_array(name: str, value: Any) -> np.ndarray:
+def as_index_array(name: str, value: ArrayLike) -> np.ndarray:
     """Return ``value`` as a read-only 1-D int64 array of particle indices.
 
     Integral floats are accepted; booleans (a mask is not a list of indices), strings and other
@@ -113,7 +114,7 @@ def as_index_array(name: str, value: Any) -> np.ndarray:
     return frozen(arr.astype(np.int64))
 
 
-def as_param_array(name: str, value: Any, k: int, *, width: int | None = None,
+def as_param_array(name: str, value: ArrayLike, k: int, *, width: int | None = None,
                    nonnegative: bool = False, positive: bool = False) -> np.ndarray:
     """Broadcast a scalar (or vector of length ``width``) parameter to ``k`` elements.
 
@@ -142,7 +143,7 @@ def as_param_array(name: str, value: Any, k: int, *, width: int | None = None,
     return arr
 
 
-def as_unit_vectors(name: str, value: Any, k: int) -> np.ndarray:
+def as_unit_vectors(name: str, value: ArrayLike, k: int) -> np.ndarray:
     """Broadcast direction(s) to (k, 2) unit vectors, raising ValueError for a zero vector."""
     arr = as_param_array(name, value, k, width=2)
     # scale by the largest component first, so that |(1e200, 0)| does not overflow to inf
@@ -183,7 +184,7 @@ class Term:
             return 0
         return len(getattr(self, self.index_fields[0]))
 
-    def __setattr__(self, name: str, value: Any) -> None:
+    def __setattr__(self, name: str, value: object) -> None:
         if name == "version":
             raise AttributeError("version is kept by the block: it counts reassignments")
         # Index arrays are immutable; replacing one is validated like the constructor's argument
@@ -215,13 +216,13 @@ class Term:
         if not name.startswith("_"):
             self.__dict__["version"] = self.version + 1
 
-    def _assign_checked(self, name: str, value: Any) -> None:
+    def _assign_checked(self, name: str, value: object) -> None:
         """Set attribute ``name`` to ``value``, already validated by the caller (index arrays
         :func:`frozen`), and bump :attr:`version` as any assignment does."""
         super().__setattr__(name, value)
         self.__dict__["version"] = self.version + 1
 
-    def __setstate__(self, state: dict[str, Any]) -> None:
+    def __setstate__(self, state: dict[str, object]) -> None:
         # copies and unpickled blocks get read-only index arrays again
         self.__dict__.update(state)
         for name in self.index_fields:

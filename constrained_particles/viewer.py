@@ -21,9 +21,11 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .arguments import int_at_least, output_file, positive_float, time_step
 from .extras import require
@@ -34,12 +36,16 @@ from .scenes import SCENES
 from .system import ParticleSystem, SimulationDiverged
 from .terms import Shape
 
+if TYPE_CHECKING:
+    import pygame
+    from PIL import Image
+
 #: Integrators selected by keys 1-6 (a name missing from METHODS is reported, not selected).
 INTEGRATOR_KEYS = ("euler", "midpoint", "rk4", "symplectic_euler", "implicit_euler", "rattle")
 
 #: Keyword arguments the viewer passes to a scene builder: the cloth gets a horizontal push
 #: (N per top-row particle) so that it slides into its wall.
-SCENE_KWARGS: dict[str, dict[str, Any]] = {"cloth": {"push": 0.06}}
+SCENE_KWARGS: dict[str, dict[str, float]] = {"cloth": {"push": 0.06}}
 
 #: Default time step (s) per scene; scenes not listed use :data:`DEFAULT_DT`.
 SCENE_DT: dict[str, float] = {"gravity": 2e-3, "angular_chain": 2e-3}
@@ -181,7 +187,7 @@ class Viewer:
         return np.concatenate(points)
 
     # ------------------------------------------------------------------ editing
-    def nearest(self, pixel: Any, radius: float | None = None, movable: bool = False,
+    def nearest(self, pixel: ArrayLike, radius: float | None = None, movable: bool = False,
                 exclude: int | None = None) -> int | None:
         """Index of the particle nearest to ``pixel`` (within ``radius`` pixels if given),
         optionally only movable ones and never ``exclude``; None if there is none."""
@@ -197,7 +203,7 @@ class Viewer:
         limit = np.inf if radius is None else radius
         return k if d[k] <= limit and np.isfinite(d[k]) else None
 
-    def add_particle_at(self, position: Any, fixed: bool = False) -> int:
+    def add_particle_at(self, position: ArrayLike, fixed: bool = False) -> int:
         """Add a particle at ``position`` (m) with :attr:`new_mass`, and give it the scene's
         gravity, drag and walls (blocks listing their particles are extended; blocks without a
         list already act on every particle). Returns its index."""
@@ -227,7 +233,7 @@ class Viewer:
             return particle
         return self.add_particle_at(self.renderer.pixel_to_world(pixel)[0], fixed=fixed)
 
-    def grab(self, pixel: Any) -> None:
+    def grab(self, pixel: ArrayLike) -> None:
         """Attach a mouse spring from the cursor at ``pixel`` to the nearest movable particle.
 
         Its stiffness gives the whole scene's movable mass a 2 Hz pull (capped so the grabbed
@@ -250,7 +256,7 @@ class Viewer:
             self.mouse = None
 
     # ------------------------------------------------------------------ events
-    def handle(self, event: Any) -> None:
+    def handle(self, event: pygame.event.Event) -> None:
         """React to one pygame event (keys, mouse buttons and motion, resize, quit)."""
         pg = _pygame()
         if event.type == pg.QUIT:
@@ -271,19 +277,19 @@ class Viewer:
             self.size = (max(1, event.w), max(1, event.h))
             self.renderer.resize(self.size)
 
-    def _track_modifiers(self, pg: Any, event: Any) -> None:
+    def _track_modifiers(self, pg: ModuleType, event: pygame.event.Event) -> None:
         down = event.type == pg.KEYDOWN
         if event.key in (pg.K_LSHIFT, pg.K_RSHIFT):
             self._modifiers["shift"] = down
         elif event.key in (pg.K_LCTRL, pg.K_RCTRL):
             self._modifiers["ctrl"] = down
 
-    def _held(self, pg: Any, name: str) -> bool:
+    def _held(self, pg: ModuleType, name: str) -> bool:
         mask = pg.KMOD_SHIFT if name == "shift" else pg.KMOD_CTRL
         live = bool(pg.key.get_mods() & mask) if pg.display.get_init() else False
         return live or self._modifiers[name]
 
-    def _key(self, pg: Any, key: int) -> None:
+    def _key(self, pg: ModuleType, key: int) -> None:
         keys = range(1, len(INTEGRATOR_KEYS) + 1)
         numbers = {getattr(pg, f"K_{k}"): k - 1 for k in keys}
         numbers.update({getattr(pg, f"K_KP{k}"): k - 1 for k in keys})
@@ -310,7 +316,7 @@ class Viewer:
         elif key in actions:
             actions[key]()
 
-    def _mouse_down(self, pg: Any, event: Any) -> None:
+    def _mouse_down(self, pg: ModuleType, event: pygame.event.Event) -> None:
         pixel = np.asarray(event.pos, float)
         self._cursor = pixel
         if event.button == 3 or (event.button == 1 and self._held(pg, "shift")):
@@ -320,7 +326,7 @@ class Viewer:
         elif event.button == 1:
             self._press = (pixel, self.nearest(pixel, self.snap_radius), self._held(pg, "ctrl"))
 
-    def _mouse_up(self, pg: Any, event: Any) -> None:
+    def _mouse_up(self, pg: ModuleType, event: pygame.event.Event) -> None:
         pixel = np.asarray(event.pos, float)
         self._cursor = pixel
         if self.mouse is not None and event.button == self._grab_button:
@@ -402,7 +408,7 @@ class Viewer:
         return steps
 
     def hud(self) -> list[str]:
-        """The heads-up lines: scene, integrator, dt, simulated time, energy, max |C|, fps,
+        """The heads-up lines: scene, integrator, dt, simulated time, energy, max ``|C|``, fps,
         then the state (running, paused, a message)."""
         C, _ = self.system.constraint_residual()
         worst = float(np.max(np.abs(C))) if C.size else 0.0
@@ -424,7 +430,7 @@ class Viewer:
         end = self.renderer.pixel_to_world(self._cursor)[0]
         return [Shape("segment", "mouse", begin[None, :], end[None, :], np.zeros(1))]
 
-    def draw(self, surface: Any) -> None:
+    def draw(self, surface: pygame.Surface) -> None:
         """Draw the scene, the HUD and (if on) the help overlay onto the pygame ``surface``."""
         self.renderer.draw(surface, self.system, extra=self.extra_shapes(),
                            forces=self.show_forces,
@@ -432,7 +438,7 @@ class Viewer:
         if self.show_help:
             self._draw_help(surface)
 
-    def _draw_help(self, surface: Any) -> None:
+    def _draw_help(self, surface: pygame.Surface) -> None:
         pg = _pygame()
         if not pg.font.get_init():
             pg.font.init()
@@ -547,7 +553,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def run(viewer: Viewer, frames: int | None = None, fps: float = 60.0, realtime: bool = True,
-        on_frame: Callable[[Any, float], None] | None = None) -> int:
+        on_frame: Callable[[pygame.Surface, float], None] | None = None) -> int:
     """The main loop on the current pygame display: events, ``update``, ``draw``, flip.
 
     With ``realtime`` each frame advances the real time that passed (the clock holds ``fps``);
@@ -585,11 +591,11 @@ class _Recorder:
 
     def __init__(self, path: str) -> None:
         self.path = path
-        self.frames: list[Any] = []
+        self.frames: list[Image.Image] = []
         self.durations: list[float] = []  # ms
         self._since = 0.0
 
-    def add(self, surface: Any, elapsed: float) -> None:
+    def add(self, surface: pygame.Surface, elapsed: float) -> None:
         self._since += elapsed
         if self.frames and self._since < self.interval - 1e-9:
             return

@@ -45,13 +45,16 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from constrained_particles import METHODS, ParticleSystem, SimulationDiverged, scenes
 from constrained_particles.arguments import int_at_least, progress_enabled
 from constrained_particles.extras import require
+
+if TYPE_CHECKING:  # (the verify extra)
+    from verification.pymunk_check import PymunkScene
 
 DT = 1e-3  #: physics step of the cloth comparison (s)
 #: Steps of DT each timed call advances in the cloth comparison: ``step(DT, steps=CALL_STEPS)``
@@ -90,7 +93,7 @@ def our_cloth(n: int) -> ParticleSystem:
     return scenes.cloth(n, n, wall_x=None, drag=0.0)
 
 
-def pymunk_cloth(system: ParticleSystem, iterations: int = 10) -> Any:
+def pymunk_cloth(system: ParticleSystem, iterations: int = 10) -> PymunkScene:
     """The same cloth in pymunk (``verification.pymunk_check.to_pymunk``: infinite-moment
     bodies, ``DampedSpring``s, ``GrooveJoint`` wires) with ``iterations`` solver iterations. The
     result has ``step(dt)`` and ``bodies``."""
@@ -99,7 +102,7 @@ def pymunk_cloth(system: ParticleSystem, iterations: int = 10) -> Any:
     return to_pymunk(system, iterations)
 
 
-def pymunk_positions(scene: Any) -> np.ndarray:
+def pymunk_positions(scene: PymunkScene) -> np.ndarray:
     """Body positions of a :func:`pymunk_cloth` scene as an (n, 2) array in metres."""
     return np.array([tuple(b.position) for b in scene.bodies])
 
@@ -128,7 +131,7 @@ class Progress:
             self.bar.close()
 
 
-def alternate(calls: dict[str, Callable[[], Any]], repeats: int, seconds: float,
+def alternate(calls: dict[str, Callable[[], object]], repeats: int, seconds: float,
               progress: Progress | None = None, warmup: int = 3) -> dict[str, list[float] | None]:
     """Seconds per call of each ``calls[name]``: one sample per repeat, from a batch of whole
     calls lasting at least ``seconds`` (at least one call). Batches alternate round-robin.

@@ -26,11 +26,14 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from constrained_particles import ParticleSystem, scenes
+
+if TYPE_CHECKING:
+    from .bench import Progress
 
 THREAD_COPIES = 512
 IMPLICIT_SIZES = (15, 30, 60, 120)
@@ -140,7 +143,7 @@ class _Control:
 
 
 def bench_threads(env_ids: tuple[str, ...] | None = None, copies: int = THREAD_COPIES,
-                  repeats: int = 5, seconds: float = 0.5, progress: Any = None,
+                  repeats: int = 5, seconds: float = 0.5, progress: Progress | None = None,
                   warmup: int | None = None) -> dict[str, Any]:
     """Section (e): for each env, env-steps per second at each thread count, the speedups over
     one thread, and the two-process control (see the module docstring). ``warmup``: untimed
@@ -213,7 +216,7 @@ def scaling_cloth(n: int, implicit_solver: str) -> ParticleSystem:
 
 
 def bench_implicit_scaling(sizes: tuple[int, ...] = IMPLICIT_SIZES, repeats: int = 5,
-                           steps: int = 10, progress: Any = None) -> dict[str, Any]:
+                           steps: int = 10, progress: Progress | None = None) -> dict[str, Any]:
     """implicit_euler's cost per step (ms) on the stiff cloth at n x n particles, h = 1/60 s,
     with both linear solvers (``implicit_solver="cg"`` and ``"direct"``), and its growth from
     one size to the next (linear in the particle count is (n2/n1)^2, 4x per doubling).

@@ -19,11 +19,14 @@ True
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 if TYPE_CHECKING:
+    import gymnasium as gym
+    from gymnasium.vector import VectorEnv
+
     from .base import ParticleTask
 
 Agent = Callable[[np.ndarray], np.ndarray]
@@ -85,7 +88,7 @@ class ScriptedAgent:
         raise NotImplementedError
 
 
-def make_agent(kind: str, env: Any, seed: int | None = None) -> Agent:
+def make_agent(kind: str, env: gym.Env | VectorEnv, seed: int | None = None) -> Agent:
     """A ``"random"`` or ``"scripted"`` agent for ``env`` (a made env or native vector env).
 
     ``seed`` seeds the random agent's generator; the scripted agent is the one the task's

@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 
 from constrained_particles import (
     ConstantForce,
@@ -371,7 +372,7 @@ class ParticleTask(SteppedCopies):
         lam = self._lam()
         lam[rows] = values["lam"]
 
-    def check_state(self, state: Any) -> dict[str, Any]:
+    def check_state(self, state: object) -> dict[str, Any]:
         """The validated fields of one copy's ``state`` (see :meth:`set_state`)."""
         if not isinstance(state, dict):
             raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
@@ -418,7 +419,7 @@ class ParticleTask(SteppedCopies):
         return self.system.constraint_solver.lam
 
     # ------------------------------------------------------------------ actions and physics
-    def check_actions(self, actions: Any, single: bool = False) -> np.ndarray:
+    def check_actions(self, actions: ArrayLike, single: bool = False) -> np.ndarray:
         """Validated, clipped actions (num_envs, action_dim) as float64.
 
         ``actions`` must have shape exactly ``(num_envs, action_dim)``, or ``(action_dim,)`` for
@@ -670,7 +671,7 @@ class ParticleTask(SteppedCopies):
         return self.__dict__.get("_tracked_particles")
 
     @tracked_particles.setter
-    def tracked_particles(self, value: Any) -> None:
+    def tracked_particles(self, value: ArrayLike | None) -> None:
         idx = None if value is None else as_index_array("tracked_particles", value)
         if idx is not None:
             n = self.__dict__.get("n")

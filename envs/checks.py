@@ -10,14 +10,15 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from constrained_particles.terms import ArgumentTypeError
 
 from . import _measure
 
 
-def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: bool = False,
-                   minimum: float = 0.0, maximum: float = 1e6) -> Any:
+def check_positive(name: str, value: object, *, integer: bool = False, allow_zero: bool = False,
+                   minimum: float = 0.0, maximum: float = 1e6) -> int | float:
     """``value`` as a finite number > 0 (>= 0 if ``allow_zero``; an int if ``integer``), at least
     ``minimum`` and at most ``maximum`` (default 1e6, the systems' divergence limit), else
     ValueError naming ``name`` (ArgumentTypeError, also a ValueError, for a non-number).
@@ -37,7 +38,7 @@ def check_positive(name: str, value: Any, *, integer: bool = False, allow_zero: 
     return int(value) if integer else float(value)
 
 
-def check_seed(seed: Any, name: str = "seed") -> int | None:
+def check_seed(seed: object, name: str = "seed") -> int | None:
     """``seed`` as a Python int (a Python or numpy integer >= 0) or None, else ValueError
     naming ``name`` (ArgumentTypeError, also a ValueError, for a non-integer): Python and numpy
     integers seed alike."""
@@ -50,7 +51,7 @@ def check_seed(seed: Any, name: str = "seed") -> int | None:
     return int(seed)
 
 
-def check_options(options: Any, valid: tuple[str, ...]) -> dict[str, Any]:
+def check_options(options: object, valid: tuple[str, ...]) -> dict[str, object]:
     """``reset``'s ``options`` (None: none) as a dict, else ValueError naming ``options``: a
     mapping whose keys are all in ``valid`` (a misspelt key is an error, not ignored)."""
     if options is None:
@@ -66,7 +67,7 @@ def check_options(options: Any, valid: tuple[str, ...]) -> dict[str, Any]:
     return options
 
 
-def check_range(name: str, value: Any) -> tuple[float, float]:
+def check_range(name: str, value: object) -> tuple[float, float]:
     """``value`` as a finite ``(low, high)`` pair with ``low <= high``, else ValueError."""
     try:
         low, high = (float(v) for v in value)
@@ -77,7 +78,7 @@ def check_range(name: str, value: Any) -> tuple[float, float]:
     return low, high
 
 
-def check_goal_range(goal_range: Any, min_distance: Any) -> tuple[tuple[float, float], float]:
+def check_goal_range(goal_range: object, min_distance: object) -> tuple[tuple[float, float], float]:
     """Validate a goal range and the minimum start-to-goal distance (m) drawn inside it."""
     low, high = check_range("goal_range", goal_range)
     gap = check_positive("min_distance", min_distance, allow_zero=True)
@@ -118,7 +119,7 @@ def uniform_away(rng: np.random.Generator, low: float, high: float, x0: float,
     return away(rng.random(), low, high, x0, gap)
 
 
-def checked_actions(actions: Any, num_envs: int, action_dim: int, single: bool = False
+def checked_actions(actions: ArrayLike, num_envs: int, action_dim: int, single: bool = False
                     ) -> np.ndarray:
     """``actions`` for ``num_envs`` copies validated and clipped, as a (num_envs, action_dim)
     float64 array (see :meth:`ParticleTask.check_actions`, which this is)."""

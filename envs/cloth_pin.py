@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -38,7 +39,7 @@ class ClothPin(ShapedTask, ParticleTask):
     :class:`DampedSpring` block of ``max_springs`` elements per copy with ``ks = kd = 0`` until
     placed; placing a spring (:meth:`place`) rewrites one element's ends, rest length and
     constants, and may move one anchor into the anchor region. Nothing is ever added to the
-    system, so every copy keeps one sparse pattern. The report's push on the top row is the
+    system, so every copy keeps one sparse pattern. The horizontal push on the top row is the
     copy's ``ConstantForce`` block, switched on while the copy is stepped.
     """
 
@@ -164,7 +165,7 @@ class ClothPin(ShapedTask, ParticleTask):
         return s
 
     def force_handles(self, scene: ParticleSystem) -> np.ndarray:
-        """The top row: the report's push acts there."""
+        """The top row: the horizontal push acts there."""
         return np.arange(self.nx)
 
     def force_vectors(self, action: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -363,7 +364,8 @@ class ClothPin(ShapedTask, ParticleTask):
             return None
         return ends, ok
 
-    def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray) -> None:
+    def write_starts(self, envs: Sequence[int], x: np.ndarray, v: np.ndarray,
+                     goal: np.ndarray) -> None:
         """Write starting states and clear the copies' springs."""
         super().write_starts(envs, x, v, goal)
         self._clear_springs(np.asarray(envs, dtype=np.int64).reshape(-1))
@@ -594,14 +596,14 @@ class ClothPin(ShapedTask, ParticleTask):
         shift = np.minimum(shift, wall)
         return np.abs(self.tracked(self.positions()) + shift - self.goal)
 
-    def potential(self, m: dict[str, Any]) -> Any:
+    def potential(self, m: dict[str, Any]) -> float | np.ndarray:
         """Cost to go ``Phi = d + s + p``: distance to the goal (m) plus the cloth's RMS
         particle speed (m/s) plus ``plan_distance`` (m): the distance from the goal at which
         the springs placed so far would hold the cloth at rest, so that a drawing is credited
         on the step it is made."""
         return m["distance"] + m["speed"] + m["plan_distance"]
 
-    def penalties(self, m: dict[str, Any]) -> Any:
+    def penalties(self, m: dict[str, Any]) -> float | np.ndarray:
         """``wall_penalty F_wall / (M g) + spring_cost placed``, per copy (arrays) or for one
         copy (numbers: see ``reward_one``)."""
         return self.wall_penalty * m["wall_force"] / self.weight + self.spring_cost * m["placed"]
@@ -626,9 +628,9 @@ class ClothPinEnv(ParticleEnv):
     """
     ## Description
 
-    The report's interaction as the action: drawing springs that stay. A spring-mass cloth hangs
-    from a horizontal wire (its top row slides on it, a Lagrange-multiplier constraint) and the
-    report's horizontal force pushes every top-row particle toward a wall on the right. Each
+    The viewer's interaction as the action: drawing springs that stay. A spring-mass cloth hangs
+    from a horizontal wire (its top row slides on it, a Lagrange-multiplier constraint) and a
+    horizontal force pushes every top-row particle toward a wall on the right. Each
     step the agent may draw one persistent damped spring, as in the viewer: each end snaps to
     the nearest particle within ``snap_radius``; otherwise an end in the marked
     ``anchor_region`` (shaded, left of the cloth on the wire's line) becomes a new fixed
@@ -816,7 +818,7 @@ class ClothPinVectorEnv(ParticleVectorEnv):
     task_class = ClothPin
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: Any) -> None:
+                 render_mode: str | None = None, **kwargs: object) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 

@@ -10,7 +10,8 @@ own beside ``cloth_pin.py``, which holds the task, its env classes and its decla
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,11 +51,11 @@ class Drawing(NamedTuple):
 
 
 #: the compiled observation (None when ``_measure.ENABLED`` is False)
-pin_observe: Any = None
+pin_observe: Callable[..., bool] | None = None
 #: the measures then the observation, in one call (None when ``_measure.ENABLED`` is False)
-pin_measures_observe: Any = None
+pin_measures_observe: Callable[..., bool] | None = None
 #: the drawing check (None when ``_measure.ENABLED`` is False)
-pin_draws: Any = None
+pin_draws: Callable[..., bool] | None = None
 
 if _measure.ENABLED:
     from constrained_particles.jit import njit

@@ -22,7 +22,7 @@ __all__ = ["SQUEEZE_COST", "SUCCESS_BONUS", "TIME_COST", "ClothSlide", "ClothSli
            "ClothSlideVectorEnv"]
 
 #: Weight of the squeeze penalty: ``SQUEEZE_COST * q^2`` per step for the squeeze component
-#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, |q| <= 1).
+#: ``q = (a_left - a_right) / 2`` of a force-mode action (in action units, ``|q| <= 1``).
 SQUEEZE_COST = 0.2
 
 
@@ -143,7 +143,7 @@ class ClothSlide(ShapedTask, ParticleTask):
         """Cost to go ``Phi = d + s``: distance to the goal (m) plus RMS particle speed (m/s)."""
         return m["distance"] + m["speed"]
 
-    def penalties(self, m: dict[str, Any]) -> Any:
+    def penalties(self, m: dict[str, Any]) -> float | np.ndarray:
         """``SQUEEZE_COST q^2`` (q the squeeze in action units) plus ``wall_penalty F_wall /
         (M g)``, per copy (arrays) or for one copy (numbers: see ``reward_one``)."""
         q = m["squeeze"] / self.max_force
@@ -344,7 +344,7 @@ class ClothSlideVectorEnv(ParticleVectorEnv):
     task_class = ClothSlide
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: Any) -> None:
+                 render_mode: str | None = None, **kwargs: object) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 

@@ -91,7 +91,7 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 
 def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
-                 action_mode: str | None = None, **env_kwargs: Any) -> dict[str, np.ndarray]:
+                 action_mode: str | None = None, **env_kwargs: object) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes (seeds ``seed .. seed + episodes - 1``) in native vector envs
     made with ``env_kwargs`` (and ``action_mode``; None: the environment's default). Returns
     per-episode arrays ``return``, ``length``, ``success`` and ``diverged`` (the episode ended
@@ -129,7 +129,7 @@ def run_episodes(env_id: str, agent: str, episodes: int, seed: int = 0,
 
 
 def record_episode(env_id: str, agent: str, seed: int, action_mode: str | None,
-                   render_mode: str = "rgb_array", **env_kwargs: Any
+                   render_mode: str = "rgb_array", **env_kwargs: object
                    ) -> tuple[list[np.ndarray], dict[str, Any]]:
     """Run one episode in a single env; returns its frames (``rgb_array``) and last info."""
     if action_mode is not None:

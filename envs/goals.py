@@ -23,35 +23,43 @@ will name the pixel observations.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from gymnasium import spaces
+from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    from .base import ParticleTask
 
 #: Valid values of ``obs_mode``.
 OBS_MODES = ("state", "goal")
 
+#: What ``compute_reward`` reads ``info["diverged"]`` from: one info dict (a single env's, or
+#: a vector env's dict of arrays), a sequence of them (SB3's replay buffers), or None.
+Info = Mapping[str, object] | Sequence[Mapping[str, object]] | None
 
-def check_obs_mode(obs_mode: Any) -> str:
+
+def check_obs_mode(obs_mode: object) -> str:
     """``obs_mode`` if valid (ValueError naming the argument otherwise)."""
     if not isinstance(obs_mode, str) or obs_mode not in OBS_MODES:
         raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
     return obs_mode
 
 
-def goal_size(task: Any) -> int:
+def goal_size(task: ParticleTask) -> int:
     """Entries of a goal: 2 for a task with a point as its goal, else 1."""
     return 2 if task.planar_goal else 1
 
 
-def goal_column(task: Any) -> int:
+def goal_column(task: ParticleTask) -> int:
     """Index of the goal in the task's state observation (after the observed particles'
     positions and velocities)."""
     return 4 * task.rest_count
 
 
-def goal_space(task: Any) -> spaces.Dict:
+def goal_space(task: ParticleTask) -> spaces.Dict:
     """The ``Dict`` observation space of one copy of ``task`` in goal mode."""
     box = task.single_observation_space
     k = goal_size(task)
@@ -66,7 +74,7 @@ def _unit(value: np.ndarray, limit: float) -> np.ndarray:
     return np.clip(value.astype(np.float32), np.float32(-limit), np.float32(limit))
 
 
-def goal_observation(task: Any, obs: np.ndarray) -> dict[str, np.ndarray]:
+def goal_observation(task: ParticleTask, obs: np.ndarray) -> dict[str, np.ndarray]:
     """The goal-mode observation of every copy from their state observations ``obs``
     (num_envs, D): the goal column moved out of ``observation``, the achieved goal computed
     from the positions (float64, then rounded to float32 and clipped as the state is)."""
@@ -86,7 +94,7 @@ def goal_observation(task: Any, obs: np.ndarray) -> dict[str, np.ndarray]:
             "desired_goal": _unit(np.stack(desired, axis=1), limit)}
 
 
-def _diverged(info: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _diverged(info: Info, shape: tuple[int, ...]) -> np.ndarray:
     """``info["diverged"]`` as a bool array of ``shape``: from one info dict (a single env or
     a vector env's dict of arrays), from a sequence of them (SB3's replay buffers), or False
     where there is none."""
@@ -102,12 +110,12 @@ class GoalModeOnly:
     raises AttributeError, so ``hasattr(env, "compute_reward")`` (how Stable-Baselines3's and
     Gymnasium-Robotics' checkers tell a goal-conditioned env) is False in the other modes."""
 
-    def __init__(self, method: Any) -> None:
+    def __init__(self, method: Callable[..., object]) -> None:
         self.method = method
         self.__doc__ = method.__doc__
         self.__name__ = method.__name__
 
-    def __get__(self, obj: Any, owner: Any = None) -> Any:
+    def __get__(self, obj: object, owner: type | None = None) -> object:
         if obj is None:
             return self
         if getattr(obj, "obs_mode", None) != "goal":
@@ -115,7 +123,8 @@ class GoalModeOnly:
         return self.method.__get__(obj, owner)
 
 
-def compute_reward(task: Any, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+def compute_reward(task: ParticleTask, achieved_goal: ArrayLike, desired_goal: ArrayLike,
+                   info: Info) -> float | NDArray[np.float64]:
     """The goal-mode reward (see the module docstring) of goals ``(..., k)`` in normalized
     coordinates: ``-1.0`` where they are farther apart than ``goal_tolerance`` metres, else
     ``0.0``, less ``task.episode_steps`` where ``info`` says the step diverged. A float for one

@@ -17,7 +17,7 @@ including resting near the goal or moving about on it, costs ``TIME_COST`` every
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -47,7 +47,7 @@ class ShapedTask:
     #: ``ParticleTask.divergence_penalty``.
     step_cost: float = TIME_COST
     num_envs: int
-    measure: Any  # ParticleTask.measure
+    measure: Callable[..., dict[str, np.ndarray]]  # ParticleTask.measure
     _paths: dict[str, bool]  # ParticleTask._paths
 
     def _compiled_paths(self) -> dict[str, bool]:
@@ -57,13 +57,13 @@ class ShapedTask:
         paths["penalties"] = type(self).penalties is not ShapedTask.penalties
         return paths
 
-    def potential(self, m: dict[str, Any]) -> Any:
+    def potential(self, m: dict[str, Any]) -> float | np.ndarray:
         """The cost to go ``Phi`` (num_envs,) >= 0 from measures ``m``; 0 at the goal at rest.
         Written with arithmetic alone, so that it also takes one copy's measures as numbers
         (:meth:`reward_one`) and gives the same bits."""
         raise NotImplementedError
 
-    def penalties(self, m: dict[str, Any]) -> Any:
+    def penalties(self, m: dict[str, Any]) -> float | np.ndarray:
         """Non-negative per-step penalties subtracted from the reward: (num_envs,) for measures
         ``m`` of arrays, a number for one copy's measures as numbers (see :meth:`reward_one`);
         none here."""

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
@@ -44,13 +44,16 @@ from constrained_particles.extras import require
 
 from .task import task_spec, task_specs
 
+if TYPE_CHECKING:  # (the ray extra)
+    from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+
 __all__ = ["configure", "make_env", "register"]
 
 #: RLlib's name for our vectorization: each EnvRunner calls the env's vector entry point.
 VECTORIZE_MODE = "vector_entry_point"
 
 
-def _check_id(env_id: Any) -> str:
+def _check_id(env_id: object) -> str:
     if not isinstance(env_id, str):
         raise TypeError(f"env_id must be a string, got {type(env_id).__name__}")
     return task_spec(env_id).id  # (ValueError listing the registered ids)
@@ -93,9 +96,9 @@ def register(env_ids: Iterable[str] | None = None) -> tuple[str, ...]:
     return ids
 
 
-def configure(config: Any, env_id: str, *, num_env_runners: int = 2,
+def configure(config: AlgorithmConfig, env_id: str, *, num_env_runners: int = 2,
               num_envs_per_env_runner: int = 8, env_config: Mapping[str, Any] | None = None
-              ) -> Any:
+              ) -> AlgorithmConfig:
     """``config`` (an RLlib ``AlgorithmConfig``) set to sample ``env_id`` on the native vector env.
 
     Registers ``env_id`` (:func:`register`), then sets ``config.environment(env_id, env_config)``

@@ -49,6 +49,7 @@ require("stable_baselines3", command="envs.sb3")  # (one line naming the extra, 
 from stable_baselines3.common.vec_env import VecEnv  # noqa: E402
 from stable_baselines3.common.vec_env.base_vec_env import (  # noqa: E402
     VecEnvIndices,
+    VecEnvObs,
     VecEnvStepReturn,
 )
 
@@ -127,7 +128,7 @@ class GymnasiumVecEnv(VecEnv):
         self._obs: Any = None
 
     # ------------------------------------------------------------------ stepping
-    def reset(self) -> Any:
+    def reset(self) -> VecEnvObs:
         """Reset every copy (with the seeds of :meth:`seed`, if any, used once)."""
         seeds = None if all(s is None for s in self._seeds) else list(self._seeds)
         options = self._options[0] if self._options else {}
@@ -187,7 +188,7 @@ class GymnasiumVecEnv(VecEnv):
         value = getattr(self.vector_env, attr_name)
         return [value] * self._count(indices)
 
-    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+    def set_attr(self, attr_name: str, value: object, indices: VecEnvIndices = None) -> None:
         """Set ``attr_name`` on the vector env; the copies share it, so ``indices`` must cover
         all of them (ValueError otherwise)."""
         if not self._all(indices):
@@ -195,8 +196,8 @@ class GymnasiumVecEnv(VecEnv):
                              "set_attr needs indices=None (all copies)")
         setattr(self.vector_env, attr_name, value)
 
-    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
-                   **method_kwargs: Any) -> list[Any]:
+    def env_method(self, method_name: str, *method_args: object, indices: VecEnvIndices = None,
+                   **method_kwargs: object) -> list[Any]:
         """Call the vector env's method ``method_name`` once; its result, once per index."""
         result = getattr(self.vector_env, method_name)(*method_args, **method_kwargs)
         return [result] * self._count(indices)

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from . import goals
 from .base import FRAME_SIZE, ParticleTask
@@ -62,7 +63,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
                                           "render_fps": 20}
 
     def __init__(self, render_mode: str | None = None, *, obs_mode: str = "state",
-                 **kwargs: Any) -> None:
+                 **kwargs: object) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
@@ -92,7 +93,8 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         return obs[0], info
 
     @goals.GoalModeOnly
-    def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+    def compute_reward(self, achieved_goal: ArrayLike, desired_goal: ArrayLike,
+                       info: goals.Info) -> float | NDArray[np.float64]:
         """The goal-mode reward of goals ``(..., k)``, batched or not (for hindsight
         relabelling; :func:`envs.goals.compute_reward`): what :meth:`step` returns in
         ``obs_mode="goal"``."""
@@ -112,7 +114,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
             self.render()
         return obs, info
 
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: ArrayLike) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` for one env step (``substeps`` physics steps)."""
         a = self.task.check_actions(action, single=True)
         self.task.apply(a)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -158,7 +159,8 @@ class SliderCrank(ShapedTask, ParticleTask):
         values, goal = self._draw(rng)
         return np.array(values[:4]).reshape(2, 2), np.array(values[4:]).reshape(2, 2), goal
 
-    def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sample_starts(self, rngs: Sequence[np.random.Generator]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`sample_start` for each generator, stacked (the same draws and arithmetic,
         so bit for bit the same starts). A subclass that redefines ``sample_start`` or
         ``linkage`` gets the base version, which calls them."""
@@ -438,7 +440,7 @@ class SliderCrankVectorEnv(ParticleVectorEnv):
     task_class = SliderCrank
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: Any) -> None:
+                 render_mode: str | None = None, **kwargs: object) -> None:
         super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
@@ -508,14 +510,15 @@ class Finish(NamedTuple):
 
 
 #: the compiled crank measures (None when ``_measure.ENABLED`` is False)
-crank_measures: Any = None
-crank_push: Any = None  #: the compiled force action (None when ``_measure.ENABLED`` is False)
+crank_measures: Callable[..., None] | None = None
+#: the compiled force action (None when ``_measure.ENABLED`` is False)
+crank_push: Callable[..., None] | None = None
 #: :func:`crank_measures`, then the measures with the crank's ``below`` as ``blocked``, then
 #: the observation, in one call (None when ``_measure.ENABLED`` is False)
-crank_measures_observe: Any = None
+crank_measures_observe: Callable[..., None] | None = None
 #: :func:`crank_measures_observe`, the shaped reward and the episode counters of a step every
 #: copy took, in one call (None when ``_measure.ENABLED`` is False)
-crank_finish: Any = None
+crank_finish: Callable[..., int] | None = None
 
 if _measure.ENABLED:
     from constrained_particles.jit import njit

@@ -9,11 +9,11 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 
 from constrained_particles import ConstantForce, ParticleSystem, kernels
+from constrained_particles.forces import MouseSpring
 from constrained_particles.system import SimulationDiverged
 
 from .checks import _owned
@@ -37,7 +37,7 @@ class SteppedCopies:
     substeps: int
     integrator: str
     step_travel: float
-    actuator: Any
+    actuator: ConstantForce | MouseSpring
     park: np.ndarray
 
     def pieces(self, system: ParticleSystem | None = None) -> np.ndarray:

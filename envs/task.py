@@ -24,9 +24,16 @@ import copy
 import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gymnasium.envs.registration import register, registry
+
+if TYPE_CHECKING:
+    import gymnasium as gym
+    import numpy as np
+    from gymnasium.vector import VectorEnv
+
+    from .base import ParticleTask
 
 __all__ = ["TaskSpec", "check_env_kwargs", "check_env_mode", "env_action_modes", "ppo",
            "register_task", "sac", "spec_of_task", "task_spec", "task_specs", "unregister_task"]
@@ -55,7 +62,7 @@ class TaskSpec:
     env: type
     vector_env: type
     action_modes: tuple[str, ...]
-    scripted_agent: Callable[[Any], Callable[[Any], Any]]
+    scripted_agent: Callable[[ParticleTask], Callable[[np.ndarray], np.ndarray]]
     summary: str
     hyperparams: Mapping[str, Mapping[str, Mapping[str, Any]]] = field(default_factory=dict)
     notes: str = ""
@@ -141,7 +148,7 @@ SAC_BASE: dict[str, Any] = {
 
 
 def ppo(n_timesteps: int, net_arch: tuple[int, ...], log_std_init: float = -0.5,
-        **changes: Any) -> dict[str, Any]:
+        **changes: object) -> dict[str, Any]:
     """A PPO entry: :data:`PPO_BASE` with ``changes``, ``n_timesteps`` (the default budget, env
     steps) and an MLP of ``net_arch`` hidden sizes whose Gaussian policy starts from a standard
     deviation of ``exp(log_std_init)`` in action units."""
@@ -149,8 +156,8 @@ def ppo(n_timesteps: int, net_arch: tuple[int, ...], log_std_init: float = -0.5,
             "policy_kwargs": {"net_arch": list(net_arch), "log_std_init": log_std_init}}
 
 
-def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256), **changes: Any
-        ) -> dict[str, Any]:
+def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256),
+        **changes: object) -> dict[str, Any]:
     """A SAC entry: :data:`SAC_BASE` with ``changes``, ``n_timesteps`` and ``net_arch``."""
     return {**SAC_BASE, "n_timesteps": n_timesteps, **changes,
             "policy_kwargs": {"net_arch": list(net_arch)}}
@@ -223,7 +230,7 @@ def task_spec(env_id: str) -> TaskSpec:
     return spec
 
 
-def spec_of_task(task: Any) -> TaskSpec:
+def spec_of_task(task: ParticleTask | gym.Env | VectorEnv) -> TaskSpec:
     """The declaration whose environments hold ``task`` (a task object, or a made env)."""
     task = getattr(getattr(task, "unwrapped", task), "task", task)
     for spec in _SPECS.values():

@@ -36,7 +36,7 @@ only for directories you trust) and writes the files above beside them.
 ``HELD_OUT_SEED_START`` is the convention of ``docs/baselines``), deterministic unless
 ``--stochastic``, and prints a summary; the last line of the output is one JSON object with
 ``success_rate``, ``mean_return``, ``mean_length``, ``episodes`` and diagnostics (for
-ClothSlide: the mean |squeeze| of the actions, the RMS speed near the goal, final distances and
+ClothSlide: the mean ``|squeeze|`` of the actions, the RMS speed near the goal, final distances and
 speeds of failed episodes).
 
 Requires the ``rl`` extra (stable-baselines3, torch).
@@ -53,7 +53,7 @@ import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -62,6 +62,11 @@ from constrained_particles.extras import require
 
 from .checks import check_positive
 from .task import check_env_kwargs, check_env_mode, task_spec
+
+if TYPE_CHECKING:  # (the rl extra)
+    from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.policies import BasePolicy
+    from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 #: Algorithms ``cparticles train`` knows (Stable-Baselines3 classes).
 ALGOS = ("ppo", "sac")
@@ -133,7 +138,7 @@ def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
-                   env_kwargs: dict[str, Any] | None = None) -> Any:
+                   env_kwargs: dict[str, Any] | None = None) -> VecEnv:
     """An SB3 ``VecEnv`` for training, with episode statistics (``VecMonitor``).
 
     ``n_envs > 1``: the native vector env (all copies one particle system) through
@@ -221,7 +226,9 @@ def summarize(res: dict[str, Any]) -> dict[str, Any]:
             "failures_final_speed": res["final_speed"][fail].round(4).tolist()}
 
 
-def sb3_policy(model: Any, obs_normalizer: Any = None, deterministic: bool = True) -> Policy:
+def sb3_policy(model: BaseAlgorithm | BasePolicy,
+               obs_normalizer: VecNormalize | ObsNormalizer | None = None,
+               deterministic: bool = True) -> Policy:
     """A batched policy from an SB3 model or policy (anything with ``predict``) and
     (optionally) a ``VecNormalize`` or :class:`ObsNormalizer` whose observation statistics it
     applies."""
@@ -276,7 +283,7 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
     return PeriodicEvaluation()
 
 
-def save_policy(model: Any, path: Path) -> None:
+def save_policy(model: BaseAlgorithm, path: Path) -> None:
     """Write the weights of ``model``'s policy to ``path``: a PyTorch state dict of CPU
     tensors, which :func:`load_policy` reads with ``weights_only`` (no code runs)."""
     import torch
@@ -286,7 +293,7 @@ def save_policy(model: Any, path: Path) -> None:
         torch.save(state, f)
 
 
-def save_normalization(normalizer: Any, path: Path) -> None:
+def save_normalization(normalizer: VecNormalize, path: Path) -> None:
     """Write the observation statistics of a ``VecNormalize`` to ``path`` as plain arrays
     (``.npz``; :class:`ObsNormalizer` reads them back without pickles)."""
     rms = normalizer.obs_rms
@@ -576,7 +583,7 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
             "action_shape": spaces["action"].shape, "_spaces": spaces}
 
 
-def load_policy(config: dict[str, Any], path: Path) -> Any:
+def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
     """The SB3 policy of a run (``config`` from :func:`read_run`), rebuilt from its settings
     and spaces, with the weights in ``path`` read by PyTorch's ``weights_only`` loading (no
     code runs); ValueError naming the file if they are not weights of that policy."""

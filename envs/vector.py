@@ -24,6 +24,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
+from numpy.typing import ArrayLike, NDArray
 
 from . import goals
 from .base import ParticleTask
@@ -63,7 +64,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, *, num_threads: int = DEFAULT_THREADS,
-                 obs_mode: str = "state", **kwargs: Any) -> None:
+                 obs_mode: str = "state", **kwargs: object) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
@@ -143,7 +144,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         return obs, info
 
     # ------------------------------------------------------------------ stepping
-    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    def step(self, actions: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
         """Step every copy; copies that ended on the previous step are reset instead."""
         if self._rngs is None:
@@ -158,7 +159,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         return obs, reward, terminated, truncated, info
 
     @goals.GoalModeOnly
-    def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any) -> Any:
+    def compute_reward(self, achieved_goal: ArrayLike, desired_goal: ArrayLike,
+                       info: goals.Info) -> float | NDArray[np.float64]:
         """The goal-mode reward of goals ``(..., k)`` (:func:`envs.goals.compute_reward`)."""
         return goals.compute_reward(self.task, achieved_goal, desired_goal, info)
 
@@ -237,7 +239,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             return None
         return [self._frame(i) for i in range(self.num_envs)]
 
-    def close(self, **kwargs: Any) -> None:
+    def close(self, **kwargs: object) -> None:
         """Stop the physics threads (safe to call twice; a step after it starts them again;
         nothing to stop on an env whose constructor failed)."""
         task = self.__dict__.get("task")

@@ -14,7 +14,7 @@ energy error ``E(t) - E(0)`` (J) is measured after every step and summarised by:
 - ``trend_ratio``: ``|trend| / oscillation``, small (well under 1) for a method whose energy error
   stays bounded, about 1 or more for one that drifts;
 - ``max_constraint``: the largest constraint violation as a distance ``max_r |C_r| / |J_r|`` (m)
-  over every step (on the 1 m pendulum this is |C| in m^2 to within 1e-13).
+  over every step (on the 1 m pendulum this is ``|C|`` in m^2 to within 1e-13).
 
 A run that raises :class:`~constrained_particles.SimulationDiverged` stops there and is marked.
 

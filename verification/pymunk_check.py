@@ -20,7 +20,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from constrained_particles import (
 
 from .orders import checkpoints, run_positions, steps_between
 from .properties import fit_slope
+
+if TYPE_CHECKING:
+    import pymunk
 
 #: Step (s) of our rk4 trajectory that pymunk is compared with (quick: 1 ms, where rk4's own
 #: error is still below 1e-8 m on these scenes, five orders under pymunk's).
@@ -101,9 +104,9 @@ class PymunkScene:
     forces after each step).
     """
 
-    space: Any
-    bodies: list
-    forces: dict
+    space: pymunk.Space
+    bodies: list[pymunk.Body | None]
+    forces: dict[pymunk.Body, tuple[float, float]]
 
     def step(self, dt: float) -> None:
         """One pymunk step of ``dt`` seconds."""

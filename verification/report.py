@@ -16,10 +16,12 @@ Experiments (all SI units; every integrator in :data:`constrained_particles.METH
   accurate (rk4) run;
 - **constraint drift**: the same runs' largest constraint violation expressed as a distance,
   ``max_r |C_r| / |J_r|`` (m), with and without projection after every step;
-- **section V**: the default cloth (:func:`constrained_particles.scenes.cloth`) pushed into its
-  wall by :data:`PUSH` N per top particle, ``h = 1 ms``: the highest any particle gets above
-  the wire, and how far the top row leaves the wire;
-- **section VI.A**: the same cloth, released from rest under gravity with spring constants
+- **cloth rise** (:func:`section_v`; the original program's section V experiment, see
+  docs/notes_on_the_report.md): the default cloth (:func:`constrained_particles.scenes.cloth`)
+  pushed into its wall by :data:`PUSH` N per top particle, ``h = 1 ms``: the highest any
+  particle gets above the wire, and how far the top row leaves the wire;
+- **spring constants** (:func:`section_via`; the original program's section VI.A
+  experiment): the same cloth, released from rest under gravity with spring constants
   ``ks`` in {1, 10} N/m and damping ``kd`` in {1, 10} N s/m: the highest rise above the wire
   and the settling time, defined as the last time any particle is farther than
   :data:`SETTLE_TOL` m from the static equilibrium (found by minimising the potential energy
@@ -56,10 +58,10 @@ from .properties import constraint_distance
 
 DRIFT_SECONDS = 10.0  #: duration (s) of the energy and constraint drift runs (quick: 2 s)
 DRIFT_H = 5e-3  #: step (s) of the drift runs
-SECTION_V_H = 1e-3  #: the step (s) of the section V experiment
-SECTION_V_SECONDS = 3.0  #: duration (s) of section V (quick: 1 s)
-PUSH = 0.3  #: horizontal force (N) on each top-row particle in section V
-SECTION_VIA_SECONDS = 5.0  #: duration (s) of section VI.A (quick: 1 s)
+SECTION_V_H = 1e-3  #: the step (s) of the cloth-rise experiment
+SECTION_V_SECONDS = 3.0  #: duration (s) of the cloth-rise experiment (quick: 1 s)
+PUSH = 0.3  #: horizontal force (N) on each top-row particle in the cloth-rise experiment
+SECTION_VIA_SECONDS = 5.0  #: duration (s) of the spring-constants experiment (quick: 1 s)
 SETTLE_TOL = 0.01  #: settling tolerance (m): a tenth of the cloth's particle spacing
 GAINS = ((1.0, 1.0), (1.0, 10.0), (10.0, 1.0), (10.0, 10.0))  #: (ks N/m, kd N s/m) of VI.A
 
@@ -137,11 +139,12 @@ def _wire(system: ParticleSystem) -> tuple[np.ndarray, float]:
 
 def section_v(seconds: float = SECTION_V_SECONDS, h: float = SECTION_V_H, push: float = PUSH,
               progress: bool = False) -> dict:
-    """Section V of docs/notes_on_the_report.md with numbers: for each integrator, the default
+    """The cloth-rise experiment (the original program's section V, docs/notes_on_the_report.md)
+    with numbers: for each integrator, the default
     cloth pushed into its wall; the highest point of the cloth relative to the wire (m) and the
     top row's largest distance from the wire (m), with their time series."""
     out: dict = {}
-    bar = _bar(len(METHODS), "section V", progress)
+    bar = _bar(len(METHODS), "cloth rise", progress)
     for method in sorted(METHODS):
         s = scenes.cloth(push=push)
         top, height = _wire(s)
@@ -216,10 +219,10 @@ def static_equilibrium(system: ParticleSystem) -> np.ndarray:
 
 
 def section_via(seconds: float = SECTION_VIA_SECONDS, progress: bool = False) -> dict:
-    """Section VI.A of docs/notes_on_the_report.md with numbers, for each (ks, kd) in
-    :data:`GAINS`."""
+    """The spring-constants experiment (the original program's section VI.A,
+    docs/notes_on_the_report.md) with numbers, for each (ks, kd) in :data:`GAINS`."""
     out: dict = {}
-    bar = _bar(len(GAINS), "section VI.A", progress)
+    bar = _bar(len(GAINS), "spring constants", progress)
     for ks, kd in GAINS:
         s = scenes.cloth(ks=ks, kd=kd, push=0.0)
         top, height = _wire(s)
@@ -359,7 +362,8 @@ def plot_drift(drift: dict, key: str, ylabel: str, title: str, path: Path,
 
 
 def plot_cloth(sec_v: dict, sec_via: dict, path: Path) -> None:
-    """Section V (rise per integrator) and section VI.A (rise and distance to equilibrium)."""
+    """The cloth-rise experiment (rise per integrator) and the spring-constants experiment (rise
+    and distance to equilibrium)."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
     colours = _colours(sorted(sec_v))
@@ -372,7 +376,7 @@ def plot_cloth(sec_v: dict, sec_via: dict, path: Path) -> None:
     low = min([-12.0] + [float(y.min()) - 1 for y in stable])
     high = max([2.0] + [float(y.max()) + 1 for y in stable])
     axes[0].set_ylim(low, high)  # a diverged run leaves the plot upwards
-    axes[0].set_title(f"Section V: cloth pushed into the wall, h = {SECTION_V_H * 1e3:g} ms")
+    axes[0].set_title(f"Cloth pushed into the wall, h = {SECTION_V_H * 1e3:g} ms")
     axes[0].set_ylabel("highest particle above the wire (cm)")
     gain_colours = _colours(list(sec_via))
     for name, r in sec_via.items():
@@ -380,10 +384,10 @@ def plot_cloth(sec_v: dict, sec_via: dict, path: Path) -> None:
                      color=gain_colours[name], label=name)
         axes[2].semilogy(r["series"]["t"], r["series"]["distance"], color=gain_colours[name],
                          label=name)
-    axes[1].set_title("Section VI.A: released under gravity (rk4)")
+    axes[1].set_title("Spring constants: released under gravity (rk4)")
     axes[1].set_ylabel("highest particle above the wire (cm)")
     axes[2].axhline(SETTLE_TOL, color="k", ls=":", label=f"settling tolerance {SETTLE_TOL} m")
-    axes[2].set_title("Section VI.A: settling")
+    axes[2].set_title("Spring constants: settling")
     axes[2].set_ylabel("max distance from equilibrium (m)")
     for ax in axes[:2]:
         ax.axhline(0.0, color="0.4", lw=2, label="the wire")
@@ -409,7 +413,7 @@ def _cloth_defaults() -> str:
 
 
 def markdown(data: dict) -> str:
-    """The report as Markdown (tables and links to the PNGs beside it)."""
+    """The verification report as Markdown (tables and links to the PNGs beside it)."""
     quick = data["quick"]
     lines = ["# Verification report", "",
              f"Generated by `python -m verification report{' --quick' if quick else ''}`; "
@@ -449,7 +453,8 @@ def markdown(data: dict) -> str:
               "![constraint drift](constraint_drift.png)", ""]
     lines += long_run_markdown(data["long_run"])
     lines += [
-              "## The report's section V: does the cloth rise above the wire?", "",
+              "## Does the cloth rise above the wire?", "",
+              "The original program's section V experiment (docs/notes_on_the_report.md). "
               f"Default cloth (`scenes.cloth(push={PUSH})`: {_cloth_defaults()}), top row on "
               f"the wire and pushed right into the wall, h = {SECTION_V_H * 1e3:g} ms, "
               f"{data['section_v_seconds']:g} s. Rise: the highest non-wire particle relative "
@@ -467,8 +472,9 @@ def markdown(data: dict) -> str:
         lines += ["", "No stable integrator lifts the cloth above the wire, and the top row "
                   "stays on the wire to rounding: the wire constraint is linear, and every "
                   "Runge-Kutta method preserves linear invariants (here C and Cdot) exactly."]
-    lines += ["", "## The report's section VI.A: spring and damping constants", "",
-              "The default cloth released from rest under gravity with the report's constants "
+    lines += ["", "## Spring and damping constants", "",
+              "The original program's section VI.A experiment (docs/notes_on_the_report.md): "
+              "the default cloth released from rest under gravity with its constants "
               "in SI units, integrated with rk4 at a step well inside its stability region for "
              "the stiffest spring mode (h column). "
               f"Settling time: the last time any particle is farther than {SETTLE_TOL} m from "
@@ -520,10 +526,10 @@ def collect(quick: bool = False, progress: bool = True, cases: list[str] | None 
             pymunk_scenes: list[str] | None = None,
             durations: tuple[float, float, float] | None = None,
             long_steps: int | None = None) -> dict:
-    """Run every experiment; returns the report's data (raw result objects under keys that start
-    with ``_``). ``cases`` and ``pymunk_scenes`` restrict the order and pymunk runs; ``durations``
-    overrides the seconds of (drift, section V, section VI.A), ``long_steps`` the steps of the
-    long-run energy runs."""
+    """Run every experiment; returns the verification report's data (raw result objects under
+    keys that start with ``_``). ``cases`` and ``pymunk_scenes`` restrict the order and pymunk
+    runs; ``durations`` overrides the seconds of (drift, cloth rise, spring constants),
+    ``long_steps`` the steps of the long-run energy runs."""
     start = time.perf_counter()
     if durations is None:
         durations = (2.0, 1.0, 1.0) if quick else (DRIFT_SECONDS, SECTION_V_SECONDS,

@@ -228,7 +228,9 @@ def build_system(draw: Drawer, *, min_particles: int = 2, max_particles: int = 1
     return s
 
 
-def random_system(seed: int, **kwargs: Any) -> ParticleSystem:
+def random_system(seed: int, *, min_particles: int = 2, max_particles: int = 12,
+                  gravity: bool | None = None, damped: bool = False, solver: str | None = None
+                  ) -> ParticleSystem:
     """The random system drawn from ``numpy.random.default_rng(seed)``; keywords as
     :func:`build_system`.
 
@@ -236,7 +238,9 @@ def random_system(seed: int, **kwargs: Any) -> ParticleSystem:
     >>> s.n >= 5
     True
     """
-    return build_system(_NumpyDrawer(int(seed)), **kwargs)
+    return build_system(_NumpyDrawer(int(seed)), min_particles=min_particles,
+                        max_particles=max_particles, gravity=gravity, damped=damped,
+                        solver=solver)
 
 
 def systems(*, min_particles: int = 2, max_particles: int = 12, gravity: bool | None = None,
