@@ -558,7 +558,7 @@ def markdown(r: dict[str, Any]) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``cparticles bench``."""
     parser.add_argument("--quick", action="store_true",
-                        help="shorter batches, fewer sizes (under a minute)")
+                        help="shorter batches, fewer sizes (about a minute of CPU time)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     parser.add_argument("--repeats", type=int_at_least(MIN_REPEATS), default=MIN_REPEATS,
                         help=f"timed batches per figure, alternated (at least {MIN_REPEATS})")

@@ -260,7 +260,7 @@ def test_the_scan_reads_the_docs_and_the_packages():
     assert not re.search(REPORT, "the student report\nthe project started from", re.I)
 
 
-@pytest.mark.parametrize("pattern", sorted(NOTEBOOK))
+@pytest.mark.parametrize("pattern", sorted(NOTEBOOK), ids=lambda p: NOTEBOOK[p].replace(" ", "-"))
 def test_docs_read_as_documentation(pattern):
     hits = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}" for p in _user_texts()
             for i, line in enumerate(p.read_text().splitlines(), 1)

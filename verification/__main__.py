@@ -82,7 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                    "PNG plots into --out", formatter_class=HelpFormatter)
     p.add_argument("--out", required=True, type=output_directory,
                    help="output directory (created if missing; checked before any work)")
-    p.add_argument("--quick", action="store_true", help="the short version (under a minute)")
+    p.add_argument("--quick", action="store_true",
+                   help="the short version (about half a minute of CPU time)")
     _progress_options(p)
 
 
