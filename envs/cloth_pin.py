@@ -134,7 +134,7 @@ class ClothPin(ShapedTask, ParticleTask):
         self.placed = np.zeros(N, dtype=np.int64)
         self.anchors_used = np.zeros(N, dtype=np.int64)
         self.placed_now = np.zeros(N, dtype=bool)
-        self._log_ratio: tuple[Any, float] | None = None  # (ks_range, log(hi / lo)), see _pin
+        self._log_ratio: tuple[Any, float] | None = None  # (ks_range, log(hi / lo)): pin_record
         self.movable = np.tile(~self.single.fixed, N)
         self.weight = self.cloth_n * self.particle_mass * scenes.G
         obs_dim = 4 * self.cloth_n + 1 + SLOT_SIZE * B
@@ -460,8 +460,8 @@ class ClothPin(ShapedTask, ParticleTask):
         else by the numpy reference :meth:`observe_reference`."""
         N, n, nc, goal = self.num_envs, self.n, self.cloth_n, self.goal  # (read once)
         state = self._compiled_state()
-        pin = (self._pin(N, n, nc) if state is not None and _owned(goal, np.float64, (N,))
-               else None)
+        pin = (cloth_pin_kernels.pin_record(self, N, n, nc)
+               if state is not None and _owned(goal, np.float64, (N,)) else None)
         if pin is not None and len(state[0]) == N * n:
             obs = self._obs(N, nc, pin[0])
             if cloth_pin_kernels.pin_observe(state[0], state[1], n, goal, tuple(self._view()),
@@ -479,7 +479,7 @@ class ClothPin(ShapedTask, ParticleTask):
             return self.measure(stepped), self.observe()
         p, goal, (x, v, mass) = post
         N, nc = len(goal.goal), self.cloth_n
-        pin = self._pin(N, goal.n, nc)
+        pin = cloth_pin_kernels.pin_record(self, N, goal.n, nc)
         if pin is None:
             return self.measure(stepped), self.observe()
         out, success, obs = np.empty((5, N)), np.empty(N, bool), self._obs(N, nc, pin[0])
@@ -494,26 +494,6 @@ class ClothPin(ShapedTask, ParticleTask):
     def _obs(N: int, nc: int, slots: int) -> np.ndarray:
         """A fresh observation array (N, 4 nc + 1 + 7 slots) float32."""
         return np.empty((N, 4 * nc + 1 + SLOT_SIZE * slots), np.float32)
-
-    def _pin(self, N: int, n: Any, nc: Any) -> tuple | None:
-        """The spring slots of ``N`` copies of ``n`` particles, ``nc`` of them the cloth's (the
-        observed ones), as the compiled observation reads them
-        (:class:`envs.cloth_pin_kernels.Pin` in plain form); None where the numpy reference
-        must run: sizes that are not ints with ``0 < nc <= n``, or arrays not of the shapes and
-        types it reads."""
-        B, sp, placed = self.max_springs, self.springs, self.placed  # (read once)
-        si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
-        if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n
-                and _owned(placed, np.int64, (N,)) and _owned(si, np.int64, (N * B,))
-                and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
-                and _owned(rest, np.float64, (N * B,))):
-            return None
-        ks_range = self.ks_range
-        lo, hi = ks_range
-        ratio = self._log_ratio
-        if ratio is None or ratio[0] is not ks_range:  # (made again when it is replaced)
-            ratio = self._log_ratio = (ks_range, float(np.log(hi / lo)))
-        return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1], nc
 
     def observe_reference(self) -> np.ndarray:
         """:meth:`observe` in numpy (the reference of the compiled pass): each entry computed

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from . import _measure
+from .checks import _owned
+
+if TYPE_CHECKING:
+    from .cloth_pin import ClothPin
 
 
 class Pin(NamedTuple):
@@ -49,6 +53,26 @@ class Drawing(NamedTuple):
     xmax: float
     ymax: float
 
+
+
+def pin_record(task: ClothPin, N: int, n: object, nc: object) -> tuple | None:
+    """The spring slots of ``task``'s ``N`` copies of ``n`` particles, ``nc`` of them the
+    cloth's (the observed ones), as the compiled observation reads them (:class:`Pin` in plain
+    form); None where the numpy reference must run: sizes that are not ints with
+    ``0 < nc <= n``, or arrays not of the shapes and types it reads."""
+    B, sp, placed = task.max_springs, task.springs, task.placed  # (read once)
+    si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
+    if not (type(n) is int and type(nc) is int and type(B) is int and 0 < nc <= n
+            and _owned(placed, np.int64, (N,)) and _owned(si, np.int64, (N * B,))
+            and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
+            and _owned(rest, np.float64, (N * B,))):
+        return None
+    ks_range = task.ks_range
+    lo, hi = ks_range
+    ratio = task._log_ratio
+    if ratio is None or ratio[0] is not ks_range:  # (made again when it is replaced)
+        ratio = task._log_ratio = (ks_range, float(np.log(hi / lo)))
+    return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1], nc
 
 #: the compiled observation (None when ``_measure.ENABLED`` is False)
 pin_observe: Callable[..., bool] | None = None

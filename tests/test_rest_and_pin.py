@@ -93,7 +93,7 @@ def test_cloth_to_cloth_spring_is_refused_and_keeps_the_budget():
 
 def _pin_args(task):
     return (task.system.x, task.system.v, task.n, task.goal, tuple(task._view()),
-            task._pin(task.num_envs, task.n, task.cloth_n))
+            cloth_pin_kernels.pin_record(task, task.num_envs, task.n, task.cloth_n))
 
 
 @pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
