@@ -17,8 +17,8 @@ read from ``info["diverged"]``). A function of the goals alone, so that hindsigh
 desired_goal, info)`` takes batches. The episode ends as in ``"state"`` mode (success: at the
 goal and at rest for ``hold_steps`` steps; ``info["is_success"]``).
 
-``obs_mode`` takes ``"state"`` (the default: a flat ``Box``) or ``"goal"``; the same argument
-will name the pixel observations.
+``obs_mode`` takes ``"state"`` (the default: a flat ``Box``), ``"goal"``, or the pixel
+observations ``"pixels"`` and ``"state_pixels"`` (:mod:`envs.pixels`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 from gymnasium import spaces
 
 #: Valid values of ``obs_mode``.
-OBS_MODES = ("state", "goal")
+OBS_MODES = ("state", "goal", "pixels", "state_pixels")
 
 
 def check_obs_mode(obs_mode: Any) -> str:
