@@ -825,8 +825,8 @@ class ParticleTask(SteppedCopies):
 
     def picture(self) -> Picture:
         """What a pixel observation shows (:mod:`envs.pixels`): the default picture made from
-        the scene's blocks (cloth cells, springs, rods, walls, wires, particles, the goal);
-        a task overrides it to draw more (ClothPin's anchor region) or otherwise. Called once
+        the scene's blocks (cloth cells, springs, rods, walls, wires, particles, the goal,
+        the human view's shaded regions); a task overrides it to draw more or otherwise. Called once
         per camera; its moving points are read from the task at every frame."""
         from .pixels import default_picture
 

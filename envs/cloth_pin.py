@@ -11,11 +11,10 @@ from gymnasium import spaces
 
 from constrained_particles import DampedSpring, ParticleSystem, Shape, Wall, scenes
 
-from . import _measure, pixels
+from . import _measure
 from .base import OBS_LIMIT, ParticleTask, _measured
 from .checks import _owned, check_positive, check_range
 from .cloth_slide import _hanging_equilibrium
-from .pixels import Mark, Picture
 from .rewards import ShapedTask
 from .single import ParticleEnv
 from .task import TaskSpec, ppo, sac
@@ -604,18 +603,6 @@ class ClothPin(ShapedTask, ParticleTask):
         """``wall_penalty F_wall / (M g) + spring_cost placed``, per copy (arrays) or for one
         copy (numbers: see ``reward_one``)."""
         return self.wall_penalty * m["wall_force"] / self.weight + self.spring_cost * m["placed"]
-
-    def picture(self) -> Picture:
-        """The default picture (the cloth, its wire and wall, the goal; the budget's springs
-        drawn once placed, each from its anchor to the cloth; placed anchors as red disks)
-        over the shaded anchor region."""
-        pic = super().picture()
-        xmin, ymin, xmax, ymax = self.anchor_region
-        corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
-        region = pic.add_moving(4, lambda task: np.broadcast_to(corners,
-                                                                (task.num_envs, 4, 2)))
-        pic.marks.insert(0, Mark("polygons", region[None], pixels.REGION))
-        return pic
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` with only its placed springs, the anchor region, the goal and a status."""

@@ -18,7 +18,9 @@ the scene's blocks, so any task has one:
   sheets, shows darker; springs within the cloth are not drawn;
 - other **springs** (placed ones: those with ``ks = kd = 0`` in a copy are not drawn) and
   the **spring action** as thin lines, **rods** as thicker dark lines;
-- **walls** as filled half-planes, **wires** (straight and circular) and **pins**;
+- **walls** as filled half-planes, **wires** (straight and circular) and **pins**, and the
+  shaded regions of the human view (``drawing(0)``'s ``"region"`` shapes: ClothPin's anchor
+  region);
 - particles outside a cloth as small **disks** (fixed ones red);
 - the **goal**: a translucent green disk at ``(goal, goal_height)`` and, for a goal along x,
   a faint vertical line through it.
@@ -74,7 +76,7 @@ FIXED = (200, 40, 40)
 GOAL = (20, 150, 60)
 GOAL_LINE = (170, 220, 180)
 MOUSE = (20, 160, 70)
-REGION = (220, 232, 250)
+REGION = (200, 218, 245)
 
 
 def check_pixel_size(pixel_size: Any) -> tuple[int, int]:
@@ -174,10 +176,29 @@ class Picture:
         return out
 
     def scene(self, height: int, width: int, channels: int) -> raster.Scene:
-        """A compiled-rasteriser scene of the picture at ``height x width`` pixels."""
+        """A compiled-rasteriser scene of the picture at ``height x width`` pixels.
+
+        The leading marks that use fixed points only (walls, wires, regions: the same in
+        every copy and every frame) are drawn once, here, into the scene's background image;
+        each frame then draws the rest over it. Layers are laid one after another, each
+        reading only the bytes below it, so the bytes are those of drawing every mark in
+        every frame."""
         view = raster.View(self.box, height=height, width=width)
-        return raster.Scene(self.layers(height, width), view, channels=channels,
-                            background=self.background)
+        layers = self.layers(height, width)
+        lo, hi = self.n, self.n + len(self.fixed)
+        static = 0
+        while static < len(layers) and np.all(
+                (np.asarray(layers[static].index) >= lo) & (np.asarray(layers[static].index) < hi)):
+            static += 1
+        scene = raster.Scene(layers[static:], view, channels=channels,
+                             background=self.background)
+        if static:
+            points = np.zeros((1, hi, 2))
+            points[0, lo:] = self.fixed
+            behind = raster.Scene(layers[:static], view, channels=channels,
+                                  background=self.background)
+            scene.image[...] = behind.draw(points)[0]
+        return scene
 
 
 class Camera:
@@ -215,6 +236,8 @@ class Camera:
         pts[:, :n] = task.positions()
         if p.moving_count:
             pts[:, n + k:] = p.moving(task)
+        if out is None:  # (every byte is written: the background, then the layers)
+            out = np.empty((task.num_envs, *self.scene.shape), np.uint8)
         return self.scene.draw(pts, out, threads=self.threads)
 
 
@@ -318,6 +341,11 @@ def default_picture(task: ParticleTask) -> Picture:
                 rings += [[ring[k], ring[(k + 1) % 48]] for k in range(48)]
     pins = [pic.add_fixed(term.point) for term in s.constraints if isinstance(term, FixedPoint)
             and term.point is not None]
+    # shaded regions of the human view (ClothPin's anchor region), the same for every copy
+    regions = [pic.add_fixed([lo, [hi[0], lo[1]], hi, [lo[0], hi[1]]])
+               for shape in task.drawing(0)[1] if shape.kind == "region"
+               for lo, hi in zip(shape.a, shape.b, strict=True)]
+    pic.marks.append(Mark("polygons", np.array(regions, np.int64).reshape(-1, 4), REGION))
     pic.marks.append(Mark("polygons", np.array(walls).reshape(-1, 4), WALL))
     wires = lines + rings
     pic.marks.append(Mark("segments", np.array(wires, np.int64).reshape(-1, 2), WIRE, size=0.75))
