@@ -22,8 +22,8 @@ the scene's blocks, so any task has one:
   shaded regions of the human view (``drawing(0)``'s ``"region"`` shapes: ClothPin's anchor
   region);
 - particles outside a cloth as small **disks** (fixed ones red);
-- the **goal**: a translucent green disk at ``(goal, goal_height)`` and, for a goal along x,
-  a faint vertical line through it.
+- the **goal**: a translucent green disk at ``(goal, goal_height)`` (one mark: each layer
+  costs every copy a pass over its image).
 
 All copies are drawn in one call of the compiled rasteriser (:mod:`constrained_particles.
 raster`, docs/raster.md) over the task's fixed view box (letterboxed into the image), and copy
@@ -74,7 +74,6 @@ WALL = (185, 175, 160)
 PARTICLE = (30, 30, 40)
 FIXED = (200, 40, 40)
 GOAL = (20, 150, 60)
-GOAL_LINE = (170, 220, 180)
 MOUSE = (20, 160, 70)
 REGION = (200, 218, 245)
 
@@ -349,10 +348,7 @@ def default_picture(task: ParticleTask) -> Picture:
     pic.marks.append(Mark("polygons", np.array(walls).reshape(-1, 4), WALL))
     wires = lines + rings
     pic.marks.append(Mark("segments", np.array(wires, np.int64).reshape(-1, 2), WIRE, size=0.75))
-    # the goal's vertical line (a goal along x)
-    goal_at = pic.add_moving(3, lambda task: _goal_points(task, ymin, ymax))
-    if not task.planar_goal:
-        pic.marks.append(Mark("segments", goal_at[None, 1:], GOAL_LINE, size=0.75))
+    goal_at = pic.add_moving(1, _goal_point)
     # the cloth, then springs and rods
     pic.marks.append(Mark("polygons", cells, CLOTH, opacity=0.6))
     for k, f in springs:
@@ -379,14 +375,11 @@ def default_picture(task: ParticleTask) -> Picture:
     return pic
 
 
-def _goal_points(task: Any, ymin: float, ymax: float) -> np.ndarray:
-    """Per copy: the goal point ``(goal, goal_height)`` and the ends of the vertical line
-    through it, (num_envs, 3, 2) m."""
-    out = np.empty((task.num_envs, 3, 2))
-    out[:, :, 0] = task.goal[:, None]
+def _goal_point(task: Any) -> np.ndarray:
+    """Per copy, the goal point ``(goal, goal_height)``, (num_envs, 1, 2) m."""
+    out = np.empty((task.num_envs, 1, 2))
+    out[:, 0, 0] = task.goal
     out[:, 0, 1] = task.goal_height
-    out[:, 1, 1] = ymin
-    out[:, 2, 1] = ymax
     return out
 
 

@@ -248,3 +248,25 @@ def test_demo_saves_a_gif_without_pygame(monkeypatch, tmp_path, capsys):
                      str(gif)]) == 0
     with Image.open(gif) as im:
         assert im.size == (600, 400) and im.n_frames > 2
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_the_camera_draws_the_bytes_of_every_mark_drawn_every_frame(env_id):
+    """The camera draws the static marks (walls, wires, regions) once into its background;
+    the bytes equal those of a plain rasteriser scene drawing every mark of the picture, in
+    order, over the background, for 3 copies after some random steps."""
+    from constrained_particles import raster
+
+    vec = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point",
+                       obs_mode="pixels", pixel_size=(40, 72), pixel_channels=3)
+    vec.reset(seed=8)
+    for a in np.random.default_rng(2).uniform(-1, 1, (6, *vec.action_space.shape)):
+        got, *_ = vec.step(a.astype(np.float32))
+    task = vec.unwrapped.task
+    pic = task.picture()
+    points = np.concatenate([task.positions(), np.broadcast_to(pic.fixed, (3, *pic.fixed.shape)),
+                             pic.moving(task)], axis=1)
+    plain = raster.Scene(pic.layers(40, 72), raster.View(pic.box, height=40, width=72),
+                         channels=3, background=pic.background)
+    assert plain.draw(points).tobytes() == got.tobytes()
+    assert pic.marks and len(pic.fixed)  # (walls or wires: something was drawn in advance)
