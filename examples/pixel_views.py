@@ -22,6 +22,7 @@ from PIL import Image
 
 import envs
 from envs.agents import make_agent
+from envs.cloth_slide import TASK as SLIDE
 
 STEPS = 25  #: scripted steps before the picture
 
@@ -55,7 +56,7 @@ def main() -> None:
         big(agent_view).save(args.out / f"agent_{env_id}.png", optimize=True)
         Image.fromarray(env.render()).resize((240, 160), Image.LANCZOS).save(
             args.out / f"human_{env_id}.png", optimize=True)
-    env = gym.make("ClothSlide-v0", obs_mode="pixels")
+    env = gym.make(SLIDE.id, obs_mode="pixels")
     frames = [env.reset(seed=3)[0]]
     for _ in range(3):
         for _ in range(3):
@@ -64,7 +65,7 @@ def main() -> None:
     gap = np.full((64, 4, 3), 255, np.uint8)
     strip = np.concatenate([part for f in frames for part in (f, gap)][:-1], axis=1)
     big(strip).save(args.out / "stack.png", optimize=True)
-    grey = gym.make("ClothSlide-v0", obs_mode="pixels", pixel_channels=1).reset(seed=3)[0]
+    grey = gym.make(SLIDE.id, obs_mode="pixels", pixel_channels=1).reset(seed=3)[0]
     big(grey).save(args.out / "grey.png", optimize=True)
     print(f"wrote {len(envs.ENV_IDS) * 2 + 2} pictures into {args.out}")
 

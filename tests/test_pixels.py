@@ -12,6 +12,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -165,11 +166,13 @@ def test_bad_arguments_name_themselves(name, value):
 
 
 def test_pixels_and_rgb_array_frames_need_no_pygame():
-    """In a fresh interpreter where importing pygame fails: an rgb_array env renders frames
-    (600 x 400, not blank) and observes pixels, and pygame was never imported."""
+    """In a fresh interpreter where importing pygame or pillow fails (the core install): an
+    rgb_array env renders frames (600 x 400, not blank) and observes pixels, and pygame was
+    never imported."""
     code = textwrap.dedent("""
         import sys
         sys.modules["pygame"] = None  # (import pygame raises ImportError)
+        sys.modules["PIL"] = None  # (nor is pillow needed: the core install draws)
         import gymnasium as gym
         import numpy as np
         import envs
@@ -208,11 +211,16 @@ def test_gymnasium_frame_stack_carries_the_motion():
 
 def test_sb3_cnn_policy_with_frame_stacking_and_multi_input():
     sb3 = pytest.importorskip("stable_baselines3", reason="the rl extra is not installed")
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
     from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN
     from stable_baselines3.common.vec_env import VecFrameStack
 
     from envs.sb3 import to_sb3
 
+    for mode in ("pixels", "state_pixels"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # (SB3's checker warns about unusual image spaces)
+            sb3_check_env(gym.make(SLIDE, obs_mode=mode).unwrapped)
     venv = VecFrameStack(to_sb3(gym.make_vec(
         SLIDE, num_envs=2, vectorization_mode="vector_entry_point", obs_mode="pixels",
         max_episode_steps=10)), n_stack=3)
@@ -270,3 +278,16 @@ def test_the_camera_draws_the_bytes_of_every_mark_drawn_every_frame(env_id):
                          channels=3, background=pic.background)
     assert plain.draw(points).tobytes() == got.tobytes()
     assert pic.marks and len(pic.fixed)  # (walls or wires: something was drawn in advance)
+
+
+def test_a_pickled_pixel_env_continues_with_the_same_images():
+    import pickle
+
+    env = gym.make("ClothPin-v1", obs_mode="state_pixels")
+    env.reset(seed=1)
+    env.step(env.action_space.sample())
+    clone = pickle.loads(pickle.dumps(env))
+    for a in np.random.default_rng(5).uniform(-1, 1, (8, 6)).astype(np.float32):
+        mine, theirs = env.step(a)[0], clone.step(a)[0]
+        assert mine["pixels"].tobytes() == theirs["pixels"].tobytes()
+        assert mine["state"].tobytes() == theirs["state"].tobytes()
