@@ -36,12 +36,13 @@ stack frames (docs/pixels.md).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium import spaces
+from numpy.typing import ArrayLike
 
 from constrained_particles import (
     CircularWire,
@@ -78,7 +79,7 @@ MOUSE = (20, 160, 70)
 REGION = (200, 218, 245)
 
 
-def check_pixel_size(pixel_size: Any) -> tuple[int, int]:
+def check_pixel_size(pixel_size: object) -> tuple[int, int]:
     """``pixel_size`` as ``(height, width)`` pixels: an int (a square) or a pair, each side a
     whole number in [8, 1024] (ValueError naming the argument otherwise)."""
     sides = pixel_size if isinstance(pixel_size, (tuple, list)) else (pixel_size, pixel_size)
@@ -91,9 +92,10 @@ def check_pixel_size(pixel_size: Any) -> tuple[int, int]:
     return int(sides[0]), int(sides[1])
 
 
-def check_pixel_channels(pixel_channels: Any) -> int:
+def check_pixel_channels(pixel_channels: object) -> int:
     """``pixel_channels``: 3 (RGB) or 1 (grey) (ValueError naming the argument otherwise)."""
-    if isinstance(pixel_channels, (bool, np.bool_)) or pixel_channels not in (1, 3):
+    if isinstance(pixel_channels, (bool, np.bool_)) \
+            or not isinstance(pixel_channels, (int, np.integer)) or pixel_channels not in (1, 3):
         raise ValueError(f"pixel_channels must be 3 (RGB) or 1 (grey), got {pixel_channels!r}")
     return int(pixel_channels)
 
@@ -115,7 +117,7 @@ class Mark:
     """
 
     kind: str
-    index: Any
+    index: ArrayLike
     colour: tuple[float, float, float]
     opacity: float = 1.0
     size: float = 0.0
@@ -137,11 +139,11 @@ class Picture:
     n: int
     marks: list[Mark] = field(default_factory=list)
     fixed: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    moving: Callable[[Any], np.ndarray] = _no_points
+    moving: Callable[[ParticleTask], np.ndarray] = _no_points
     moving_count: int = 0
     background: tuple[float, float, float] = BACKGROUND
 
-    def add_fixed(self, points: Any) -> np.ndarray:
+    def add_fixed(self, points: ArrayLike) -> np.ndarray:
         """Append fixed points (k, 2) m; returns their indices."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         first = self.n + len(self.fixed)
@@ -150,7 +152,8 @@ class Picture:
             raise ValueError("add fixed points before moving ones")
         return first + np.arange(len(p))
 
-    def add_moving(self, count: int, points: Callable[[Any], np.ndarray]) -> np.ndarray:
+    def add_moving(self, count: int, points: Callable[[ParticleTask], np.ndarray]
+                   ) -> np.ndarray:
         """Append ``count`` moving points made by ``points(task) -> (num_envs, count, 2)``;
         returns their indices."""
         first = self.n + len(self.fixed) + self.moving_count
@@ -416,10 +419,3 @@ def _mouse_ends(index: int) -> Callable[[Any], np.ndarray]:
         out[~block.active] = np.nan
         return out
     return ends
-
-
-def display_picture(task: ParticleTask, size: Sequence[int]) -> Camera:
-    """A camera drawing ``task``'s picture at display ``size`` = ``(width, height)`` pixels,
-    RGB (what ``render()`` returns under ``render_mode="rgb_array"``)."""
-    width, height = (int(v) for v in size)
-    return Camera(task, (height, width), 3)

@@ -156,7 +156,7 @@ def test_a_fold_shows_darker_as_two_sheets():
     ("obs_mode", "rgb"), ("obs_mode", None), ("pixel_size", 7), ("pixel_size", 1025),
     ("pixel_size", 64.0), ("pixel_size", True), ("pixel_size", (64,)),
     ("pixel_size", (64, 64, 3)), ("pixel_channels", 2), ("pixel_channels", True),
-    ("pixel_channels", "3")])
+    ("pixel_channels", "3"), ("pixel_channels", 3.0)])
 def test_bad_arguments_name_themselves(name, value):
     with pytest.raises(ValueError, match=name):
         gym.make(SLIDE, **{"obs_mode": "pixels", name: value})
