@@ -291,3 +291,28 @@ def test_a_pickled_pixel_env_continues_with_the_same_images():
         mine, theirs = env.step(a)[0], clone.step(a)[0]
         assert mine["pixels"].tobytes() == theirs["pixels"].tobytes()
         assert mine["state"].tobytes() == theirs["state"].tobytes()
+
+
+def test_cloth_cells_are_found_from_the_springs_alone():
+    """A 6 x 5 cloth of scenes.cloth (structural, shear and bend springs), turned and
+    sheared a little: the cells found from its springs are exactly the 20 grid cells of the
+    index formula ``row * nx + col``; bend springs make four-cliques with three particles in
+    a row, which are not cells. Without shear springs there are no cells."""
+    from constrained_particles import DampedSpring, scenes
+
+    nx, ny = 6, 5
+    s = scenes.cloth(nx, ny, spacing=0.1, wall_x=None)
+    turn = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    x = s.x @ turn.T + [[0.05, 0.0]] * (s.x[:, 1:] ** 2)
+    springs = next(f for f in s.forces if isinstance(f, DampedSpring))
+    cells = pixels.cloth_cells(x, np.stack([springs.i, springs.j], axis=1))
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    want = {frozenset((idx[r, c], idx[r, c + 1], idx[r + 1, c], idx[r + 1, c + 1]))
+            for r in range(ny - 1) for c in range(nx - 1)}
+    assert {frozenset(c) for c in cells.tolist()} == want and len(cells) == len(want)
+    d1, d2 = x[cells[:, 2]] - x[cells[:, 0]], x[cells[:, 3]] - x[cells[:, 1]]
+    area = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])  # (half the diagonals' cross)
+    assert np.allclose(area, 0.01, rtol=0.1)  # corners in order, counter-clockwise
+    plain = scenes.cloth(nx, ny, shear=False, wall_x=None)
+    springs = next(f for f in plain.forces if isinstance(f, DampedSpring))
+    assert len(pixels.cloth_cells(plain.x, np.stack([springs.i, springs.j], axis=1))) == 0
