@@ -144,12 +144,14 @@ class Picture:
     background: tuple[float, float, float] = BACKGROUND
 
     def add_fixed(self, points: ArrayLike) -> np.ndarray:
-        """Append fixed points (k, 2) m; returns their indices."""
+        """Append fixed points (k, 2) m; returns their indices. Fixed points come before
+        moving ones (ValueError after :meth:`add_moving`: the moving points' indices would
+        shift)."""
+        if self.moving_count:
+            raise ValueError("points: add fixed points before moving ones")
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         first = self.n + len(self.fixed)
         self.fixed = np.concatenate([self.fixed, p])
-        if self.moving_count:
-            raise ValueError("add fixed points before moving ones")
         return first + np.arange(len(p))
 
     def add_moving(self, count: int, points: Callable[[ParticleTask], np.ndarray]
