@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
@@ -43,6 +43,9 @@ from .checks import (
     checked_actions,
 )
 from .stepping import SteppedCopies
+
+if TYPE_CHECKING:
+    from .pixels import Picture
 
 #: Valid values of the ``action_mode`` argument.
 ACTION_MODES = ("force", "spring")
@@ -820,6 +823,15 @@ class ParticleTask(SteppedCopies):
         avg = self.mean_v.reshape(N, n, 2)[:, :k]
         return np.sqrt((avg[:, :, 0] * avg[:, :, 0] + avg[:, :, 1] * avg[:, :, 1]).sum(axis=1)
                        * (1.0 / k))
+
+    def picture(self) -> Picture:
+        """What a pixel observation shows (:mod:`envs.pixels`): the default picture made from
+        the scene's blocks (cloth cells, springs, rods, walls, wires, particles, the goal,
+        the human view's shaded regions); a task overrides it to draw more or otherwise. Called once
+        per camera; its moving points are read from the task at every frame."""
+        from .pixels import default_picture
+
+        return default_picture(self)
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` as a drawable single system, its goal marker and a status line."""

@@ -302,6 +302,51 @@ def check_actions_clipped(env_id: str, kwargs: dict[str, Any]) -> None:
     assert_same(run_big, rollout(env, [np.clip(big, -1, 1)] * 3))
 
 
+def check_obs_modes(env_id: str, kwargs: dict[str, Any]) -> None:
+    """Gymnasium's ``check_env`` passes in every ``obs_mode`` (:data:`envs.goals.OBS_MODES`);
+    a pixel observation is a ``uint8`` image inside its space, not blank, grey when asked; copy
+    ``i`` of the native vector env observes the pixels (and state) of a single env seeded
+    ``seed + i`` bit for bit, through episode ends and the next-step autoreset (Gymnasium's
+    ``SyncVectorEnv`` of single envs is the reference); a bad ``obs_mode``, ``pixel_size`` or
+    ``pixel_channels`` is a ValueError naming it."""
+    from .goals import OBS_MODES
+
+    for mode in OBS_MODES:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            env = gym.make(env_id, obs_mode=mode, **kwargs)
+            check_env(env.unwrapped)
+            env.close()
+    grey = gym.make(env_id, obs_mode="pixels", pixel_size=(40, 56), pixel_channels=1, **kwargs)
+    image, _ = grey.reset(seed=0)
+    assert image.dtype == np.uint8 and image.shape == (40, 56, 1) and image in \
+        grey.observation_space
+    assert len(np.unique(image)) > 3, "a blank image"
+    N, limit = 3, 12
+    made = dict(obs_mode="state_pixels", max_episode_steps=limit, **kwargs)
+    native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point", **made)
+    sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", **made)
+    o1, _ = native.reset(seed=7)
+    o2, _ = sync.reset(seed=7)
+    rng = np.random.default_rng(1)
+    ends = 0
+    for step in range(2 * limit + 3):
+        for key in ("state", "pixels"):
+            assert o1[key].dtype == o2[key].dtype and o1[key].shape == o2[key].shape, key
+            assert o1[key].tobytes() == o2[key].tobytes(), f"{key} differ at step {step}"
+        a = rng.uniform(-1, 1, native.action_space.shape).astype(np.float32)
+        o1, _, te, tr, _ = native.step(a)
+        o2, *_ = sync.step(a)
+        ends += int(np.count_nonzero(te | tr))
+    assert ends >= N, "no episode ended: the autoreset was not tested"
+    native.close()
+    sync.close()
+    for name, value in (("obs_mode", "image"), ("pixel_size", 4), ("pixel_size", (64, 2000)),
+                        ("pixel_channels", 2)):
+        with _raises(ValueError, name):
+            gym.make(env_id, **{"obs_mode": "pixels", **kwargs, name: value})
+
+
 #: Every check of the loop, by name.
 CHECKS: dict[str, Callable[[str, dict[str, Any]], None]] = {
     "gymnasium": check_gymnasium,
@@ -314,6 +359,7 @@ CHECKS: dict[str, Callable[[str, dict[str, Any]], None]] = {
     "compiled_matches_reference": check_compiled_matches_reference,
     "bad_actions": check_bad_actions,
     "actions_clipped": check_actions_clipped,
+    "obs_modes": check_obs_modes,
 }
 
 

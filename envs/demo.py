@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "target=swingup for ChainSwing's swing-up (default: none)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--save-gif", type=output_file(".gif"), metavar="PATH.gif",
-                        help="save episode 0 as an animated GIF (needs the render extra; default: "
+                        help="save episode 0 as an animated GIF (needs pillow, no pygame; default: "
                         "no GIF)")
     parser.add_argument("--watch", action="store_true",
                         help="show episode 0 in a pygame-ce window first (needs a display)")
@@ -69,8 +69,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Before any work: the render extra for ``--watch`` and ``--save-gif``, and a display for
-    ``--watch``."""
+    """Before any work: the render extra for ``--watch`` (pygame-ce) and pillow for
+    ``--save-gif``, and a display for ``--watch``."""
     from constrained_particles.extras import require
     from constrained_particles.viewer import display_problem
 
@@ -83,8 +83,10 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     if args.action_mode is not None and args.action_mode not in modes:
         parser.error(f"--action-mode: {args.env} takes one of {', '.join(modes)}, "
                      f"got {args.action_mode!r}")
-    if args.watch or args.save_gif:
-        require("pygame", "PIL", command="cparticles demo --watch/--save-gif")
+    if args.watch:
+        require("pygame", "PIL", command="cparticles demo --watch")
+    if args.save_gif:  # (frames drawn by the rasteriser: pillow writes the GIF, no pygame)
+        require("PIL", command="cparticles demo --save-gif")
     problem = display_problem() if args.watch else None
     if problem:
         parser.error(f"--watch: {problem}; use --save-gif PATH.gif to record episode 0 instead")

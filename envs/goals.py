@@ -17,8 +17,8 @@ read from ``info["diverged"]``). A function of the goals alone, so that hindsigh
 desired_goal, info)`` takes batches. The episode ends as in ``"state"`` mode (success: at the
 goal and at rest for ``hold_steps`` steps; ``info["is_success"]``).
 
-``obs_mode`` takes ``"state"`` (the default: a flat ``Box``) or ``"goal"``; the same argument
-will name the pixel observations.
+``obs_mode`` takes ``"state"`` (the default: a flat ``Box``), ``"goal"``, or the pixel
+observations ``"pixels"`` and ``"state_pixels"`` (:mod:`envs.pixels`).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from .base import ParticleTask
 
 #: Valid values of ``obs_mode``.
-OBS_MODES = ("state", "goal")
+OBS_MODES = ("state", "goal", "pixels", "state_pixels")
 
 #: What ``compute_reward`` reads ``info["diverged"]`` from: one info dict (a single env's, or
 #: a vector env's dict of arrays), a sequence of them (SB3's replay buffers), or None.

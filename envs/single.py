@@ -7,9 +7,10 @@ from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 from numpy.typing import ArrayLike, NDArray
 
-from . import goals
+from . import goals, pixels
 from .base import FRAME_SIZE, ParticleTask
 from .checks import check_options, check_seed, check_task_kwargs
 from .goals import check_obs_mode
@@ -23,21 +24,63 @@ def _info(m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarra
 
 
 class _Rendering:
-    """Drawing through constrained_particles.render (pygame-ce imported lazily)."""
+    """Drawing: ``rgb_array`` frames and pixel observations with the compiled rasteriser
+    (:mod:`envs.pixels`, no pygame), the ``human`` window through constrained_particles.render
+    (pygame-ce imported lazily)."""
 
     task: ParticleTask
     metadata: dict[str, Any]
+    obs_mode: str
+    #: Pixel observations' size ``(H, W)`` and channels (see :mod:`envs.pixels`).
+    pixel_size: tuple[int, int]
+    pixel_channels: int
 
-    def _frame(self, i: int, surface: Any = None) -> np.ndarray | None:
+    def _frame(self, i: int, surface: Any) -> None:
+        """Draw copy ``i`` onto a pygame ``surface`` (the ``human`` window)."""
         from constrained_particles.render import Renderer
 
         if getattr(self, "_renderer", None) is None:
             self._renderer = Renderer(bounds=self.task.view, size=FRAME_SIZE)
         system, extra, status = self.task.drawing(i)
-        if surface is None:
-            return self._renderer.rgb_array(system, extra=extra, forces=True, hud=status)
         self._renderer.draw(surface, system, extra=extra, forces=True, hud=status)
-        return None
+
+    def _frames(self) -> np.ndarray:
+        """Every copy's ``rgb_array`` frame (num_envs, 400, 600, 3) uint8: the task's picture
+        at display size, drawn by the rasteriser."""
+        if getattr(self, "_display", None) is None:
+            self._display = pixels.Camera(self.task, (FRAME_SIZE[1], FRAME_SIZE[0]), 3)
+        return self._display.draw()
+
+    def _setup_pixels(self, obs_mode: str, pixel_size: Any, pixel_channels: Any) -> None:
+        """Check and keep ``obs_mode``, ``pixel_size``, ``pixel_channels`` (ValueError naming
+        the argument)."""
+        self.obs_mode = check_obs_mode(obs_mode)
+        self.pixel_size = pixels.check_pixel_size(pixel_size)
+        self.pixel_channels = pixels.check_pixel_channels(pixel_channels)
+        self._camera: pixels.Camera | None = None
+        self._display: pixels.Camera | None = None
+
+    def _one_space(self) -> spaces.Space:
+        """One copy's observation space in this env's ``obs_mode``."""
+        if self.obs_mode == "goal":
+            return goals.goal_space(self.task)
+        image = pixels.pixel_space(self.pixel_size, self.pixel_channels)
+        return {"state": self.task.single_observation_space, "pixels": image,
+                "state_pixels": spaces.Dict({"state": self.task.single_observation_space,
+                                             "pixels": image})}[self.obs_mode]
+
+    def _observation(self, obs: np.ndarray) -> Any:
+        """Every copy's observation in this env's ``obs_mode`` from their state observations
+        ``obs`` (num_envs, D)."""
+        if self.obs_mode == "state":
+            return obs
+        if self.obs_mode == "goal":
+            return goals.goal_observation(self.task, obs)
+        if self._camera is None:
+            self._camera = pixels.Camera(self.task, self.pixel_size, self.pixel_channels,
+                                         threads=getattr(self, "num_threads", 1))
+        image = self._camera.draw()
+        return image if self.obs_mode == "pixels" else {"state": obs, "pixels": image}
 
 
 def _headless_driver() -> None:
@@ -63,17 +106,19 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
                                           "render_fps": 20}
 
     def __init__(self, render_mode: str | None = None, *, obs_mode: str = "state",
-                 **kwargs: object) -> None:
+                 pixel_size: int | tuple[int, int] = pixels.DEFAULT_SIZE,
+                 pixel_channels: int = 3, **kwargs: object) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
-        #: ``"state"`` (a flat Box) or ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals)
-        self.obs_mode = check_obs_mode(obs_mode)
-        check_task_kwargs(self.task_class, kwargs, also=("render_mode", "obs_mode"))
+        #: ``"state"`` (a flat Box), ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals),
+        #: ``"pixels"`` or ``"state_pixels"`` (see envs.pixels)
+        self._setup_pixels(obs_mode, pixel_size, pixel_channels)
+        check_task_kwargs(self.task_class, kwargs, also=("render_mode", "obs_mode",
+                                                         "pixel_size", "pixel_channels"))
         self.task = self.task_class(1, **kwargs)
         self.action_space = self.task.single_action_space
-        self.observation_space = (self.task.single_observation_space if obs_mode == "state"
-                                  else goals.goal_space(self.task))
+        self.observation_space = self._one_space()
         self.render_mode = render_mode
         self.metadata = {**self.metadata,
                          "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
@@ -88,9 +133,12 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         info = {k: v for k, v in values.items() if k != "speed"}
         info["diverged"] = diverged.item()
         self._last, self._values = m, values
-        if self.obs_mode == "goal":
-            return {k: v[0] for k, v in goals.goal_observation(self.task, obs).items()}, info
-        return obs[0], info
+        if self.obs_mode == "state":
+            return obs[0], info
+        out = self._observation(obs)
+        if isinstance(out, dict):
+            return {k: v[0] for k, v in out.items()}, info
+        return out[0], info
 
     @goals.GoalModeOnly
     def compute_reward(self, achieved_goal: ArrayLike, desired_goal: ArrayLike,
@@ -158,12 +206,14 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
             self.np_random.bit_generator.state = state["np_random"]
 
     def render(self) -> np.ndarray | None:
-        """``"rgb_array"``: an (H, W, 3) uint8 frame; ``"human"``: draw into a pygame window."""
+        """``"rgb_array"``: a (400, 600, 3) uint8 frame (the task's picture at display size,
+        drawn by the compiled rasteriser: no pygame); ``"human"``: draw into a pygame
+        window."""
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")
             return None
         if self.render_mode == "rgb_array":
-            return self._frame(0)
+            return self._frames()[0]
         import pygame
 
         if self._window is None:
@@ -190,5 +240,5 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        state.update(_renderer=None, _window=None, _clock=None)
+        state.update(_renderer=None, _window=None, _clock=None, _camera=None, _display=None)
         return state

@@ -26,10 +26,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from numpy.typing import ArrayLike, NDArray
 
-from . import goals
+from . import goals, pixels
 from .base import ParticleTask
 from .checks import check_options, check_positive, check_seed, check_task_kwargs
-from .goals import check_obs_mode
 from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
@@ -64,18 +63,22 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
                  render_mode: str | None = None, *, num_threads: int = DEFAULT_THREADS,
-                 obs_mode: str = "state", **kwargs: object) -> None:
+                 obs_mode: str = "state",
+                 pixel_size: int | tuple[int, int] = pixels.DEFAULT_SIZE,
+                 pixel_channels: int = 3, **kwargs: object) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
         threads = check_positive("num_threads", num_threads, integer=True)
         self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
                                                 integer=True)
-        #: ``"state"`` (a flat Box) or ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals)
-        self.obs_mode = check_obs_mode(obs_mode)
+        #: ``"state"`` (a flat Box), ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals),
+        #: ``"pixels"`` or ``"state_pixels"`` (see envs.pixels)
+        self._setup_pixels(obs_mode, pixel_size, pixel_channels)
         check_task_kwargs(self.task_class, kwargs, also=("num_envs", "max_episode_steps",
                                                          "render_mode", "num_threads",
-                                                         "obs_mode"))
+                                                         "obs_mode", "pixel_size",
+                                                         "pixel_channels"))
         self.task = self.task_class(num_envs, **kwargs)
         self.task.episode_steps = self.max_episode_steps  # (what divergence pays for)
         #: The threads the copies' physics is stepped on (``ParticleSystem.threads``).
@@ -87,8 +90,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self.metadata = {**self.metadata,
                          "render_fps": round(1.0 / (self.task.dt * self.task.substeps))}
         self.single_action_space = self.task.single_action_space
-        self.single_observation_space = (self.task.single_observation_space
-                                         if obs_mode == "state" else goals.goal_space(self.task))
+        self.single_observation_space = self._one_space()
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._renderer = None
@@ -152,8 +154,9 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         resetting = self._autoreset.copy()
         obs, reward, terminated, truncated, m, diverged = self._step_measured(actions)
         info = self._info(m, diverged)
+        if self.obs_mode != "state":
+            obs = self._observation(obs)
         if self.obs_mode == "goal":
-            obs = goals.goal_observation(self.task, obs)
             reward = self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
             reward[resetting] = 0.0  # (a copy's first observation after its autoreset)
         return obs, reward, terminated, truncated, info
@@ -216,9 +219,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
         m, obs = self.task.measure_observe(stepped)
-        if self.obs_mode == "goal":
-            obs = goals.goal_observation(self.task, obs)
-        return obs, self._info(m, diverged), m
+        return self._observation(obs), self._info(m, diverged), m
 
     def _info(self, m: dict[str, np.ndarray], diverged: np.ndarray) -> dict[str, np.ndarray]:
         """The info dict of measures ``m``: every measure but ``speed``, ``diverged``, and a
@@ -233,11 +234,12 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     # ------------------------------------------------------------------ the rest
     def render(self) -> list[np.ndarray] | None:
-        """One (H, W, 3) uint8 frame per copy (``render_mode="rgb_array"``)."""
+        """One (400, 600, 3) uint8 frame per copy (``render_mode="rgb_array"``), all drawn in
+        one rasteriser call (no pygame)."""
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass it to make_vec()")
             return None
-        return [self._frame(i) for i in range(self.num_envs)]
+        return list(self._frames())
 
     def close(self, **kwargs: object) -> None:
         """Stop the physics threads (safe to call twice; a step after it starts them again;
@@ -249,7 +251,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        state.update(_renderer=None)
+        state.update(_renderer=None, _camera=None, _display=None)
         return state
 
     def __repr__(self) -> str:
