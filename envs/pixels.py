@@ -367,10 +367,10 @@ def default_picture(task: ParticleTask) -> Picture:
         pic.marks.append(Mark("segments", np.concatenate(rods), ROD, size=1.5))
     # the spring action
     for k, f in enumerate(s.forces):
-        if isinstance(f, MouseSpring) and len(f) == 1:
-            ends = pic.add_moving(2, _mouse_ends(k))
-            pic.marks.append(Mark("segments", ends[None], MOUSE, size=1.0))
-            pic.marks.append(Mark("disks", ends[:1], MOUSE, size=1.0))
+        if isinstance(f, MouseSpring) and len(f):
+            ends = pic.add_moving(2 * len(f), _mouse_ends(k, len(f))).reshape(-1, 2)
+            pic.marks.append(Mark("segments", ends, MOUSE, size=1.0))
+            pic.marks.append(Mark("disks", ends[:, 0], MOUSE, size=1.0))
     # particles outside the cloth, fixed ones red; pins; the goal marker last
     loose = ~in_cloth & ~s.fixed
     pic.marks.append(Mark("disks", np.flatnonzero(loose), PARTICLE, size=1.0))
@@ -412,12 +412,15 @@ def _spring_ends(index: int, keep: np.ndarray) -> Callable[[Any], np.ndarray]:
     return ends
 
 
-def _mouse_ends(index: int) -> Callable[[Any], np.ndarray]:
-    """Per copy, the spring action's anchor and grabbed particle (num_envs, 2, 2) m (not
-    finite while the spring is off)."""
+def _mouse_ends(index: int, per: int) -> Callable[[Any], np.ndarray]:
+    """Per copy, each of its ``per`` mouse springs' anchor and grabbed particle
+    (num_envs, 2 per, 2) m (not finite while a spring is off), from force block ``index``
+    of the tiled system (a copy's springs one after another)."""
     def ends(task: Any) -> np.ndarray:
         block = task.system.forces[index]
+        if len(block) != task.num_envs * per:  # (not one block per copy: nothing drawn)
+            return np.full((task.num_envs, 2 * per, 2), np.nan)
         out = np.stack([block.anchor, task.system.x[block.particle]], axis=1)
         out[~block.active] = np.nan
-        return out
+        return out.reshape(task.num_envs, 2 * per, 2)
     return ends

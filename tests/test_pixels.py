@@ -316,3 +316,24 @@ def test_cloth_cells_are_found_from_the_springs_alone():
     plain = scenes.cloth(nx, ny, shear=False, wall_x=None)
     springs = next(f for f in plain.forces if isinstance(f, DampedSpring))
     assert len(pixels.cloth_cells(plain.x, np.stack([springs.i, springs.j], axis=1))) == 0
+
+
+def test_the_spring_action_shows_while_it_pulls():
+    """action_mode="spring": no spring-green pixel after a reset (the spring is off); while
+    it pulls, its target shows as a green disk where the task put the anchor."""
+    env = gym.make(SLIDE, obs_mode="pixels", action_mode="spring", pixel_size=128)
+    image, _ = env.reset(seed=0)
+
+    def green(img):
+        return np.abs(img.astype(int) - pixels.MOUSE).sum(axis=2) < 5
+
+    assert not green(image).any()
+    image, *_ = env.step(np.array([0.0, -0.3, 1.0, 0.5], np.float32))
+    rows, cols = np.nonzero(green(image))
+    task = env.unwrapped.task
+    xmin, ymin, xmax, ymax = task.view
+    s = min(128 / (xmax - xmin), 128 / (ymax - ymin))
+    anchor = task.actuator.anchor[0]
+    assert len(rows) >= 3
+    assert abs(cols.mean() + 0.5 - (64 - (xmin + xmax) / 2 * s + s * anchor[0])) < 1.5
+    assert abs(rows.mean() + 0.5 - (64 + (ymin + ymax) / 2 * s - s * anchor[1])) < 1.5
