@@ -95,7 +95,7 @@ class RopeStraighten(Rope):
                  view_half: float = 0.6, success_ratio: float = 0.95,
                  start_ratio: float = 0.5, turn: float = 0.8, dt: float = 0.002,
                  integrator: str = "rattle", speed: float = 1.0, grab_radius: float = 0.05,
-                 mouse_ks: float = 50.0, mouse_kd: float = 1.0, hold_time: float = 0.1,
+                 mouse_ks: float = 200.0, mouse_kd: float = 2.0, hold_time: float = 0.1,
                  settle_time: float = 1.0, rest_speed: float = 0.01, chunk: int = 5,
                  residual_limit: float = 0.01) -> None:
         self.success_ratio = check_positive("success_ratio", success_ratio, maximum=1.0)
