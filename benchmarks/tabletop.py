@@ -8,7 +8,10 @@ For each task, over ``--episodes`` episodes seeded ``--seed``, ``--seed + 1``, .
 - the scripted agent's (the task's oracle) and uniformly random actions' success rate, mean
   episode length and mean final ``normalized_performance``;
 - the milliseconds of one pick-and-place step and of one reset of a single env (one
-  thread; medians over ``--timed`` steps and resets of scripted episodes).
+  thread; medians over ``--timed`` steps and resets of scripted episodes);
+- the native vector env of ``--copies`` copies (64) over 5 scripted steps against the bare
+  tiled system running the same number of physics steps in one call (ms per env step of
+  each, and the ratio).
 
     python -m benchmarks.tabletop [--episodes 100] [--seed 1000000] [--only ID ...]
     python -m benchmarks.tabletop --pictures docs/envs
@@ -98,6 +101,38 @@ def timings(env_id: str, timed: int, seed: int) -> dict[str, float]:
             "reset_ms": 1000 * statistics.median(resets)}
 
 
+def vector_overhead(env_id: str, copies: int, steps: int, seed: int) -> dict[str, float]:
+    """Time of ``steps`` scripted steps of the native vector env of ``copies`` copies against
+    the bare tiled system (a copy of the env's, grippers off) running the same number of
+    physics steps in one call after each: milliseconds per env step of each, and their
+    ratio."""
+    import copy
+
+    env = gym.make_vec(env_id, num_envs=copies, vectorization_mode="vector_entry_point")
+    agent = make_agent("scripted", env)
+    obs, _ = env.reset(seed=seed)
+    task = env.unwrapped.task
+    s = task.system
+    bare = copy.deepcopy(s)
+    bare.step(task.dt, task.integrator, steps=10)  # (warm)
+    spent, alone, physics = 0.0, 0.0, 0
+    for _ in range(steps):  # (alternated, so that the machine's load moves both alike)
+        a = agent(obs)
+        t0, clock = time.perf_counter(), s.t
+        obs, *_ = env.step(a)
+        spent += time.perf_counter() - t0
+        k = int(round((s.t - clock) / task.dt))
+        physics += k
+        if not k:  # (every copy started anew: no physics)
+            continue
+        t0 = time.perf_counter()
+        bare.step(task.dt, task.integrator, steps=k)
+        alone += time.perf_counter() - t0
+    env.close()
+    return {"copies": copies, "physics_steps": physics, "env_ms": 1000 * spent / steps,
+            "bare_ms": 1000 * alone / steps, "ratio": spent / alone}
+
+
 def picture(env_id: str, seed: int = 0) -> np.ndarray:
     """The start of episode ``seed`` beside its end under the scripted agent, (200, 600, 3)
     uint8 (each 600 x 400 frame averaged over 2 x 2 pixels)."""
@@ -122,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=1_000_000)
     p.add_argument("--batch", type=int, default=25)
     p.add_argument("--timed", type=int, default=100)
+    p.add_argument("--copies", type=int, default=64, help="vector env copies timed")
     p.add_argument("--only", nargs="*", default=None, help="task ids (default: all)")
     p.add_argument("--pictures", type=Path, default=None, help="write the README pictures here")
     args = p.parse_args(argv)
@@ -138,16 +174,20 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, Any] = {"machine": platform.processor() or platform.machine(),
                                "episodes": args.episodes, "seed": args.seed, "tasks": {}}
     print("| task | scripted success | random success | scripted steps | scripted perf "
-          "| random perf | ms/step | ms/reset |\n|---|---|---|---|---|---|---|---|")
+          "| random perf | ms/step | ms/reset | vector / bare ms |\n"
+          "|---|---|---|---|---|---|---|---|---|")
     for env_id in ids:
         scripted = rates(env_id, "scripted", args.episodes, args.seed, args.batch)
         random = rates(env_id, "random", args.episodes, args.seed, args.batch)
         speed = timings(env_id, args.timed, args.seed)
-        results["tasks"][env_id] = {"scripted": scripted, "random": random, **speed}
+        vector = vector_overhead(env_id, args.copies, 5, args.seed)
+        results["tasks"][env_id] = {"scripted": scripted, "random": random, **speed,
+                                    "vector": vector}
         print(f"| {env_id} | {scripted['success']:.0%} | {random['success']:.0%} | "
               f"{scripted['length']:.1f} | {scripted['normalized_performance']:.2f} | "
               f"{random['normalized_performance']:.2f} | {speed['step_ms']:.1f} | "
-              f"{speed['reset_ms']:.1f} |", flush=True)
+              f"{speed['reset_ms']:.1f} | {vector['env_ms']:.0f} / {vector['bare_ms']:.0f} = "
+              f"{vector['ratio']:.2f} |", flush=True)
     print(json.dumps(results, indent=1))
     return 0
 

@@ -273,18 +273,26 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         if not np.array_equal(grip.particle, flat_particle):  # (a new index array: a repack)
             grip.set_checked(np.arange(N * G), flat_particle, grip.anchor, grip.active)
         j = 0
+        moving = int(carry.max(initial=0))  # (chunks in which some anchor still moves)
+        was_on = None
+        lifted = self.table.lifted  # (the friction block covers every particle, in order)
         try:
             while not done.all():
                 on = (held & (j < release)[:, None] & ~done[:, None]).reshape(-1)
-                frac = np.minimum(1.0, (j + 1) / np.maximum(carry, 1))[:, :, None]
-                grip.anchor[:] = (start + (place - start) * frac).reshape(-1, 2)
-                grip.active[:] = on
-                lifted = self.table.lifted  # (the friction block covers every particle)
-                lifted[:] = False
-                lifted[flat_particle[on]] = True
+                if j <= moving:
+                    frac = np.minimum(1.0, (j + 1) / np.maximum(carry, 1))[:, :, None]
+                    grip.anchor[:] = (start + (place - start) * frac).reshape(-1, 2)
+                if was_on is None or not np.array_equal(on, was_on):
+                    grip.active[:] = on
+                    lifted[:] = False
+                    lifted[flat_particle[on]] = True
+                    was_on = on
                 s.step(self.dt, self.integrator, steps=self.chunk)
                 j += 1
-                speed2 = (s.v * s.v).sum(axis=1).reshape(N, n).max(axis=1)
+                if j < release[~done].min():  # (no copy can be done yet)
+                    continue
+                v = s.v
+                speed2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n).max(axis=1)
                 rest = speed2 < self.rest_speed**2
                 finished = ~done & (j >= release) & (rest | (j >= cap))
                 if finished.any():
