@@ -16,6 +16,7 @@ from .pick_place import (
     PickPlaceEnv,
     PickPlaceTask,
     PickPlaceVectorEnv,
+    finish_action,
 )
 from .task import TaskSpec, ppo
 
@@ -127,7 +128,8 @@ class ClothFlatten(TableCloth):
                  dt: float = 0.001, integrator: str = "symplectic_euler", speed: float = 1.0,
                  grab_radius: float = 0.03, mouse_ks: float = 200.0, mouse_kd: float = 2.0,
                  hold_time: float = 0.05, settle_time: float = 0.5, rest_speed: float = 0.01,
-                 chunk: int = 10, residual_limit: float = 0.01) -> None:
+                 chunk: int = 10, residual_limit: float = 0.01,
+                 max_move: float = 0.05) -> None:
         self.pixels = check_positive("pixels", pixels, integer=True, minimum=16, maximum=4096)
         self.success_coverage = check_positive("success_coverage", success_coverage,
                                                maximum=1.0)
@@ -150,7 +152,7 @@ class ClothFlatten(TableCloth):
                          integrator=integrator, speed=speed, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, hold_time=hold_time,
                          settle_time=settle_time, rest_speed=rest_speed, chunk=chunk,
-                         residual_limit=residual_limit)
+                         residual_limit=residual_limit, max_move=max_move)
         #: The raster coverage is measured on: the view box at ``pixels`` x ``pixels``.
         self.raster = raster.View(self.view, height=self.pixels, width=self.pixels)
 
@@ -215,6 +217,12 @@ class ClothFlattenEnv(PickPlaceEnv):
     ``Box(-1, 1, (4 * num_grippers,), float32)``: per gripper the pick point and the place
     point in normalised view coordinates (the view box ``[-0.4, 0.4]^2`` m onto ``[-1, 1]^2``).
 
+    ``action_mode="drag"`` (SoftGym's low-level mode): 3 numbers per gripper instead, a move
+    of up to ``max_move`` (5 cm) along x and y and a grip flag (``> 0``: hold, or take the
+    particle within ``grab_radius`` of the gripper; ``<= 0``: let go); each step lasts
+    ``max_move / speed`` and the observation ends with the grippers' positions and holding
+    flags (3 per gripper). See :mod:`envs.pick_place`.
+
     ## Observation Space
 
     ``obs_mode="state"``: ``Box(-10, 10, (8,), float32)``, the normalised positions of the four
@@ -247,7 +255,8 @@ class ClothFlattenEnv(PickPlaceEnv):
     ``success_coverage``, ``start_coverage``, ``folds``, ``shrink``, ``dt`` (s),
     ``integrator``, ``speed`` (m/s), ``grab_radius`` (m), ``mouse_ks`` (N/m), ``mouse_kd``
     (N s/m), ``hold_time`` (s), ``settle_time`` (s), ``rest_speed`` (m/s), ``chunk``,
-    ``residual_limit`` (m); ``obs_mode``. Bad values raise ValueError naming the argument.
+    ``residual_limit`` (m); ``max_move`` (m, drag mode); ``obs_mode``. Bad values raise
+    ValueError naming the argument.
 
     ## Version History
 
@@ -298,8 +307,7 @@ class ClothFlattenController:
             k2 = np.argmax(err2, axis=1)
             a = np.concatenate([a, t.to_normalized(x[rows, k2]), t.to_normalized(goal[rows, k2])],
                                axis=1)
-        a = np.clip(a, -1.0, 1.0).astype(np.float32)
-        return a if np.ndim(obs) > 1 else a[0]
+        return finish_action(t, obs, a)
 
 
 #: The task's declaration (see :mod:`envs.task`).

@@ -16,6 +16,7 @@ from .pick_place import (
     PP_OBS_MODES,
     PickPlaceEnv,
     PickPlaceVectorEnv,
+    finish_action,
 )
 from .task import TaskSpec, ppo
 
@@ -51,7 +52,8 @@ class ClothFold(TableCloth):
                  integrator: str = "symplectic_euler", speed: float = 0.3,
                  grab_radius: float = 0.03, mouse_ks: float = 200.0, mouse_kd: float = 2.0,
                  hold_time: float = 0.05, settle_time: float = 0.5, rest_speed: float = 0.01,
-                 chunk: int = 10, residual_limit: float = 0.01) -> None:
+                 chunk: int = 10, residual_limit: float = 0.01,
+                 max_move: float = 0.05) -> None:
         self.fold_tolerance = check_positive("fold_tolerance", fold_tolerance)
         self.stay_tolerance = check_positive("stay_tolerance", stay_tolerance)
         k = check_positive("size", size, integer=True, minimum=3, maximum=64)
@@ -65,7 +67,7 @@ class ClothFold(TableCloth):
                          integrator=integrator, speed=speed, grab_radius=grab_radius,
                          mouse_ks=mouse_ks, mouse_kd=mouse_kd, hold_time=hold_time,
                          settle_time=settle_time, rest_speed=rest_speed, chunk=chunk,
-                         residual_limit=residual_limit)
+                         residual_limit=residual_limit, max_move=max_move)
         idx = np.arange(k * k).reshape(k, k)  # [row, column]
         m = k // 2
         #: Per kind: (moved particles, their mirror partners, the particles that stay)
@@ -160,6 +162,12 @@ class ClothFoldEnv(PickPlaceEnv):
     and the place point in normalised view coordinates (``[-0.4, 0.4]^2`` m onto
     ``[-1, 1]^2``).
 
+    ``action_mode="drag"`` (SoftGym's low-level mode): 3 numbers per gripper instead, a move
+    of up to ``max_move`` (5 cm) along x and y and a grip flag (``> 0``: hold, or take the
+    particle within ``grab_radius`` of the gripper; ``<= 0``: let go); each step lasts
+    ``max_move / speed`` and the observation ends with the grippers' positions and holding
+    flags (3 per gripper). See :mod:`envs.pick_place`.
+
     ## Observation Space
 
     ``obs_mode="state"``: ``Box(-10, 10, (12,), float32)``: the normalised positions of the
@@ -191,7 +199,8 @@ class ClothFoldEnv(PickPlaceEnv):
     ``cloth_ks`` (N/m), ``cloth_kd`` (N s/m), ``mu``, ``view_half`` (m), ``fold_tolerance``
     (m), ``stay_tolerance`` (m), ``dt`` (s), ``integrator``, ``speed`` (m/s), ``grab_radius``
     (m), ``mouse_ks`` (N/m), ``mouse_kd`` (N s/m), ``hold_time`` (s), ``settle_time`` (s),
-    ``rest_speed`` (m/s), ``chunk``, ``residual_limit`` (m); ``obs_mode``. Bad values raise
+    ``rest_speed`` (m/s), ``chunk``, ``residual_limit`` (m), ``max_move`` (m, drag mode);
+    ``obs_mode``. Bad values raise
     ValueError naming the argument.
 
     ## Version History
@@ -239,8 +248,7 @@ class ClothFoldController:
         for g_ in range(t.num_grippers):
             k = order[:, g_]
             parts += [t.to_normalized(x[rows, k]), t.to_normalized(goal[rows, k])]
-        a_ = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
-        return a_ if np.ndim(obs) > 1 else a_[0]
+        return finish_action(t, obs, np.concatenate(parts, axis=1))
 
 
 #: The task's declaration (see :mod:`envs.task`).

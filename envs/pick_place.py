@@ -23,6 +23,11 @@ Each copy of a vector env keeps its own schedule: a copy that is done is put bac
 end of the step, in its state at the moment it was done, so copy ``i`` of a vector env is a
 single env seeded ``seed + i``, bit for bit, however long the other copies take.
 
+``action_mode="drag"`` is SoftGym's low-level mode: per gripper a move ``(dx, dy)`` of up to
+``max_move`` metres and a grip flag; a gripping gripper holds its particle (or takes the one
+within ``grab_radius`` of it, closing on it), the others let go; each step lasts ``max_move /
+speed`` seconds, the grippers moving from rest to rest (a smoothstep), and nothing settles.
+
 Tasks subclass :class:`PickPlaceTask` with the object (:meth:`~PickPlaceTask.build_object`),
 a start (:meth:`~PickPlaceTask.sample_episode`), a progress measure ``p``
 (:meth:`~PickPlaceTask.progress`) and its success test (:meth:`~PickPlaceTask.success`).
@@ -50,10 +55,11 @@ from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
 __all__ = ["PICK_PLACE_MODES", "PP_OBS_MODES", "PickPlaceEnv", "PickPlaceTask",
-           "PickPlaceVectorEnv"]
+           "PickPlaceVectorEnv", "finish_action"]
 
-#: Valid values of a pick-and-place task's ``action_mode`` argument.
-PICK_PLACE_MODES = ("pick_place",)
+#: Valid values of a pick-and-place task's ``action_mode`` argument: one pick-and-place per
+#: step (the default), or SoftGym's low-level ``"drag"`` (see :class:`PickPlaceTask`).
+PICK_PLACE_MODES = ("pick_place", "drag")
 #: Valid values of a pick-and-place env's ``obs_mode`` argument: ``"state"`` (keypoints and
 #: the goal) or ``"particles"`` (every particle and the goal).
 PP_OBS_MODES = ("state", "particles")
@@ -78,7 +84,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
     def __init__(self, num_envs: int, *, action_mode: str, num_grippers: int, dt: float,
                  integrator: str, speed: float, grab_radius: float, mouse_ks: float,
                  mouse_kd: float, hold_time: float, settle_time: float, rest_speed: float,
-                 chunk: int, residual_limit: float) -> None:
+                 chunk: int, residual_limit: float, max_move: float = 0.05) -> None:
         if not isinstance(action_mode, str) or action_mode not in PICK_PLACE_MODES:
             raise ValueError(f"action_mode must be one of {PICK_PLACE_MODES}, "
                              f"got {action_mode!r}")
@@ -88,6 +94,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         self.hold_time = check_positive("hold_time", hold_time, allow_zero=True, maximum=100.0)
         self.settle_time = check_positive("settle_time", settle_time, maximum=1000.0)
         self.chunk = check_positive("chunk", chunk, integer=True, maximum=1000)
+        self.max_move = check_positive("max_move", max_move, maximum=10.0)
         self.obs_mode = "state"
         super().__init__(num_envs, action_mode="force", dt=dt, substeps=1,
                          integrator=integrator, max_force=1.0, grab_radius=grab_radius,
@@ -95,6 +102,9 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                          rest_speed=rest_speed, hold_steps=1, residual_limit=residual_limit)
         self.action_mode = action_mode
         N, G = self.num_envs, self.num_grippers
+        # (the base made the action buffer and space for 4 numbers per gripper)
+        self.__dict__["action"] = np.zeros((N, self.action_dim))
+        self.single_action_space = spaces.Box(-1.0, 1.0, (self.action_dim,), np.float32)
         self.tracked_particles = np.arange(self.n)
         self.grippers: MouseSpring = self.system.forces[self._mouse_block]
         self.table: TableFriction = self.system.forces[self._table_block]
@@ -110,6 +120,13 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         self.chunk_time = self.dt * self.chunk
         self.hold_chunks = int(math.ceil(self.hold_time / self.chunk_time - 1e-9))
         self.settle_chunks = max(1, int(math.ceil(self.settle_time / self.chunk_time - 1e-9)))
+        #: Chunks of one drag step: ``max_move`` at ``speed``.
+        self.drag_chunks = max(1, int(math.ceil(self.max_move / (self.speed * self.chunk_time)
+                                                - 1e-9)))
+        #: Drag mode: each gripper's position (N, G, 2) m and the particle it holds (index
+        #: within the copy, -1 for none), (N, G).
+        self.gripper_pos = np.zeros((N, G, 2))
+        self.holding = np.full((N, G), -1, np.int64)
         self.set_obs_mode("state")
 
     def set_obs_mode(self, obs_mode: str) -> spaces.Box:
@@ -118,7 +135,8 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:
             raise ValueError(f"obs_mode must be one of {PP_OBS_MODES}, got {obs_mode!r}")
         self.obs_mode = obs_mode
-        size = 2 * (self.n if obs_mode == "particles" else len(self.keypoints)) + self.goal_dim
+        size = (2 * (self.n if obs_mode == "particles" else len(self.keypoints)) + self.goal_dim
+                + 3 * self.num_grippers * (self.action_mode == "drag"))
         self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (size,), np.float32)
         return self.single_observation_space
 
@@ -187,8 +205,9 @@ class PickPlaceTask(ShapedTask, ParticleTask):
 
     @property
     def action_dim(self) -> int:
-        """Four numbers per gripper: pick x, y and place x, y."""
-        return 4 * self.num_grippers
+        """Four numbers per gripper (pick x, y and place x, y); in drag mode three (a move
+        x, y and a grip flag)."""
+        return (3 if self.__dict__.get("action_mode") == "drag" else 4) * self.num_grippers
 
     def sample_start(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
         """(The base hook: :meth:`sample_starts` draws the goal data too.)"""
@@ -217,6 +236,8 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                                                self.target[envs])
             self.settled[envs] = True
             self.grabbed[envs] = False
+            self.holding[envs] = -1
+            self.gripper_pos[envs] = np.reshape(x, (len(envs), self.n, 2)).mean(axis=1)[:, None]
         super().write_starts(envs, x, v, goal)
 
     # ------------------------------------------------------------------ the step
@@ -254,6 +275,8 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         s, N, G, n = self.system, self.num_envs, self.num_grippers, self.n
         idle = np.zeros(N, bool) if self._idle is None else self._idle
         self._idle = None
+        if self.action_mode == "drag":
+            return self._drag(idle)
         particle, start, place, held = self._grab(~idle)
         self.grabbed[:] = held
         dist = np.sqrt(((place - start) ** 2).sum(axis=2))
@@ -318,6 +341,62 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         self.settled[keep] = settled[keep]
         return np.zeros(N, bool)
 
+    def _drag(self, idle: np.ndarray) -> np.ndarray:
+        """One step of drag mode: each gripper with ``grip > 0`` holds (or grabs, within
+        ``grab_radius`` of where it is) a particle, ``grip <= 0`` lets go; each moves by
+        ``max_move`` times its move (clipped to the view box) in a straight line at ``speed``,
+        its particle following on the mouse spring, lifted. The step lasts ``drag_chunks``
+        chunks whatever the copies do, so the copies keep one schedule."""
+        s, N, G, n = self.system, self.num_envs, self.num_grippers, self.n
+        a = self.action.reshape(N, G, 3)
+        grip = (a[:, :, 2] > 0) & ~idle[:, None]
+        self.holding[~grip] = -1
+        x = self.positions()
+        pos = self.gripper_pos
+        d2 = ((x[:, None, :, :] - pos[:, :, None, :]) ** 2).sum(axis=3)
+        nearest = np.argmin(d2, axis=2)
+        near = np.take_along_axis(d2, nearest[:, :, None], axis=2)[:, :, 0] <= self.grab_radius**2
+        new = grip & (self.holding < 0) & near
+        self.holding[new] = nearest[new]
+        # (a gripper closes on the particle it takes: its spring starts unstretched)
+        taken = x[np.arange(N)[:, None], nearest]  # (N, G, 2)
+        pos[new] = taken[new]
+        if G == 2:  # (two grippers on one particle: the second lets go)
+            same = (self.holding[:, 1] >= 0) & (self.holding[:, 1] == self.holding[:, 0])
+            self.holding[same, 1] = -1
+        held = self.holding >= 0
+        self.grabbed[:] = held
+        lo, hi = np.array(self.view[:2]), np.array(self.view[2:])
+        start = pos.copy()
+        target = np.minimum(np.maximum(start + self.max_move * a[:, :, :2], lo), hi)
+        flat = np.where(held, self.holding + (np.arange(N) * n)[:, None], 0).reshape(-1)
+        springs = self.grippers
+        if not np.array_equal(springs.particle, flat):
+            springs.set_checked(np.arange(N * G), flat, springs.anchor, springs.active)
+        on = held.reshape(-1)
+        springs.active[:] = on
+        self.table.lifted[:] = False
+        self.table.lifted[flat[on]] = True
+        x0, v0, lam0, t0 = s.x.copy(), s.v.copy(), self._lam().copy(), s.t
+        try:
+            for j in range(self.drag_chunks):
+                u = (j + 1) / self.drag_chunks
+                frac = u * u * (3.0 - 2.0 * u)  # (smooth: the gripper starts and stops at rest)
+                springs.anchor[:] = (start + (target - start) * frac).reshape(-1, 2)
+                s.step(self.dt, self.integrator, steps=self.chunk)
+        except SimulationDiverged:
+            s.x, s.v, s.t = x0, v0, t0
+            self._lam()[:] = lam0
+            self._let_go()
+            self.settled[:] = False
+            return np.ones(N, bool)
+        self._let_go()
+        self.gripper_pos[~idle] = target[~idle]
+        v = s.v
+        speed2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n).max(axis=1)
+        self.settled[:] = speed2 < self.rest_speed**2
+        return np.zeros(N, bool)
+
     def _let_go(self) -> None:
         """Every gripper inactive, every particle on the table."""
         self.grippers.active[:] = False
@@ -357,7 +436,11 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         if self.obs_mode == "state":
             x = x[:, self.keypoints]
         pos = ((x - self.center) * (1.0 / self.half)).reshape(self.num_envs, -1)
-        obs = np.concatenate([pos, self.goal_features(self._every)], axis=1)
+        parts = [pos, self.goal_features(self._every)]
+        if self.action_mode == "drag":  # the grippers: positions, then holding flags
+            parts += [((self.gripper_pos - self.center) * (1.0 / self.half)).reshape(
+                self.num_envs, -1), (self.holding >= 0).astype(float)]
+        obs = np.concatenate(parts, axis=1)
         return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
 
     def observed_points(self, obs: np.ndarray) -> np.ndarray:
@@ -369,21 +452,31 @@ class PickPlaceTask(ShapedTask, ParticleTask):
     def goal_part(self, obs: np.ndarray) -> np.ndarray:
         """The goal's entries (B, goal_dim) of observations (B, D)."""
         o = np.atleast_2d(np.asarray(obs, dtype=np.float64))
-        return o[:, o.shape[1] - self.goal_dim:]
+        k = 2 * (self.n if self.obs_mode == "particles" else len(self.keypoints))
+        return o[:, k:k + self.goal_dim]
+
+    def gripper_part(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Drag mode: the grippers' positions (B, G, 2) m and holding flags (B, G) of
+        observations (B, D)."""
+        o = np.atleast_2d(np.asarray(obs, dtype=np.float64))
+        G = self.num_grippers
+        tail = o[:, o.shape[1] - 3 * G:]
+        return self.to_world(tail[:, :2 * G].reshape(len(o), G, 2)), tail[:, 2 * G:] > 0.5
 
     # ------------------------------------------------------------------ state
     def get_state(self, i: int) -> dict[str, Any]:
         """The base state plus the goal data ``target``, ``p_start`` and ``settled``."""
         state = super().get_state(i)
         state.update(target=self.target[i].copy(), p_start=float(self.p_start[i]),
-                     settled=bool(self.settled[i]))
+                     settled=bool(self.settled[i]), gripper_pos=self.gripper_pos[i].copy(),
+                     holding=self.holding[i].copy())
         return state
 
     def set_state(self, i: int, state: dict[str, Any]) -> None:
         """Restore copy ``i`` from :meth:`get_state`; ValueError naming a bad field."""
         if not isinstance(state, dict):
             raise ValueError(f"state must be a dict from get_state(), got {type(state).__name__}")
-        missing = {"target", "p_start", "settled"} - set(state)
+        missing = {"target", "p_start", "settled", "gripper_pos", "holding"} - set(state)
         if missing:
             raise ValueError(f"state is missing {sorted(missing)}")
         try:
@@ -398,7 +491,22 @@ class PickPlaceTask(ShapedTask, ParticleTask):
             raise ValueError(f"state['p_start'] must be finite, got {state['p_start']!r}")
         if not isinstance(state["settled"], (bool, np.bool_)):
             raise ValueError(f"state['settled'] must be a bool, got {state['settled']!r}")
+        G = self.num_grippers
+        try:
+            pos = np.asarray(state["gripper_pos"], dtype=float)
+            holding = np.asarray(state["holding"])
+        except (TypeError, ValueError):
+            raise ValueError("state['gripper_pos'] must be numbers") from None
+        if pos.shape != (G, 2) or not np.all(np.isfinite(pos)):
+            raise ValueError(f"state['gripper_pos'] must be a finite array of shape ({G}, 2), "
+                             f"got {state['gripper_pos']!r}")
+        if (holding.shape != (G,) or holding.dtype.kind not in "iu"
+                or np.any(holding < -1) or np.any(holding >= self.n)):
+            raise ValueError(f"state['holding'] must be {G} particle indices or -1, "
+                             f"got {state['holding']!r}")
         self.check_state(state)
+        self.gripper_pos[i] = pos
+        self.holding[i] = holding
         self.target[i] = target
         self.p_start[i] = p_start
         self.settled[i] = bool(state["settled"])
@@ -416,6 +524,28 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         status = (f"{type(self).__name__}   progress {p:.3f} (goal {self.p_goal:g})   "
                   f"{'at rest' if self.settled[i] else 'moving'}")
         return one, self.target_shapes(i), status
+
+
+def finish_action(task: PickPlaceTask, obs: np.ndarray, pick_place: np.ndarray) -> np.ndarray:
+    """A scripted agent's action from its pick-and-place actions ``pick_place`` (B, 4 G) in
+    normalised coordinates: clipped to the Box as float32, one row for one observation; in drag
+    mode turned into moves: each gripper that holds nothing heads for its pick point and grips
+    once there, one that holds a particle heads for the place point and lets go there."""
+    a = np.asarray(pick_place, dtype=np.float64)
+    if task.action_mode == "drag":
+        B, G = len(a), task.num_grippers
+        pos, holding = task.gripper_part(obs)
+        pp = a.reshape(B, G, 4)
+        pick, place = task.to_world(pp[:, :, :2]), task.to_world(pp[:, :, 2:])
+        at_pick = np.linalg.norm(pick - pos, axis=2) <= 0.5 * task.grab_radius
+        at_place = np.linalg.norm(place - pos, axis=2) <= 1e-3
+        carrying = holding | at_pick
+        go = np.where(carrying[:, :, None], place, pick)
+        move = (go - pos) * (1.0 / task.max_move)
+        grip = np.where(carrying & ~(holding & at_place), 1.0, -1.0)
+        a = np.concatenate([np.clip(move, -1.0, 1.0), grip[:, :, None]], axis=2).reshape(B, -1)
+    a = np.clip(a, -1.0, 1.0).astype(np.float32)
+    return a if np.ndim(obs) > 1 else a[0]
 
 
 class PickPlaceEnv(ParticleEnv):

@@ -10,7 +10,13 @@ import numpy as np
 from constrained_particles import Shape
 
 from .checks import check_positive
-from .pick_place import PICK_PLACE_MODES, PP_OBS_MODES, PickPlaceEnv, PickPlaceVectorEnv
+from .pick_place import (
+    PICK_PLACE_MODES,
+    PP_OBS_MODES,
+    PickPlaceEnv,
+    PickPlaceVectorEnv,
+    finish_action,
+)
 from .rope_straighten import Rope, tangle
 from .task import TaskSpec, ppo
 
@@ -67,7 +73,8 @@ class RopeShape(Rope):
                  dt: float = 0.002, integrator: str = "rattle", speed: float = 1.0,
                  grab_radius: float = 0.05, mouse_ks: float = 200.0, mouse_kd: float = 2.0,
                  hold_time: float = 0.1, settle_time: float = 1.0, rest_speed: float = 0.01,
-                 chunk: int = 5, residual_limit: float = 0.01) -> None:
+                 chunk: int = 5, residual_limit: float = 0.01,
+                 max_move: float = 0.05) -> None:
         self.tolerance = check_positive("tolerance", tolerance)
         self.turn = check_positive("turn", turn, maximum=10.0)
         n = check_positive("num_particles", num_particles, integer=True, minimum=8,
@@ -80,7 +87,7 @@ class RopeShape(Rope):
                          num_grippers=num_grippers, dt=dt, integrator=integrator, speed=speed,
                          grab_radius=grab_radius, mouse_ks=mouse_ks, mouse_kd=mouse_kd,
                          hold_time=hold_time, settle_time=settle_time, rest_speed=rest_speed,
-                         chunk=chunk, residual_limit=residual_limit)
+                         chunk=chunk, residual_limit=residual_limit, max_move=max_move)
 
     def set_obs_mode(self, obs_mode: str) -> Any:
         """As the base, with the goal's entries: the target curve at the observed particles
@@ -162,6 +169,12 @@ class RopeShapeEnv(PickPlaceEnv):
     ``Box(-1, 1, (4 * num_grippers,), float32)``: per gripper the pick point and the place
     point in normalised view coordinates (``[-0.6, 0.6]^2`` m onto ``[-1, 1]^2``).
 
+    ``action_mode="drag"`` (SoftGym's low-level mode): 3 numbers per gripper instead, a move
+    of up to ``max_move`` (5 cm) along x and y and a grip flag (``> 0``: hold, or take the
+    particle within ``grab_radius`` of the gripper; ``<= 0``: let go); each step lasts
+    ``max_move / speed`` and the observation ends with the grippers' positions and holding
+    flags (3 per gripper). See :mod:`envs.pick_place`.
+
     ## Observation Space
 
     ``obs_mode="state"``: ``Box(-10, 10, (40,), float32)``: the normalised positions of 10
@@ -192,7 +205,8 @@ class RopeShapeEnv(PickPlaceEnv):
     RopeStraighten's (``num_grippers``, ``num_particles``, ``link``, ``particle_mass``,
     ``bend_k``, ``mu``, ``view_half``, ``turn``, ``dt``, ``integrator``, ``speed``,
     ``grab_radius``, ``mouse_ks``, ``mouse_kd``, ``hold_time``, ``settle_time``,
-    ``rest_speed``, ``chunk``, ``residual_limit``) and ``tolerance`` (m); ``obs_mode``.
+    ``rest_speed``, ``chunk``, ``residual_limit``, ``max_move``) and ``tolerance`` (m);
+    ``obs_mode``.
 
     ## Version History
 
@@ -240,8 +254,7 @@ class RopeShapeController:
             j2 = np.argmax(err2, axis=1)
             a = np.concatenate([a, t.to_normalized(x[rows, j2]), t.to_normalized(goal[rows, j2])],
                                axis=1)
-        a = np.clip(a, -1.0, 1.0).astype(np.float32)
-        return a if np.ndim(obs) > 1 else a[0]
+        return finish_action(t, obs, a)
 
 
 #: The task's declaration (see :mod:`envs.task`).

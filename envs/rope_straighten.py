@@ -16,6 +16,7 @@ from .pick_place import (
     PickPlaceEnv,
     PickPlaceTask,
     PickPlaceVectorEnv,
+    finish_action,
 )
 from .task import TaskSpec, ppo
 
@@ -97,7 +98,8 @@ class RopeStraighten(Rope):
                  integrator: str = "rattle", speed: float = 1.0, grab_radius: float = 0.05,
                  mouse_ks: float = 200.0, mouse_kd: float = 2.0, hold_time: float = 0.1,
                  settle_time: float = 1.0, rest_speed: float = 0.01, chunk: int = 5,
-                 residual_limit: float = 0.01) -> None:
+                 residual_limit: float = 0.01,
+                 max_move: float = 0.05) -> None:
         self.success_ratio = check_positive("success_ratio", success_ratio, maximum=1.0)
         self.start_ratio = check_positive("start_ratio", start_ratio, maximum=1.0)
         if self.start_ratio >= self.success_ratio:
@@ -110,7 +112,7 @@ class RopeStraighten(Rope):
                          num_grippers=num_grippers, dt=dt, integrator=integrator, speed=speed,
                          grab_radius=grab_radius, mouse_ks=mouse_ks, mouse_kd=mouse_kd,
                          hold_time=hold_time, settle_time=settle_time, rest_speed=rest_speed,
-                         chunk=chunk, residual_limit=residual_limit)
+                         chunk=chunk, residual_limit=residual_limit, max_move=max_move)
 
     def sample_episode(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """A random-walk tangle (:func:`tangle`) whose end-to-end distance is at most
@@ -159,6 +161,12 @@ class RopeStraightenEnv(PickPlaceEnv):
     | 4g, 4g + 1 | gripper g's pick point x, y      |
     | 4g + 2, 4g + 3 | gripper g's place point x, y |
 
+    ``action_mode="drag"`` (SoftGym's low-level mode): 3 numbers per gripper instead, a move
+    of up to ``max_move`` (5 cm) along x and y and a grip flag (``> 0``: hold, or take the
+    particle within ``grab_radius`` of the gripper; ``<= 0``: let go); each step lasts
+    ``max_move / speed`` and the observation ends with the grippers' positions and holding
+    flags (3 per gripper). See :mod:`envs.pick_place`.
+
     ## Observation Space
 
     ``obs_mode="state"``: ``Box(-10, 10, (20,), float32)``, the normalised positions of 10
@@ -192,7 +200,8 @@ class RopeStraightenEnv(PickPlaceEnv):
     ``turn`` (rad), ``dt`` (s), ``integrator``, ``speed`` (m/s), ``grab_radius`` (m),
     ``mouse_ks`` (N/m), ``mouse_kd`` (N s/m), ``hold_time`` (s), ``settle_time`` (s),
     ``rest_speed`` (m/s), ``chunk`` (physics steps between gripper updates),
-    ``residual_limit`` (m); ``obs_mode``. Bad values raise ValueError naming the argument.
+    ``residual_limit`` (m); ``max_move`` (m, drag mode); ``obs_mode``. Bad values raise
+    ValueError naming the argument.
 
     ## Version History
 
@@ -243,8 +252,7 @@ class RopeStraightenController:
                            axis=1)
         if t.num_grippers == 2:
             a = np.concatenate([a, a], axis=1)  # (the second gripper misses the same particle)
-        a = np.clip(a, -1.0, 1.0).astype(np.float32)
-        return a if np.ndim(obs) > 1 else a[0]
+        return finish_action(t, obs, a)
 
 
 #: The task's declaration (see :mod:`envs.task`).

@@ -101,6 +101,28 @@ def test_a_vector_copy_that_is_done_keeps_its_state_from_that_moment():
     assert o_vec[1].tobytes() == other.step(carry.astype(np.float32))[0].tobytes()
 
 
+def test_drag_mode_carries_a_gripped_particle_by_bounded_moves_and_lets_go():
+    env = RopeStraightenEnv(action_mode="drag")
+    obs, _ = env.reset(seed=0)
+    t = env.task
+    assert env.action_space.shape == (3,) and obs.shape == (20 + 3,)
+    x = t.positions()[0]
+    pos, holding = t.gripper_part(obs)
+    assert np.allclose(pos[0, 0], x.mean(axis=0)) and not holding.any()  # (starts at the centre)
+    # move onto particle 0 (no grip), then grip it and drag it +x by max_move, twice
+    env.set_state(dict(env.get_state(), gripper_pos=x[:1].copy()))
+    start = x[0].copy()
+    for _ in range(2):
+        obs, *_ = env.step(np.array([1.0, 0.0, 1.0], np.float32))
+    pos, holding = t.gripper_part(obs)
+    assert holding.all() and t.holding[0, 0] == 0
+    assert np.allclose(pos[0, 0], start + [2 * t.max_move, 0.0], atol=1e-6)
+    assert np.linalg.norm(t.positions()[0, 0] - pos[0, 0]) < 0.01  # (the spring's lag)
+    obs, *_ = env.step(np.array([0.0, 0.0, -1.0], np.float32))
+    assert not t.gripper_part(obs)[1].any() and t.holding[0, 0] == -1
+    assert not t.grippers.active.any() and not t.table.lifted.any()
+
+
 # ------------------------------------------------------------------ progress measures
 def test_rope_straighten_progress_is_the_end_to_end_ratio():
     env = rope_env()
