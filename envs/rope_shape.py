@@ -71,7 +71,7 @@ class RopeShape(Rope):
                  particle_mass: float = 0.01, bend_k: float = 1e-4, mu: float = 0.5,
                  view_half: float = 0.6, tolerance: float = 0.02, turn: float = 0.3,
                  dt: float = 0.002, integrator: str = "rattle", speed: float = 1.0,
-                 grab_radius: float = 0.05, mouse_ks: float = 200.0, mouse_kd: float = 2.0,
+                 grab_radius: float = 0.05, mouse_ks: float = 50.0, mouse_kd: float = 1.0,
                  hold_time: float = 0.1, settle_time: float = 1.0, rest_speed: float = 0.01,
                  chunk: int = 5, residual_limit: float = 0.01,
                  max_move: float = 0.05) -> None:
