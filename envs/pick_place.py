@@ -39,6 +39,7 @@ cost to go (``envs.rewards``) with a time cost per pick-and-place.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -214,7 +215,8 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         x, _ = self.sample_episode(rng)
         return x, np.zeros_like(x), 0.0
 
-    def sample_starts(self, rngs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def sample_starts(self, rngs: Sequence[np.random.Generator]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`sample_episode` from each generator: positions, velocities (zero), goals
         (zero: the goal data is ``target``) and goal data, stacked."""
         n = self.n
@@ -225,8 +227,8 @@ class PickPlaceTask(ShapedTask, ParticleTask):
             x[k], target[k] = xk, tk
         return x, np.zeros_like(x), np.zeros(len(rngs)), target
 
-    def write_starts(self, envs: Any, x: np.ndarray, v: np.ndarray, goal: np.ndarray,
-                     target: np.ndarray | None = None) -> None:
+    def write_starts(self, envs: Sequence[int] | np.ndarray, x: np.ndarray, v: np.ndarray,
+                     goal: np.ndarray, target: np.ndarray | None = None) -> None:
         """Write starts and their goal data; record their starting progress."""
         envs = np.asarray(envs, dtype=np.int64).reshape(-1)
         if target is not None and len(envs):
@@ -419,7 +421,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         m["settled"] = self.settled.copy()
         return m
 
-    def potential(self, m: dict[str, Any]) -> Any:
+    def potential(self, m: dict[str, Any]) -> np.ndarray | float:
         """The cost to go: the ``distance`` measure."""
         return m["distance"]
 

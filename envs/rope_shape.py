@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium import spaces
 
 from constrained_particles import Shape
 
@@ -89,7 +90,7 @@ class RopeShape(Rope):
                          hold_time=hold_time, settle_time=settle_time, rest_speed=rest_speed,
                          chunk=chunk, residual_limit=residual_limit, max_move=max_move)
 
-    def set_obs_mode(self, obs_mode: str) -> Any:
+    def set_obs_mode(self, obs_mode: str) -> spaces.Box:
         """As the base, with the goal's entries: the target curve at the observed particles
         (the keypoints', or every particle's)."""
         self.goal_dim = 2 * (self.n if obs_mode == "particles" else len(self.keypoints))
