@@ -18,7 +18,7 @@ from .pick_place import (
     PickPlaceVectorEnv,
     finish_action,
 )
-from .task import TaskSpec, ppo
+from .task import TaskSpec, ppo, sac
 
 __all__ = ["ClothFlatten", "ClothFlattenController", "ClothFlattenEnv", "ClothFlattenVectorEnv",
            "TableCloth", "fold_across", "grid_cells", "rigid_fit"]
@@ -317,7 +317,9 @@ TASK = TaskSpec(
     summary="flatten a crumpled cloth on a table by pick-and-place until it covers 92% of its "
             "flat area",
     hyperparams={"ppo": {"pick_place": ppo(500000, (128, 128), n_steps=64, batch_size=256,
-                                           gamma=0.95)}},
-    notes="Untuned: the project's PPO settings with short rollouts for 50-step episodes "
+                                           gamma=0.95)},
+                 "sac": {"pick_place": sac(100000, (256, 256), learning_starts=1000)}},
+    notes="Untuned: SAC with the project's settings (1,000 random steps first); the project's "
+          "PPO settings with short rollouts for 50-step episodes "
           "(n_steps 64, batch 256, gamma 0.95); never trained here.",
     variants=({"num_grippers": 2},), max_episode_steps=50, obs_modes=PP_OBS_MODES)

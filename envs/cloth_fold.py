@@ -18,7 +18,7 @@ from .pick_place import (
     PickPlaceVectorEnv,
     finish_action,
 )
-from .task import TaskSpec, ppo
+from .task import TaskSpec, ppo, sac
 
 __all__ = ["ClothFold", "ClothFoldController", "ClothFoldEnv", "ClothFoldVectorEnv",
            "reflect"]
@@ -258,7 +258,9 @@ TASK = TaskSpec(
     summary="fold a flat cloth in half along a given line by pick-and-place, two grippers at "
             "once",
     hyperparams={"ppo": {"pick_place": ppo(300000, (128, 128), n_steps=64, batch_size=256,
-                                           gamma=0.95)}},
-    notes="Untuned: the project's PPO settings with short rollouts for 20-step episodes "
+                                           gamma=0.95)},
+                 "sac": {"pick_place": sac(50000, (256, 256), learning_starts=1000)}},
+    notes="Untuned: SAC with the project's settings (1,000 random steps first); the project's "
+          "PPO settings with short rollouts for 20-step episodes "
           "(n_steps 64, batch 256, gamma 0.95); never trained here.",
     variants=({"num_grippers": 1},), max_episode_steps=20, obs_modes=PP_OBS_MODES)

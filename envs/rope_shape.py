@@ -19,7 +19,7 @@ from .pick_place import (
     finish_action,
 )
 from .rope_straighten import Rope, tangle
-from .task import TaskSpec, ppo
+from .task import TaskSpec, ppo, sac
 
 __all__ = ["SHAPES", "RopeShape", "RopeShapeController", "RopeShapeEnv", "RopeShapeVectorEnv",
            "curve"]
@@ -265,7 +265,9 @@ TASK = TaskSpec(
     summary="lay a rope onto a target curve (arc, U, S, V, zig-zag) at a random pose by "
             "pick-and-place",
     hyperparams={"ppo": {"pick_place": ppo(500000, (128, 128), n_steps=64, batch_size=256,
-                                           gamma=0.95)}},
-    notes="Untuned: the project's PPO settings with short rollouts for 40-step episodes "
+                                           gamma=0.95)},
+                 "sac": {"pick_place": sac(100000, (256, 256), learning_starts=1000)}},
+    notes="Untuned: SAC with the project's settings (1,000 random steps first); the project's "
+          "PPO settings with short rollouts for 40-step episodes "
           "(n_steps 64, batch 256, gamma 0.95); never trained here.",
     variants=({"num_grippers": 2},), max_episode_steps=40, obs_modes=PP_OBS_MODES)

@@ -18,7 +18,7 @@ from .pick_place import (
     PickPlaceVectorEnv,
     finish_action,
 )
-from .task import TaskSpec, ppo
+from .task import TaskSpec, ppo, sac
 
 __all__ = ["Rope", "RopeStraighten", "RopeStraightenController", "RopeStraightenEnv",
            "RopeStraightenVectorEnv", "rope_keypoints", "tangle"]
@@ -262,7 +262,9 @@ TASK = TaskSpec(
     summary="straighten a tangled rope on a table by pick-and-place until its ends are 95% "
             "of its length apart",
     hyperparams={"ppo": {"pick_place": ppo(200000, (64, 64), n_steps=64, batch_size=256,
-                                           gamma=0.95)}},
-    notes="Untuned: the project's PPO settings with short rollouts for 30-step episodes "
+                                           gamma=0.95)},
+                 "sac": {"pick_place": sac(50000, (256, 256), learning_starts=1000)}},
+    notes="Untuned: SAC with the project's settings (1,000 random steps first); the project's "
+          "PPO settings with short rollouts for 30-step episodes "
           "(n_steps 64, batch 256, gamma 0.95); never trained here.",
     variants=({"num_grippers": 2},), max_episode_steps=30, obs_modes=PP_OBS_MODES)
