@@ -1,7 +1,9 @@
 """Gymnasium environments on the constrained-particles simulator.
 
 Importing this package registers every task of the registration list below
-(``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainSwing-v0`` and ``ClothPin-v1``; idempotently, so a
+(``ClothSlide-v0``, ``SliderCrank-v0``, ``ChainSwing-v0``, ``ClothPin-v1`` and the table-top
+pick-and-place tasks ``RopeStraighten-v0``, ``ClothFlatten-v0``, ``ClothFold-v0`` and
+``RopeShape-v0``; idempotently, so a
 second import or a subprocess re-import is silent). ``gym.make("envs:ClothSlide-v0")`` imports
 it for you. Each task is one module ending with its declaration, a :class:`TaskSpec` (see
 :mod:`envs.task` and docs/adding_a_task.md); :func:`register_task` registers one from anywhere,
@@ -11,13 +13,23 @@ and every tool of the project (``cparticles train``, ``evaluate``, ``demo``, ``b
 ``gym.pprint_registry()`` lists the ids together under ``cparticles``.
 """
 
-from . import chain_swing, cloth_pin, cloth_slide, slider_crank
+from . import (
+    chain_swing,
+    cloth_flatten,
+    cloth_fold,
+    cloth_pin,
+    cloth_slide,
+    rope_shape,
+    rope_straighten,
+    slider_crank,
+)
 from .task import TaskSpec, register_task, task_spec, task_specs
 
 __all__ = ["ENV_IDS", "TaskSpec", "register_task", "task_spec", "task_specs"]
 
 #: The registration list: the tasks this package ships, in the order the tools list them.
-_SHIPPED = (cloth_slide, slider_crank, chain_swing, cloth_pin)
+_SHIPPED = (cloth_slide, slider_crank, chain_swing, cloth_pin, rope_straighten, cloth_flatten,
+            cloth_fold, rope_shape)
 for _module in _SHIPPED:
     register_task(_module.TASK)
 

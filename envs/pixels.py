@@ -303,9 +303,10 @@ def _tiled_rows(task: Any, index: int, kind: str) -> tuple[Any, int] | None:
     return block, per
 
 
-def default_picture(task: ParticleTask) -> Picture:
+def default_picture(task: ParticleTask, goal: bool = True) -> Picture:
     """The picture made from ``task``'s scene blocks (see the module docstring): any task has
-    it; a task adds or replaces marks in its own :meth:`~envs.base.ParticleTask.picture`."""
+    it; a task adds or replaces marks in its own :meth:`~envs.base.ParticleTask.picture`.
+    ``goal=False`` leaves out the goal disk (a task whose goal is no point draws its own)."""
     s = task.single
     n = task.n
     pic = Picture(tuple(float(b) for b in task.view), n)
@@ -315,7 +316,9 @@ def default_picture(task: ParticleTask) -> Picture:
     springs = [(k, f) for k, f in enumerate(s.forces) if isinstance(f, DampedSpring)]
     pairs = np.concatenate([np.stack([f.i, f.j], axis=1) for _, f in springs]
                            or [np.zeros((0, 2), np.int64)])
-    cells = cloth_cells(s.x, pairs)
+    # (cells from the scene as built, not from ``single``'s current state, which drawing a
+    # frame overwrites: a crumpled cloth has cells that are no longer convex)
+    cells = cloth_cells(task.park, pairs)
     in_cloth = np.zeros(n, bool)
     in_cloth[cells.ravel()] = True
     # walls (filled half-planes) and wires, behind everything
@@ -353,7 +356,7 @@ def default_picture(task: ParticleTask) -> Picture:
     pic.marks.append(Mark("polygons", np.array(walls).reshape(-1, 4), WALL))
     wires = lines + rings
     pic.marks.append(Mark("segments", np.array(wires, np.int64).reshape(-1, 2), WIRE, size=0.75))
-    goal_at = pic.add_moving(1, _goal_point)
+    goal_at = pic.add_moving(1, _goal_point) if goal else None
     # the cloth, then springs and rods
     pic.marks.append(Mark("polygons", cells, CLOTH, opacity=0.6))
     for k, f in springs:
@@ -376,8 +379,23 @@ def default_picture(task: ParticleTask) -> Picture:
     pic.marks.append(Mark("disks", np.flatnonzero(loose), PARTICLE, size=1.0))
     pic.marks.append(Mark("disks", np.concatenate([np.flatnonzero(s.fixed & ~in_cloth),
                                                    *pins]).astype(np.int64), FIXED, size=1.0))
-    pic.marks.append(Mark("disks", goal_at[:1], GOAL, opacity=0.7, size=1.6))
+    if goal_at is not None:
+        pic.marks.append(Mark("disks", goal_at[:1], GOAL, opacity=0.7, size=1.6))
     return pic
+
+
+def fixed_marks(picture: Picture) -> int:
+    """How many of ``picture``'s leading marks use fixed points only (walls, wires, regions:
+    drawn once, behind everything; :meth:`Picture.scene`): a task's own marks that belong
+    under the object go right after them."""
+    lo, hi = picture.n, picture.n + len(picture.fixed)
+    k = 0
+    while k < len(picture.marks):
+        index = np.asarray(picture.marks[k].index)
+        if not np.all((index >= lo) & (index < hi)):
+            break
+        k += 1
+    return k
 
 
 def _goal_point(task: Any) -> np.ndarray:

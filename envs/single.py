@@ -72,10 +72,10 @@ class _Rendering:
     def _observation(self, obs: np.ndarray) -> Any:
         """Every copy's observation in this env's ``obs_mode`` from their state observations
         ``obs`` (num_envs, D)."""
-        if self.obs_mode == "state":
-            return obs
         if self.obs_mode == "goal":
             return goals.goal_observation(self.task, obs)
+        if self.obs_mode not in ("pixels", "state_pixels"):  # "state", or a task's own
+            return obs  # state-like mode (a pick-and-place task's "particles")
         if self._camera is None:
             self._camera = pixels.Camera(self.task, self.pixel_size, self.pixel_channels,
                                          threads=getattr(self, "num_threads", 1))

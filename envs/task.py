@@ -55,7 +55,9 @@ class TaskSpec:
     arguments of further configurations that the conformance tests run besides each action
     mode (ChainSwing's swing-up); ``max_episode_steps``: the registered time limit (env steps);
     ``bench_vector``: ``cparticles bench`` times the native vector env and threads on it;
-    ``summary``: one line for the docs' tables.
+    ``obs_modes``: the values of the envs' ``obs_mode`` argument, the default first (a
+    pick-and-place task's goal is no point, so it takes ``"particles"`` instead of
+    ``"goal"``); ``summary``: one line for the docs' tables.
     """
 
     id: str
@@ -69,6 +71,7 @@ class TaskSpec:
     variants: tuple[Mapping[str, Any], ...] = ()
     max_episode_steps: int = 200
     bench_vector: bool = False
+    obs_modes: tuple[str, ...] = ("state", "goal", "pixels", "state_pixels")
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or "-v" not in self.id:
@@ -94,6 +97,10 @@ class TaskSpec:
             if unknown:
                 raise ValueError(f"hyperparams[{algo!r}]: {sorted(unknown)} are not action "
                                  f"modes of {self.id} ({', '.join(modes)})")
+        if (not isinstance(self.obs_modes, tuple) or not self.obs_modes
+                or not all(isinstance(m, str) for m in self.obs_modes)):
+            raise ValueError(f"obs_modes must be a non-empty tuple of strings, the default "
+                             f"first, got {self.obs_modes!r}")
         if (isinstance(self.max_episode_steps, bool) or not isinstance(self.max_episode_steps,
                                                                         int)
                 or self.max_episode_steps < 1):
@@ -287,7 +294,8 @@ def overview_table(specs: tuple[TaskSpec, ...] | None = None) -> str:
         action = f"`Box(-1, 1, {shapes[0]})`" + "".join(f" / `{s}`" for s in shapes[1:])
         obs = made[0].observation_space.shape
         t = tasks[0]
-        physics = f"`{t.integrator}`, {t.substeps} x {1000 * t.dt:g} ms"
+        physics = getattr(t, "physics_line", None) or (
+            f"`{t.integrator}`, {t.substeps} x {1000 * t.dt:g} ms")
         rows.append(f"| `{spec.id}` | {modes} | {action} | "
                     f"{obs[0] if len(obs) == 1 else obs} floats | {physics} | "
                     f"v{spec.id.rsplit('-v', 1)[1]} |")

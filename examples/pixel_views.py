@@ -23,6 +23,7 @@ from PIL import Image
 import envs
 from envs.agents import make_agent
 from envs.cloth_slide import TASK as SLIDE
+from envs.pick_place import PickPlaceTask
 
 STEPS = 25  #: scripted steps before the picture
 
@@ -51,7 +52,9 @@ def main() -> None:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     for env_id in envs.ENV_IDS:
-        env = scripted_run(env_id, STEPS, obs_mode="pixels")
+        # (a table-top task at its start: a tangle, a crumpled cloth, the target to reach)
+        table_top = issubclass(envs.task_spec(env_id).env.task_class, PickPlaceTask)
+        env = scripted_run(env_id, 0 if table_top else STEPS, obs_mode="pixels")
         agent_view = env.unwrapped._observation(env.unwrapped.task.observe())[0]
         big(agent_view).save(args.out / f"agent_{env_id}.png", optimize=True)
         Image.fromarray(env.render()).resize((240, 160), Image.LANCZOS).save(

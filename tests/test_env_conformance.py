@@ -23,12 +23,17 @@ IDS = [f"{env_id}-{'-'.join(map(str, kwargs.values()))}" for env_id, kwargs in C
 
 def test_every_id_is_registered_with_a_vector_entry_point():
     assert set(envs.ENV_IDS) == {"ClothSlide-v0", "SliderCrank-v0", "ChainSwing-v0",
-                                 "ClothPin-v1"}
-    assert [s.id for s in envs.task_specs()][:4] == list(envs.ENV_IDS)
+                                 "ClothPin-v1", "RopeStraighten-v0", "ClothFlatten-v0",
+                                 "ClothFold-v0", "RopeShape-v0"}
+    assert [s.id for s in envs.task_specs()][:len(envs.ENV_IDS)] == list(envs.ENV_IDS)
+    # (pick-and-place episodes are short: one step is a whole pick-and-place)
+    lengths = {"RopeStraighten-v0": 30, "ClothFlatten-v0": 50, "ClothFold-v0": 20,
+               "RopeShape-v0": 40}
     for spec in envs.task_specs():
         registered = gym.spec(spec.id)
         assert registered.vector_entry_point is not None
-        assert registered.max_episode_steps == spec.max_episode_steps == 200
+        assert registered.max_episode_steps == spec.max_episode_steps == lengths.get(spec.id,
+                                                                                      200)
 
 
 def test_the_loop_covers_each_action_mode_and_the_swing_up():

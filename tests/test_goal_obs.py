@@ -13,7 +13,8 @@ from gymnasium.utils.env_checker import check_env
 
 import envs
 
-IDS = list(envs.ENV_IDS)
+# (tasks whose declaration takes obs_mode='goal': a pick-and-place task's goal is no point)
+IDS = [i for i in envs.ENV_IDS if "goal" in envs.task_spec(i).obs_modes]
 
 
 @pytest.mark.parametrize("env_id", IDS)

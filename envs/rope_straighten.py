@@ -1,0 +1,268 @@
+"""RopeStraighten-v0: straighten a tangled rope on a table by pick-and-place (SoftGym's
+RopeFlatten)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from constrained_particles import AngularSpring, ParticleSystem, Rod, Shape
+
+from .checks import check_positive
+from .pick_place import (
+    PICK_PLACE_MODES,
+    PP_OBS_MODES,
+    PickPlaceEnv,
+    PickPlaceTask,
+    PickPlaceVectorEnv,
+    finish_action,
+)
+from .task import TaskSpec, ppo, sac
+
+__all__ = ["Rope", "RopeStraighten", "RopeStraightenController", "RopeStraightenEnv",
+           "RopeStraightenVectorEnv", "rope_keypoints", "tangle"]
+
+
+def rope_keypoints(n: int, k: int = 10) -> np.ndarray:
+    """``k`` evenly spaced particle indices of an ``n``-particle rope, both ends included."""
+    return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(np.int64))
+
+
+def tangle(rng: np.random.Generator, n: int, link: float, turn: float) -> np.ndarray:
+    """A random-walk rope of ``n`` particles ``link`` m apart (each link exact), its heading
+    turning by N(0, ``turn``^2) rad per link, centred on the origin at a random rotation."""
+    heading = rng.uniform(-np.pi, np.pi) + np.concatenate([[0.0], np.cumsum(
+        rng.normal(0.0, turn, n - 2))])
+    steps = link * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    x = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+    return x - x.mean(axis=0)
+
+
+class Rope(PickPlaceTask):
+    """A rope of ``num_particles`` particles on a table: rods of ``link`` m between neighbours
+    (Lagrange-multiplier constraints), weak angular springs (``bend_k`` N m/rad, rest angle
+    straight) for bending resistance, ``particle_mass`` kg per particle, table friction
+    ``mu``. The base of the rope tasks."""
+
+    def __init__(self, num_envs: int, *, num_particles: int, link: float,
+                 particle_mass: float, bend_k: float, mu: float, view_half: float,
+                 **kwargs: object) -> None:
+        self.num_particles = check_positive("num_particles", num_particles, integer=True,
+                                            minimum=4, maximum=200)
+        self.link = check_positive("link", link, minimum=1e-3, maximum=1.0)
+        self.particle_mass = check_positive("particle_mass", particle_mass)
+        self.bend_k = check_positive("bend_k", bend_k, allow_zero=True)
+        self.mu = check_positive("mu", mu, maximum=10.0)
+        self.view_half = check_positive("view_half", view_half)
+        #: The rope's length (m).
+        self.length = (self.num_particles - 1) * self.link
+        if self.length > 1.6 * self.view_half:
+            raise ValueError(f"view_half: a rope {self.length:g} m long needs view_half >= "
+                             f"{self.length / 1.6:g} m, got {view_half!r}")
+        h = self.view_half
+        self.view = (-h, -h, h, h)
+        self.keypoints = rope_keypoints(self.num_particles)
+        super().__init__(num_envs, **kwargs)
+
+    def build_object(self) -> ParticleSystem:
+        """The rope, straight along x (its shape at each start comes from sample_episode)."""
+        n = self.num_particles
+        s = ParticleSystem()
+        s.add_particles(np.stack([np.arange(n) * self.link, np.zeros(n)], axis=1),
+                        mass=self.particle_mass)
+        i = np.arange(n)
+        s.add(Rod(i[:-1], i[1:], self.link),
+              AngularSpring(i[:-2], i[1:-1], i[2:], rest=np.pi, k=self.bend_k,
+                            kd=0.1 * self.bend_k))
+        return s
+
+    def end_to_end(self, x: np.ndarray) -> np.ndarray:
+        """Distance (m) between the rope's ends, per copy, from positions (k, n, 2)."""
+        d = x[:, -1] - x[:, 0]
+        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+
+
+class RopeStraighten(Rope):
+    """The RopeStraighten physics and task (see :class:`RopeStraightenEnv`)."""
+
+    target_size = 1
+    goal_dim = 0
+    p_goal = 1.0
+
+    def __init__(self, num_envs: int = 1, *, action_mode: str = "pick_place",
+                 num_grippers: int = 1, num_particles: int = 20, link: float = 0.025,
+                 particle_mass: float = 0.01, bend_k: float = 1e-4, mu: float = 0.5,
+                 view_half: float = 0.6, success_ratio: float = 0.95,
+                 start_ratio: float = 0.5, turn: float = 0.8, dt: float = 0.002,
+                 integrator: str = "rattle", speed: float = 1.0, grab_radius: float = 0.05,
+                 mouse_ks: float = 200.0, mouse_kd: float = 2.0, hold_time: float = 0.1,
+                 settle_time: float = 1.0, rest_speed: float = 0.01, chunk: int = 5,
+                 residual_limit: float = 0.01,
+                 max_move: float = 0.05) -> None:
+        self.success_ratio = check_positive("success_ratio", success_ratio, maximum=1.0)
+        self.start_ratio = check_positive("start_ratio", start_ratio, maximum=1.0)
+        if self.start_ratio >= self.success_ratio:
+            raise ValueError(f"start_ratio must be below success_ratio = {success_ratio}, "
+                             f"got {start_ratio!r}")
+        self.turn = check_positive("turn", turn, maximum=10.0)
+        super().__init__(num_envs, num_particles=num_particles, link=link,
+                         particle_mass=particle_mass, bend_k=bend_k, mu=mu,
+                         view_half=view_half, action_mode=action_mode,
+                         num_grippers=num_grippers, dt=dt, integrator=integrator, speed=speed,
+                         grab_radius=grab_radius, mouse_ks=mouse_ks, mouse_kd=mouse_kd,
+                         hold_time=hold_time, settle_time=settle_time, rest_speed=rest_speed,
+                         chunk=chunk, residual_limit=residual_limit, max_move=max_move)
+
+    def sample_episode(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A random-walk tangle (:func:`tangle`) whose end-to-end distance is at most
+        ``start_ratio`` of the rope's length (drawn again until it is)."""
+        while True:
+            x = tangle(rng, self.num_particles, self.link, self.turn)
+            if self.end_to_end(x[None])[0] <= self.start_ratio * self.length:
+                return x, np.zeros(1)
+
+    def progress(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The end-to-end ratio: end-to-end distance over the rope's length."""
+        return self.end_to_end(x) * (1.0 / self.length)
+
+    def success(self, x: np.ndarray, target: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """End-to-end distance at least ``success_ratio`` of the length."""
+        return p >= self.success_ratio
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        """How far (m) the ends are from ``success_ratio`` of the length apart: 0 at success."""
+        return np.maximum(self.success_ratio - p, 0.0) * self.length
+
+    def target_shapes(self, i: int) -> list[Shape]:
+        """The success distance around the rope's first end."""
+        x0 = self.positions()[i, :1]
+        return [Shape("circle", "goal", x0, None, np.array([self.success_ratio * self.length]))]
+
+
+class RopeStraightenEnv(PickPlaceEnv):
+    """
+    ## Description
+
+    SoftGym's RopeFlatten on a table seen from above: a rope of 20 particles joined by rods
+    (2.5 cm each, a length of 0.475 m) with weak angular springs (bending resistance) lies
+    tangled on a table with Coulomb friction; straighten it by pick-and-place until its ends
+    are at least 95% of its length apart. One step is one pick-and-place
+    (:mod:`envs.pick_place`): the gripper grabs the particle nearest its pick point (within
+    5 cm), carries it to the place point at 1 m/s, lets go, and the rope slides to rest.
+
+    ## Action Space
+
+    ``Box(-1, 1, (4 * num_grippers,), float32)``: per gripper the pick point and the place
+    point in normalised view coordinates (the view box ``[-0.6, 0.6]^2`` m onto ``[-1, 1]^2``).
+
+    | Index      | Action                           |
+    |------------|----------------------------------|
+    | 4g, 4g + 1 | gripper g's pick point x, y      |
+    | 4g + 2, 4g + 3 | gripper g's place point x, y |
+
+    ``action_mode="drag"`` (SoftGym's low-level mode): 3 numbers per gripper instead, a move
+    of up to ``max_move`` (5 cm) along x and y and a grip flag (``> 0``: hold, or take the
+    particle within ``grab_radius`` of the gripper; ``<= 0``: let go); each step lasts
+    ``max_move / speed`` and the observation ends with the grippers' positions and holding
+    flags (3 per gripper). See :mod:`envs.pick_place`.
+
+    ## Observation Space
+
+    ``obs_mode="state"``: ``Box(-10, 10, (20,), float32)``, the normalised positions of 10
+    evenly spaced rope particles (0, 2, 4, 6, 8, 11, 13, 15, 17, 19), x then y for each.
+    ``obs_mode="particles"``: every particle's position (40 floats). The goal is fixed (a
+    straight rope anywhere), so it takes no entries.
+
+    ## Rewards
+
+    ``r = 10 (Phi - Phi') - 0.1 + 10 success`` (``envs.rewards``) with the potential ``Phi =
+    max(0.95 - e / L, 0) L`` (m), ``e`` the end-to-end distance and ``L`` the length.
+
+    ## Starting State
+
+    A random walk of 20 links whose heading turns by N(0, 0.8^2) rad per link, centred on the
+    origin at a random rotation, drawn again until its end-to-end distance is at most half
+    the length; at rest.
+
+    ## Episode End
+
+    Termination on success (``e >= 0.95 L``, ``info["is_success"]``) or divergence;
+    truncation after 30 steps (the registered ``max_episode_steps``). ``info`` holds
+    ``progress`` (``e / L``), ``normalized_performance`` (SoftGym's ``(p - p_0) / (1 - p_0)``),
+    ``settled``, ``distance`` (``Phi``), ``kinetic_energy``, ``constraint_residual``,
+    ``is_success`` and ``diverged``.
+
+    ## Arguments
+
+    ``num_grippers`` (1 or 2), ``num_particles``, ``link`` (m), ``particle_mass`` (kg),
+    ``bend_k`` (N m/rad), ``mu``, ``view_half`` (m), ``success_ratio``, ``start_ratio``,
+    ``turn`` (rad), ``dt`` (s), ``integrator``, ``speed`` (m/s), ``grab_radius`` (m),
+    ``mouse_ks`` (N/m), ``mouse_kd`` (N s/m), ``hold_time`` (s), ``settle_time`` (s),
+    ``rest_speed`` (m/s), ``chunk`` (physics steps between gripper updates),
+    ``residual_limit`` (m); ``max_move`` (m, drag mode); ``obs_mode``. Bad values raise
+    ValueError naming the argument.
+
+    ## Version History
+
+    * v0: Initial version.
+    """
+
+    task_class = RopeStraighten
+
+
+class RopeStraightenVectorEnv(PickPlaceVectorEnv):
+    """``num_envs`` RopeStraighten copies stepped as one particle system (see
+    :class:`RopeStraightenEnv`)."""
+
+    task_class = RopeStraighten
+
+    def __init__(self, num_envs: int = 1, max_episode_steps: int = 30,
+                 render_mode: str | None = None, **kwargs: object) -> None:
+        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
+
+
+class RopeStraightenController:
+    """The oracle: the straight rope the current one should become (centred near its
+    middle, along its end-to-end direction); pick the observed rope point furthest from its
+    place on it and put it there."""
+
+    def __init__(self, task: Rope) -> None:
+        self.task = task
+
+    def targets(self, x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """Where observed particles ``idx`` belong (B, k, 2) m on the straight rope."""
+        t = self.task
+        d = x[:, -1] - x[:, 0]
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        u = np.where(norm > 1e-9, d / np.maximum(norm, 1e-9), [1.0, 0.0])
+        c = np.clip(x.mean(axis=1), -0.25 * t.view_half, 0.25 * t.view_half)
+        s = idx * t.link - 0.5 * t.length
+        return c[:, None, :] + s[None, :, None] * u[:, None, :]
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        t = self.task
+        x = t.observed_points(obs)
+        idx = t.keypoints if t.obs_mode == "state" else np.arange(t.n)
+        goal = self.targets(x, idx)
+        err = np.linalg.norm(x - goal, axis=2)
+        k = np.argmax(err, axis=1)
+        rows = np.arange(len(x))
+        a = np.concatenate([t.to_normalized(x[rows, k]), t.to_normalized(goal[rows, k])],
+                           axis=1)
+        if t.num_grippers == 2:
+            a = np.concatenate([a, a], axis=1)  # (the second gripper misses the same particle)
+        return finish_action(t, obs, a)
+
+
+#: The task's declaration (see :mod:`envs.task`).
+TASK = TaskSpec(
+    id="RopeStraighten-v0", env=RopeStraightenEnv, vector_env=RopeStraightenVectorEnv,
+    action_modes=PICK_PLACE_MODES, scripted_agent=RopeStraightenController,
+    summary="straighten a tangled rope on a table by pick-and-place until its ends are 95% "
+            "of its length apart",
+    hyperparams={"ppo": {"pick_place": ppo(200000, (64, 64), n_steps=64, batch_size=256,
+                                           gamma=0.95)},
+                 "sac": {"pick_place": sac(50000, (256, 256), learning_starts=1000)}},
+    notes="Untuned: SAC with the project's settings (1,000 random steps first); the project's "
+          "PPO settings with short rollouts for 30-step episodes "
+          "(n_steps 64, batch 256, gamma 0.95); never trained here.",
+    variants=({"num_grippers": 2},), max_episode_steps=30, obs_modes=PP_OBS_MODES)

@@ -1,0 +1,263 @@
+"""The table-top pick-and-place tasks (envs.pick_place and its four tasks): the pick-and-place
+step, each task's progress measure against an independent computation, the starts, the
+observation modes, bad arguments, and the scripted agents on a few seeded episodes.
+
+The scripted-versus-random success rates over 100 episodes are measured by
+``python -m benchmarks.tabletop`` (docs/performance.md), not here. Every task also runs the
+conformance loop (tests/test_env_conformance.py).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs
+from envs.agents import make_agent
+from envs.cloth_flatten import ClothFlattenEnv, fold_across, grid_cells, rigid_fit
+from envs.cloth_fold import ClothFoldEnv
+from envs.pick_place import PickPlaceTask
+from envs.rope_shape import SHAPES, RopeShapeEnv, curve
+from envs.rope_straighten import RopeStraightenEnv
+
+TABLETOP = [s.id for s in envs.task_specs() if issubclass(s.task_class, PickPlaceTask)]
+
+
+def test_the_four_tasks_are_registered_as_pick_and_place():
+    assert len(TABLETOP) == 4
+    for env_id in TABLETOP:
+        spec = envs.task_spec(env_id)
+        assert spec.default_mode == "pick_place" and "goal" not in spec.obs_modes
+
+
+# ------------------------------------------------------------------ the pick-and-place step
+def rope_env(**kwargs) -> RopeStraightenEnv:
+    env = RopeStraightenEnv(**kwargs)
+    env.reset(seed=0)
+    return env
+
+
+def test_a_grabbed_end_is_carried_to_the_place_point_and_the_rope_comes_to_rest():
+    env = rope_env()
+    t = env.task
+    x = t.positions()[0].copy()
+    place = x[0] + np.array([0.2, -0.1])
+    a = np.concatenate([t.to_normalized(x[0] + 0.001), t.to_normalized(place)])
+    t0 = t.system.t
+    obs, reward, terminated, truncated, info = env.step(a.astype(np.float32))
+    y = t.positions()[0]
+    assert t.grabbed[0, 0] and info["settled"] and t.grippers.particle[0] == 0
+    # the end lies at the place point, up to the spring's lag and the slide after the release
+    assert np.linalg.norm(y[0] - place) < 0.01
+    assert np.abs(t.velocities()).max() < t.rest_speed
+    # the carry took at least distance / speed seconds (the anchor's bounded speed)
+    assert t.system.t - t0 >= np.linalg.norm(place - x[0]) / t.speed
+    # the rods held: every link is still 2.5 cm
+    assert np.allclose(np.linalg.norm(np.diff(y, axis=0), axis=1), t.link, atol=1e-6)
+    # let go: no gripper active, no particle lifted
+    assert not t.grippers.active.any() and not t.table.lifted.any()
+
+
+def test_a_miss_moves_nothing_and_still_costs_the_step():
+    env = rope_env()
+    t = env.task
+    x = t.positions()[0].copy()
+    far = np.array([0.99, 0.99, -0.99, -0.99], np.float32)  # nowhere near the rope
+    assert np.linalg.norm(t.to_world(far[:2]) - x, axis=1).min() > t.grab_radius
+    _, reward, *_ , info = env.step(far)
+    assert not t.grabbed.any()
+    assert np.abs(t.positions()[0] - x).max() < 1e-4  # (the bending springs creep, barely)
+    assert reward == pytest.approx(-0.1, abs=1e-3)  # the time cost, no progress
+    assert info["normalized_performance"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_two_grippers_on_one_particle_take_it_once():
+    env = rope_env(num_grippers=2)
+    t = env.task
+    x = t.positions()[0]
+    a = np.concatenate([t.to_normalized(x[5]), t.to_normalized(x[5] + 0.1)] * 2)
+    env.step(a.astype(np.float32))
+    assert t.grabbed[0].tolist() == [True, False]
+
+
+def test_a_vector_copy_that_is_done_keeps_its_state_from_that_moment():
+    # copy 0 misses (done at once), copy 1 carries far: copy 0 is what a single env makes
+    vec = gym.make_vec(TABLETOP[0], num_envs=2, vectorization_mode="vector_entry_point")
+    vec.reset(seed=[7, 8])
+    single = gym.make(TABLETOP[0])
+    single.reset(seed=7)
+    t = vec.unwrapped.task
+    far = np.array([0.99, 0.99, -0.99, -0.99], np.float32)
+    x1 = t.positions()[1]
+    carry = np.concatenate([t.to_normalized(x1[0]), t.to_normalized(x1[0] + 0.3)])
+    t0 = t.system.t
+    o_vec, *_ = vec.step(np.stack([far, carry.astype(np.float32)]))
+    assert t.system.t - t0 >= 0.3 / t.speed  # (the step lasted as long as copy 1's carry)
+    o_one, *_ = single.step(far)
+    assert o_vec[0].tobytes() == o_one.tobytes()
+    other = gym.make(TABLETOP[0])
+    other.reset(seed=8)
+    assert o_vec[1].tobytes() == other.step(carry.astype(np.float32))[0].tobytes()
+
+
+def test_drag_mode_carries_a_gripped_particle_by_bounded_moves_and_lets_go():
+    env = RopeStraightenEnv(action_mode="drag")
+    obs, _ = env.reset(seed=0)
+    t = env.task
+    assert env.action_space.shape == (3,) and obs.shape == (20 + 3,)
+    x = t.positions()[0]
+    pos, holding = t.gripper_part(obs)
+    assert np.allclose(pos[0, 0], x.mean(axis=0)) and not holding.any()  # (starts at the centre)
+    # move onto particle 0 (no grip), then grip it and drag it +x by max_move, twice
+    env.set_state(dict(env.get_state(), gripper_pos=x[:1].copy()))
+    start = x[0].copy()
+    for _ in range(2):
+        obs, *_ = env.step(np.array([1.0, 0.0, 1.0], np.float32))
+    pos, holding = t.gripper_part(obs)
+    assert holding.all() and t.holding[0, 0] == 0
+    assert np.allclose(pos[0, 0], start + [2 * t.max_move, 0.0], atol=1e-6)
+    assert np.linalg.norm(t.positions()[0, 0] - pos[0, 0]) < 0.01  # (the spring's lag)
+    obs, *_ = env.step(np.array([0.0, 0.0, -1.0], np.float32))
+    assert not t.gripper_part(obs)[1].any() and t.holding[0, 0] == -1
+    assert not t.grippers.active.any() and not t.table.lifted.any()
+
+
+# ------------------------------------------------------------------ progress measures
+def test_rope_straighten_progress_is_the_end_to_end_ratio():
+    env = rope_env()
+    t = env.task
+    x = t.positions()[0]
+    ratio = np.hypot(*(x[-1] - x[0])) / (19 * 0.025)
+    m = t.measure()
+    assert m["progress"][0] == pytest.approx(ratio, rel=1e-12)
+    assert ratio <= 0.5 and not m["is_success"][0]
+    assert m["normalized_performance"][0] == 0.0
+    straight = np.stack([np.arange(20) * 0.025, np.zeros(20)], axis=1)
+    state = env.get_state()
+    env.set_state(dict(state, x=straight, v=np.zeros_like(straight)))
+    m = t.measure()
+    assert m["is_success"][0] and m["progress"][0] == pytest.approx(1.0, rel=1e-12)
+    assert m["normalized_performance"][0] == pytest.approx(1.0, rel=1e-12)
+
+
+def test_rope_starts_are_tangles_with_exact_links():
+    env = RopeStraightenEnv()
+    for seed in range(20):
+        env.reset(seed=seed)
+        x = env.task.positions()[0]
+        assert np.allclose(np.linalg.norm(np.diff(x, axis=0), axis=1), 0.025, rtol=1e-12)
+        assert np.hypot(*(x[-1] - x[0])) <= 0.5 * 0.475 + 1e-12
+
+
+def test_a_flat_cloth_covers_its_area_and_a_crumpled_start_at_most_three_quarters():
+    env = ClothFlattenEnv()
+    t = env.task
+    env.reset(seed=0)
+    assert t.measure()["progress"][0] <= 0.75
+    # flat, at a pose that puts no edge on pixel lines: the raster measures it exactly
+    flat = t.posed(np.array([0.0123, -0.0311]), 0.3)
+    env.set_state(dict(env.get_state(), x=flat, v=np.zeros_like(flat)))
+    m = t.measure()
+    assert m["progress"][0] == pytest.approx(1.0, abs=1e-9) and m["is_success"][0]
+    # folded in half along the middle column: half the area, within the raster's bound
+    k = t.size
+    mid = flat.reshape(k, k, 2)[:, k // 2]
+    half = fold_across(flat, mid[0], np.arctan2(*(mid[-1] - mid[0])[::-1]))
+    env.set_state(dict(env.get_state(), x=half, v=np.zeros_like(half)))
+    from constrained_particles.raster import coverage_bound
+
+    bound = coverage_bound(3 * t.side, 8 * k, t.raster) / t.flat_area
+    assert 0.5 <= t.measure()["progress"][0] <= 0.5 + bound + 1e-9
+
+
+def test_grid_cells_and_the_rigid_fit():
+    cells = grid_cells(3, 3)
+    assert cells.tolist()[0] == [0, 1, 4, 3] and len(cells) == 4
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(1, 10, 2))
+    th = 0.7
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    b = a @ rot.T + [0.3, -0.2]
+    assert np.allclose(rigid_fit(a, b), b, atol=1e-12)
+
+
+def test_a_folded_cloth_succeeds_and_a_dragged_one_does_not():
+    env = ClothFoldEnv()
+    env.reset(seed=3)
+    t = env.task
+    x0 = t.positions()[0].copy()
+    a, b, kind, _ = t.unpack(t.target[:1])
+    assert t.measure()["progress"][0] < -0.05
+    # the exact fold: the moved half reflected across the line (computed here)
+    d = (b - a)[0] / np.linalg.norm(b - a)
+    moved = t.kinds[kind[0]][0]
+    r = x0[moved] - a[0]
+    folded = x0.copy()
+    folded[moved] = a[0] + 2 * (r @ d)[:, None] * d - r
+    env.set_state(dict(env.get_state(), x=folded, v=np.zeros_like(folded)))
+    m = t.measure()
+    assert m["is_success"][0] and m["distance"][0] == pytest.approx(0.0, abs=1e-12)
+    # the same fold with the whole cloth dragged 3 cm: the staying half moved too far
+    dragged = folded + [0.03, 0.0]
+    env.set_state(dict(env.get_state(), x=dragged, v=np.zeros_like(dragged)))
+    assert not t.measure()["is_success"][0]
+
+
+@pytest.mark.parametrize("shape", range(len(SHAPES)))
+def test_each_target_curve_is_as_long_as_the_rope(shape):
+    c = curve(shape, np.array([2.0, 0.5]), 20, 0.025)
+    assert np.allclose(np.linalg.norm(np.diff(c, axis=0), axis=1), 0.025, rtol=1e-12)
+    assert np.allclose(c.mean(axis=0), 0.0, atol=1e-12)
+
+
+def test_rope_shape_distance_takes_the_better_order():
+    env = RopeShapeEnv()
+    env.reset(seed=1)
+    t = env.task
+    target = t.curves(t.target[:1])[0]
+    for laid in (target, target[::-1]):
+        env.set_state(dict(env.get_state(), x=laid.copy(), v=np.zeros_like(laid)))
+        m = t.measure()
+        assert m["distance"][0] == pytest.approx(0.0, abs=1e-12) and m["is_success"][0]
+    shifted = target + [0.03, 0.0]  # 3 cm off everywhere: beyond the 2 cm tolerance
+    env.set_state(dict(env.get_state(), x=shifted, v=np.zeros_like(shifted)))
+    assert t.measure()["distance"][0] == pytest.approx(0.03, rel=1e-9)
+
+
+# ------------------------------------------------------------------ spaces and arguments
+@pytest.mark.parametrize("env_id", TABLETOP)
+def test_particles_mode_observes_every_particle_and_goal_mode_is_refused(env_id):
+    env = gym.make(env_id, obs_mode="particles")
+    obs, _ = env.reset(seed=0)
+    t = env.unwrapped.task
+    assert obs.shape == env.observation_space.shape
+    assert obs.shape[0] == 2 * t.n + t.goal_dim
+    assert np.allclose(t.to_world(obs[:2 * t.n].reshape(-1, 2)), t.positions()[0], atol=1e-6)
+    with pytest.raises(ValueError, match="obs_mode"):
+        gym.make(env_id, obs_mode="goal")
+
+
+@pytest.mark.parametrize(("kwargs", "named"), [
+    ({"num_grippers": 3}, "num_grippers"), ({"speed": 0.0}, "speed"),
+    ({"grab_radius": -1.0}, "grab_radius"), ({"settle_time": 0.0}, "settle_time"),
+    ({"chunk": 0}, "chunk"), ({"action_mode": "force"}, "action_mode")])
+def test_bad_arguments_are_value_errors_naming_them(kwargs, named):
+    for env_id in TABLETOP:
+        with pytest.raises(ValueError, match=named):
+            gym.make(env_id, **kwargs)
+
+
+# ------------------------------------------------------------------ the oracles
+@pytest.mark.parametrize("env_id", TABLETOP)
+def test_the_scripted_agent_solves_seeded_episodes(env_id):
+    env = gym.make(env_id)
+    agent = make_agent("scripted", env)
+    for seed in (11, 12, 13):
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            obs, _, terminated, truncated, info = env.step(agent(obs))
+            done = terminated or truncated
+        assert info["is_success"] and terminated, (env_id, seed, info)
+        assert info["normalized_performance"] > 0.5
