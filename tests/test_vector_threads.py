@@ -108,8 +108,9 @@ def test_threads_give_the_same_bits(env_id: str, mode: str, small_ranges: None) 
         # tasks whose measures are the generic ones measured on the ranges too)
         if kernels.ENABLED and env_id in CHURNING:
             assert calls >= 100 and 0 < on_ranges < calls, (on_ranges, calls)
-        elif kernels.ENABLED:
-            assert calls >= 100 and on_ranges == calls, (on_ranges, calls)
+        elif kernels.ENABLED:  # (a compiled physics call at least every step but those in
+            # which every copy autoresets, at most one per episode limit)
+            assert calls >= steps - steps // limit and on_ranges == calls, (on_ranges, calls)
             if env_id in ("ClothSlide-v0", "ChainSwing-v0"):
                 assert measures >= 100, measures
         assert len(other) == len(one)
