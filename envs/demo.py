@@ -39,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     specs = task_specs()
     ids = [spec.id for spec in specs]
     parser.add_argument("--env", default=ids[0], choices=ids, metavar="ENV_ID",
-                        help="environment id: " + "; ".join(f"{spec.id}, {spec.summary}"
-                                                            for spec in specs))
+                        help="environment id: " + "; ".join(  # (argparse reads % as a format)
+                            f"{spec.id}, {spec.summary.replace('%', '%%')}" for spec in specs))
     parser.add_argument("--agent", default="scripted", choices=AGENTS, help="which agent")
     parser.add_argument("--episodes", type=int_at_least(1), default=50,
                         help="number of episodes")
