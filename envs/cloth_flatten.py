@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from constrained_particles import DampedSpring, ParticleSystem, Shape, raster
+from constrained_particles import DampedSpring, ParticleSystem, raster
 
 from .checks import check_positive
 from .pick_place import (
@@ -193,8 +193,6 @@ class ClothFlatten(TableCloth):
         """The coverage missing to success: ``max(success_coverage - p, 0)``."""
         return np.maximum(self.success_coverage - p, 0.0)
 
-    def target_shapes(self, i: int) -> list[Shape]:
-        return []
 
 
 class ClothFlattenEnv(PickPlaceEnv):

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from constrained_particles import Shape
-
 from .checks import check_positive
 from .cloth_flatten import TableCloth
 from .pick_place import (
@@ -134,10 +132,10 @@ class ClothFold(TableCloth):
         return np.concatenate([self.to_normalized(t[:, 0:2]), self.to_normalized(t[:, 2:4])],
                               axis=1)
 
-    def target_shapes(self, i: int) -> list[Shape]:
-        """The fold line, from ``a`` to ``b``."""
-        t = self.target[i]
-        return [Shape("segment", "mouse", t[None, 0:2], t[None, 2:4])]
+    def target_segments(self) -> np.ndarray:
+        """The fold lines, from ``a`` to ``b`` (num_envs, 1, 2, 2)."""
+        t = self.target
+        return np.stack([t[:, 0:2], t[:, 2:4]], axis=1)[:, None]
 
 
 class ClothFoldEnv(PickPlaceEnv):

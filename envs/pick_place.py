@@ -330,11 +330,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                     lam_done[lrows] = self._lam()[lrows]
                     done |= finished
         except SimulationDiverged:
-            s.x, s.v, s.t = x0, v0, t0
-            self._lam()[:] = lam0
-            self._let_go()
-            self.settled[:] = False
-            return np.ones(N, bool)
+            return self._undo(x0, v0, t0, lam0)
         self._let_go()
         keep = ~idle
         rows = np.repeat(keep, n)
@@ -389,17 +385,24 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                 springs.anchor[:] = (start + (target - start) * frac).reshape(-1, 2)
                 s.step(self.dt, self.integrator, steps=self.chunk)
         except SimulationDiverged:
-            s.x, s.v, s.t = x0, v0, t0
-            self._lam()[:] = lam0
-            self._let_go()
-            self.settled[:] = False
-            return np.ones(N, bool)
+            return self._undo(x0, v0, t0, lam0)
         self._let_go()
         self.gripper_pos[~idle] = target[~idle]
         v = s.v
         speed2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n).max(axis=1)
         self.settled[:] = speed2 < self.rest_speed**2
         return np.zeros(N, bool)
+
+    def _undo(self, x0: np.ndarray, v0: np.ndarray, t0: float, lam0: np.ndarray
+              ) -> np.ndarray:
+        """A diverged step taken back: the state, time and multipliers it started from, the
+        grippers open, no copy settled; every copy flagged diverged (num_envs,) bool."""
+        s = self.system
+        s.x, s.v, s.t = x0, v0, t0
+        self._lam()[:] = lam0
+        self._let_go()
+        self.settled[:] = False
+        return np.ones(self.num_envs, bool)
 
     def _let_go(self) -> None:
         """Every gripper inactive, every particle on the table."""
@@ -517,31 +520,31 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         super().set_state(i, state)
 
     # ------------------------------------------------------------------ drawing
+    def target_segments(self) -> np.ndarray | None:
+        """Every copy's target as line segments (num_envs, k, 2, 2) m (segment, end, xy), or
+        None for a task whose target is no line (here)."""
+        return None
+
     def target_shapes(self, i: int) -> list[Shape]:
-        """Shapes drawing copy ``i``'s goal (none here)."""
-        return []
+        """Shapes drawing copy ``i``'s goal in the human view: its :meth:`target_segments`."""
+        segments = self.target_segments()
+        if segments is None:
+            return []
+        return [Shape("segment", "mouse", segments[i, :, 0], segments[i, :, 1])]
 
     def picture(self) -> Picture:
         """What a pixel observation shows: the default picture (the object, the grippers'
         springs while they carry) without a goal disk, and under the object the task's target
-        (:meth:`target_shapes`: RopeShape's curve, ClothFold's fold line) as lines."""
+        (:meth:`target_segments`: RopeShape's curve, ClothFold's fold line) as lines."""
         pic = default_picture(self, goal=False)
-        count = sum(len(s.a) for s in self.target_shapes(0) if s.kind == "segment")
-        if count:
-            ends = pic.add_moving(2 * count, self._target_ends)
+        segments = self.target_segments()
+        if segments is not None:
+            count = segments.shape[1]
+            ends = pic.add_moving(
+                2 * count, lambda task: task.target_segments().reshape(task.num_envs, -1, 2))
             pic.marks.insert(fixed_marks(pic), Mark("segments", ends.reshape(-1, 2), GOAL,
                                                     opacity=0.7, size=1.5))
         return pic
-
-    def _target_ends(self, task: ParticleTask) -> np.ndarray:
-        """Per copy, the ends of its target's segments (num_envs, 2 k, 2) m."""
-        out = []
-        for i in range(self.num_envs):
-            segs = [s for s in self.target_shapes(i) if s.kind == "segment"]
-            a = np.concatenate([s.a for s in segs])
-            b = np.concatenate([s.b for s in segs])
-            out.append(np.stack([a, b], axis=1).reshape(-1, 2))
-        return np.stack(out)
 
     def drawing(self, i: int) -> tuple[ParticleSystem, list[Shape], str]:
         """Copy ``i`` without its (idle) grippers, its goal, and a status line."""

@@ -6,8 +6,6 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from constrained_particles import Shape
-
 from .checks import check_positive
 from .pick_place import (
     PICK_PLACE_MODES,
@@ -146,10 +144,10 @@ class RopeShape(Rope):
             c = c[:, self.keypoints]
         return self.to_normalized(c).reshape(len(envs), -1)
 
-    def target_shapes(self, i: int) -> list[Shape]:
-        """The target curve, as segments."""
-        c = self.curves(self.target[i:i + 1])[0]
-        return [Shape("segment", "mouse", c[:-1], c[1:])]
+    def target_segments(self) -> np.ndarray:
+        """The target curves, as segments between consecutive points (num_envs, n - 1, 2, 2)."""
+        c = self.curves(self.target)
+        return np.stack([c[:, :-1], c[:, 1:]], axis=2)
 
 
 class RopeShapeEnv(PickPlaceEnv):
