@@ -177,3 +177,27 @@ def test_invariance_check_catches_a_fixed_direction():
     a, b = P.run(s, "rk4", 1e-2, 10), P.run(moved, "rk4", 1e-2, 10)
     R = np.array([[np.cos(1.0), -np.sin(1.0)], [np.sin(1.0), np.cos(1.0)]])
     assert np.max(np.abs(a.x @ R.T - b.x)) > 1e-3
+
+
+# ------------------------------------------------------------------ coverage of a cloth
+@settings(max_examples=25, deadline=None)
+@given(size=st.sampled_from([5, 7, 9, 11]), pixels=st.sampled_from([128, 256]),
+       angle=st.floats(-np.pi, np.pi), cx=st.floats(-1.0, 1.0), cy=st.floats(-1.0, 1.0))
+def test_a_flat_cloth_covers_its_area_and_a_folded_one_half(size, pixels, angle, cx, cy):
+    r = P.cloth_coverage(size=size, pixels=pixels, angle=angle, center=(cx, cy))
+    assert r["flat"] == pytest.approx(1.0, abs=1e-9)
+    assert 0.5 - 1e-9 <= r["folded"] <= 0.5 + r["bound"]
+
+
+def test_the_folded_cloths_excess_falls_with_the_pixel_size():
+    excess = [P.cloth_coverage(pixels=p)["folded"] - 0.5 for p in (64, 128, 256, 512)]
+    bounds = [P.cloth_coverage(pixels=p)["bound"] for p in (64, 128, 256, 512)]
+    assert all(0 <= e <= b for e, b in zip(excess, bounds, strict=True))
+    # the boundary's pixels: the excess falls about as the pixel size (first order)
+    slopes = np.diff(np.log(excess)) / np.log(0.5)
+    assert np.all(slopes > 0.8) and np.all(slopes < 1.2), slopes
+
+
+def test_cloth_coverage_refuses_an_even_size():
+    with pytest.raises(ValueError, match="size"):
+        P.cloth_coverage(size=8)
