@@ -438,6 +438,11 @@ def _split(entry: Any, args: tuple, start: int, stop: int, threads: int) -> None
         job.result()
 
 
+#: :func:`coverage`'s packed cells, by the cells' bytes and the scale (what an env measures
+#: every step: built once, never modified by the kernels).
+_UNION_PACKS: dict[tuple, Packed] = {}
+
+
 def coverage(points: ArrayLike, cells: ArrayLike, view: View, *, maps: bool = False,
              threads: int = 1) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Area (m^2) of the union of ``cells`` (m, k) (polygons by particle index) of each copy
@@ -457,7 +462,13 @@ def coverage(points: ArrayLike, cells: ArrayLike, view: View, *, maps: bool = Fa
         raise ValueError("cells must be a rectangular (m, k) array of integers") from exc
     if cells.ndim != 2:
         raise ValueError(f"cells must have shape (m, k), got {cells.shape}")
-    packed = pack([Layer("polygons", cells, (0, 0, 0))], view.scale, 1)
+    key = (cells.dtype.str, cells.shape, cells.tobytes(), view.scale)
+    packed = _UNION_PACKS.get(key)
+    if packed is None:
+        packed = pack([Layer("polygons", cells, (0, 0, 0))], view.scale, 1)
+        if len(_UNION_PACKS) >= 16:  # (a few cloths per process: keep the newest)
+            _UNION_PACKS.pop(next(iter(_UNION_PACKS)), None)
+        _UNION_PACKS[key] = packed
     p = _points(points, packed)
     threads = _threads(threads)
     areas = np.zeros(p.shape[0])
