@@ -45,20 +45,28 @@ from constrained_particles.arguments import (
     positive_float,
 )
 
-from .task import env_action_modes
+from .task import check_env_kwargs, env_action_modes, parse_variant
 from .train import ALGOS, HELD_OUT_SEED_START
 
 #: Held-out episodes per evaluation.
 EPISODES = 100
 #: Seeds per algorithm in the full grid (the issue: PPO 5, the second algorithm 3).
 GRID_SEEDS = {"ppo": [0, 1, 2, 3, 4], "sac": [0, 1, 2]}
-#: Fields that identify a record (a new record with the same fields replaces the old one).
-KEY_FIELDS = ("env", "action_mode", "algo", "seed", "deterministic")
+#: Fields that identify a record (a new record with the same fields replaces the old one);
+#: ``variant`` (:func:`envs.task.variant_key` of the env keyword arguments) is ``""`` for the
+#: default configuration, and absent from its records.
+KEY_FIELDS = ("env", "variant", "action_mode", "algo", "seed", "deterministic")
 
 
-def run_name(env: str, mode: str, algo: str, seed: int) -> str:
-    """The run directory's name for one grid cell."""
-    return f"{env}-{mode}-{algo}-{seed}"
+def _key(record: dict[str, Any]) -> tuple[str, ...]:
+    return tuple(str(record.get(k, "")) for k in KEY_FIELDS)
+
+
+def run_name(env: str, mode: str, algo: str, seed: int, variant: str = "") -> str:
+    """The run directory's name for one grid cell (a variant's keyword arguments between
+    the env and the mode: ``ChainSwing-v0-target-swingup-force-ppo-0``)."""
+    tag = variant.replace("=", "-").replace(",", "_")
+    return f"{env}-{tag + '-' if tag else ''}{mode}-{algo}-{seed}"
 
 
 def _cli(*args: str) -> list[str]:
@@ -67,15 +75,18 @@ def _cli(*args: str) -> list[str]:
 
 def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
                        timesteps: int | None = None, episodes: int = EPISODES,
-                       timeout: float | None = None, publish: Path | None = None
-                       ) -> list[dict[str, Any]]:
+                       timeout: float | None = None, publish: Path | None = None,
+                       variant: str = "") -> list[dict[str, Any]]:
     """Train one cell (unless already trained) and evaluate it both ways; its two records.
-    With ``publish``, the run's config.json and evaluations.json are copied to
-    ``publish/runs/<run>/``."""
-    out = runs / run_name(env, mode, algo, seed)
+    ``variant``: the env keyword arguments (:func:`envs.task.variant_key` form; ``""`` the
+    default configuration). With ``publish``, the run's config.json and evaluations.json are
+    copied to ``publish/runs/<run>/``."""
+    out = runs / run_name(env, mode, algo, seed, variant)
     if not (out / "config.json").is_file():
         cmd = _cli("train", env, "--algo", algo, "--seed", str(seed), "--out", str(out),
                    "--action-mode", mode, "--no-progress")
+        if variant:
+            cmd += ["--env-kwargs", *variant.split(",")]
         if timesteps is not None:
             cmd += ["--timesteps", str(timesteps)]
         runs.mkdir(parents=True, exist_ok=True)
@@ -101,7 +112,8 @@ def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
         line = subprocess.run(cmd, check=True, capture_output=True, text=True,
                               timeout=timeout).stdout.strip().splitlines()[-1]
         res = json.loads(line)
-        records.append({"env": env, "action_mode": mode, "algo": algo, "seed": seed,
+        records.append({"env": env, **({"variant": variant} if variant else {}),
+                        "action_mode": mode, "algo": algo, "seed": seed,
                         "timesteps": config["timesteps"], "success_rate": res["success_rate"],
                         "mean_return": round(res["mean_return"], 4),
                         "mean_length": res["mean_length"], "eval_episodes": res["episodes"],
@@ -118,9 +130,9 @@ def train_and_evaluate(runs: Path, env: str, mode: str, algo: str, seed: int,
 def merge(path: Path, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Merge ``new`` records into the JSON list at ``path`` (same key: replaced); write it."""
     old = json.loads(path.read_text()) if path.is_file() else []
-    keys = {tuple(r[k] for k in KEY_FIELDS) for r in new}
-    merged = [r for r in old if tuple(r[k] for k in KEY_FIELDS) not in keys] + new
-    merged.sort(key=lambda r: tuple(str(r[k]) for k in KEY_FIELDS))
+    keys = {_key(r) for r in new}
+    merged = [r for r in old if _key(r) not in keys] + new
+    merged.sort(key=_key)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(merged, indent=1) + "\n")
     return merged
@@ -156,7 +168,8 @@ def report(results_path: Path, runs: Path, docs: Path) -> str:
     records = json.loads(results_path.read_text())
     cells: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in records:
-        cells.setdefault((r["env"], r["action_mode"], r["algo"]), []).append(r)
+        env = f"{r['env']} ({r['variant']})" if r.get("variant") else r["env"]
+        cells.setdefault((env, r["action_mode"], r["algo"]), []).append(r)
     lines = ["| env | action mode | algo | seeds | steps | "
              "success (det.), median [CI] (coverage) | "
              "success (stoch.), median | return (det.), median | train time / seed |",
@@ -243,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--modes", nargs="+", default=modes, choices=modes,
                    help="action modes (each env trains in those it takes)")
     r.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS)
+    r.add_argument("--variants", nargs="+", default=["default"], metavar="KEY=VALUE[,...]",
+                   help="configurations to train: 'default', or env keyword arguments such "
+                   "as target=swingup or obs_mode=pixels (each trains with its own shipped "
+                   "settings where the task ships them)")
     r.add_argument("--seeds", nargs="+", type=int_at_least(0),
                    help="seeds (default: " + ", ".join(f"{len(v)} for {k.upper()}"
                                                        for k, v in GRID_SEEDS.items()) + ")")
@@ -276,8 +293,15 @@ def main(argv: list[str] | None = None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         print(report(results, runs, out), end="")
         return 0
-    grid = [(env, mode, algo, seed) for env in args.envs for mode in args.modes
-            if mode in takes_modes[env]
+    variants = ["" if v == "default" else v for v in args.variants]
+    for env in args.envs:
+        for v in variants:
+            try:
+                check_env_kwargs(env, parse_variant(v))
+            except ValueError as exc:
+                p.error(f"argument --variants: {env}: {exc}")
+    grid = [(env, mode, algo, seed, v) for env in args.envs for v in variants
+            for mode in args.modes if mode in takes_modes[env]
             for algo in args.algos for seed in (args.seeds or GRID_SEEDS[algo])]
     if not grid:
         takes = "; ".join(f"{e} takes {', '.join(takes_modes[e])}" for e in args.envs)
@@ -285,15 +309,17 @@ def main(argv: list[str] | None = None) -> int:
     publish = Path(args.publish) if args.publish else None
     lock = threading.Lock()
 
-    def cell(c: tuple[str, str, str, int]) -> list[dict[str, Any]]:
-        recs = train_and_evaluate(runs, *c, timesteps=args.timesteps, episodes=args.episodes,
-                                  timeout=args.timeout, publish=publish)
+    def cell(c: tuple[str, str, str, int, str]) -> list[dict[str, Any]]:
+        recs = train_and_evaluate(runs, *c[:4], timesteps=args.timesteps,
+                                  episodes=args.episodes, timeout=args.timeout,
+                                  publish=publish, variant=c[4])
         with lock:
             merge(results, recs)
             if publish is not None:
                 merge(publish / "results.json", recs)
-        print(f"{run_name(*c)}: success {recs[0]['success_rate']:.0%} (deterministic), "
-              f"{recs[1]['success_rate']:.0%} (stochastic), {recs[0]['wall_seconds']:.0f} s",
+        print(f"{run_name(*c[:4], variant=c[4])}: success {recs[0]['success_rate']:.0%} "
+              f"(deterministic), {recs[1]['success_rate']:.0%} (stochastic), "
+              f"{recs[0]['wall_seconds']:.0f} s",
               flush=True)
         return recs
 

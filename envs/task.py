@@ -35,8 +35,9 @@ if TYPE_CHECKING:
 
     from .base import ParticleTask
 
-__all__ = ["TaskSpec", "check_env_kwargs", "check_env_mode", "env_action_modes", "ppo",
-           "register_task", "sac", "spec_of_task", "task_spec", "task_specs", "unregister_task"]
+__all__ = ["TaskSpec", "check_env_kwargs", "check_env_mode", "env_action_modes",
+           "parse_variant", "ppo", "register_task", "sac", "spec_of_task", "task_spec",
+           "task_specs", "unregister_task", "variant_key"]
 
 #: Algorithms whose settings a task may ship (Stable-Baselines3's PPO and SAC).
 HYPERPARAM_ALGOS = ("ppo", "sac")
@@ -57,7 +58,11 @@ class TaskSpec:
     ``bench_vector``: ``cparticles bench`` times the native vector env and threads on it;
     ``obs_modes``: the values of the envs' ``obs_mode`` argument, the default first (a
     pick-and-place task's goal is no point, so it takes ``"particles"`` instead of
-    ``"goal"``); ``summary``: one line for the docs' tables.
+    ``"goal"``); ``summary``: one line for the docs' tables; ``variant_hyperparams``: settings
+    of configurations other than the default one, ``{variant: {algo: {action_mode:
+    settings}}}`` with ``variant`` the env keyword arguments as :func:`variant_key` writes
+    them (``"target=swingup"``, ``"obs_mode=pixels"``): training with exactly those keyword
+    arguments takes these settings (each records its keyword arguments as ``env_kwargs``).
     """
 
     id: str
@@ -72,6 +77,8 @@ class TaskSpec:
     max_episode_steps: int = 200
     bench_vector: bool = False
     obs_modes: tuple[str, ...] = ("state", "goal", "pixels", "state_pixels")
+    variant_hyperparams: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]] = field(
+        default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or "-v" not in self.id:
@@ -89,14 +96,25 @@ class TaskSpec:
         if not callable(self.scripted_agent):
             raise ValueError(f"scripted_agent must be callable(task) -> agent, "
                              f"got {self.scripted_agent!r}")
-        for algo, table in self.hyperparams.items():
-            if algo not in HYPERPARAM_ALGOS:
-                raise ValueError(f"hyperparams: algo must be one of {HYPERPARAM_ALGOS}, "
-                                 f"got {algo!r}")
-            unknown = set(table) - set(modes)
-            if unknown:
-                raise ValueError(f"hyperparams[{algo!r}]: {sorted(unknown)} are not action "
-                                 f"modes of {self.id} ({', '.join(modes)})")
+        tables = {"hyperparams": self.hyperparams}
+        for variant, table in self.variant_hyperparams.items():
+            if not isinstance(variant, str) or variant != variant_key(parse_variant(variant)):
+                raise ValueError(f"variant_hyperparams: keys must be env keyword arguments as "
+                                 f"variant_key writes them ('key=value,...', sorted), got "
+                                 f"{variant!r}")
+            if "action_mode" in parse_variant(variant):
+                raise ValueError(f"variant_hyperparams[{variant!r}]: the action mode is the "
+                                 f"inner key, not a variant")
+            tables[f"variant_hyperparams[{variant!r}]"] = table
+        for name, hyperparams in tables.items():
+            for algo, table in hyperparams.items():
+                if algo not in HYPERPARAM_ALGOS:
+                    raise ValueError(f"{name}: algo must be one of {HYPERPARAM_ALGOS}, "
+                                     f"got {algo!r}")
+                unknown = set(table) - set(modes)
+                if unknown:
+                    raise ValueError(f"{name}[{algo!r}]: {sorted(unknown)} are not action "
+                                     f"modes of {self.id} ({', '.join(modes)})")
         if (not isinstance(self.obs_modes, tuple) or not self.obs_modes
                 or not all(isinstance(m, str) for m in self.obs_modes)):
             raise ValueError(f"obs_modes must be a non-empty tuple of strings, the default "
@@ -124,18 +142,39 @@ class TaskSpec:
         return ([{"action_mode": m} for m in self.action_modes]
                 + [dict(v) for v in self.variants])
 
-    def settings(self, algo: str, action_mode: str | None = None) -> dict[str, Any]:
+    def settings(self, algo: str, action_mode: str | None = None,
+                 env_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """A copy of the shipped ``algo`` settings for ``action_mode`` (None: the default
-        mode); ValueError naming the argument if there are none."""
+        mode) and the env keyword arguments ``env_kwargs``: a variant's own settings when
+        :attr:`variant_hyperparams` ships them for exactly these keyword arguments (with them
+        as ``"env_kwargs"``), else the mode's; ValueError naming the argument if there are
+        none."""
         if algo not in HYPERPARAM_ALGOS:
             raise ValueError(f"algo must be one of {HYPERPARAM_ALGOS}, got {algo!r}")
-        mode = check_env_mode(self.id, action_mode)
+        mode = self.default_mode if action_mode is None else action_mode
+        if mode not in self.action_modes:
+            raise ValueError(f"action_mode: {self.id} takes {' or '.join(self.action_modes)}, "
+                             f"got {action_mode!r}")
+        try:
+            variant = variant_key(env_kwargs or {})
+        except ValueError:  # (keyword arguments no variant is named by: the mode's settings)
+            variant = None
+        table = self.variant_hyperparams.get(variant, {}).get(algo, {}) if variant else {}
+        if mode in table:
+            entry = json.loads(json.dumps(table[mode]))
+            entry["env_kwargs"] = {**entry.get("env_kwargs", {}), **dict(env_kwargs or {})}
+            return entry
         table = self.hyperparams.get(algo, {})
         if mode not in table:
             have = ", ".join(f"{a}/{m}" for a, t in self.hyperparams.items() for m in t)
             raise ValueError(f"algo: no {algo} settings shipped for {self.id} in {mode} mode "
                              f"(it ships {have or 'none'})")
         return copy.deepcopy(json.loads(json.dumps(table[mode])))
+
+    @property
+    def trained_variants(self) -> tuple[str, ...]:
+        """The variants (:func:`variant_key` form) with settings of their own, in order."""
+        return tuple(self.variant_hyperparams)
 
 
 #: The settings every shipped PPO entry starts from (keyword arguments of
@@ -246,6 +285,48 @@ def spec_of_task(task: ParticleTask | gym.Env | VectorEnv) -> TaskSpec:
     raise ValueError(f"task: {type(task).__name__} belongs to no registered task")
 
 
+def variant_key(env_kwargs: Mapping[str, Any]) -> str:
+    """The canonical name of a configuration: its env keyword arguments as ``key=value``
+    pairs, sorted by key and joined by commas (``""`` for none).
+
+    >>> variant_key({"target": "swingup"}), variant_key({"b": 2, "a": 1.5}), variant_key({})
+    ('target=swingup', 'a=1.5,b=2', '')
+    """
+    for k, v in env_kwargs.items():
+        if not isinstance(v, (str, int, float, bool)) or "," in str(v) or "=" in str(k):
+            raise ValueError(f"env_kwargs: a variant's values must be plain numbers or words, "
+                             f"got {k}={v!r}")
+    return ",".join(f"{k}={v}" for k, v in sorted(env_kwargs.items()))
+
+
+def parse_variant(variant: str) -> dict[str, Any]:
+    """The env keyword arguments of a :func:`variant_key` name (numbers read as numbers,
+    ``true``/``false`` as booleans); ValueError naming the argument if it is malformed.
+
+    >>> parse_variant("target=swingup"), parse_variant("a=1.5,b=2"), parse_variant("")
+    ({'target': 'swingup'}, {'a': 1.5, 'b': 2}, {})
+    """
+    if not isinstance(variant, str):
+        raise ValueError(f"variant must be a string 'key=value,...', got {variant!r}")
+    out: dict[str, Any] = {}
+    for part in filter(None, variant.split(",")):
+        key, sep, text = part.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"variant must be 'key=value,...', got {variant!r}")
+        value: Any = text
+        if text in ("True", "False", "true", "false"):
+            value = text.lower() == "true"
+        else:
+            for kind in (int, float):
+                try:
+                    value = kind(text)
+                    break
+                except ValueError:
+                    pass
+        out[key] = value
+    return out
+
+
 def check_env_kwargs(env_id: str, kwargs: Mapping[str, Any]) -> dict[str, Any]:
     """``kwargs`` checked for ``env_id`` before any work: each key an argument its task
     declares (ValueError listing them otherwise; ``action_mode`` has an option of its own in
@@ -259,7 +340,8 @@ def check_env_kwargs(env_id: str, kwargs: Mapping[str, Any]) -> dict[str, Any]:
         return kwargs
     if "action_mode" in kwargs:
         raise ValueError("action_mode: give it with --action-mode, not as an env keyword")
-    check_task_kwargs(spec.task_class, kwargs)
+    check_task_kwargs(spec.task_class, kwargs, also=("obs_mode", "pixel_size",
+                                                     "pixel_channels"))
     spec.env(**kwargs).close()
     return kwargs
 

@@ -96,8 +96,9 @@ NORMALIZATION_FILES = {"final": "normalization.npz", "best": "best_normalization
 OLD_FILES = ("model.zip", "best_model.zip", "vecnormalize.pkl", "best_vecnormalize.pkl")
 #: Largest ``config.json`` ``evaluate`` reads (bytes); one that ``train`` writes has a few kB.
 MAX_CONFIG_BYTES = 1_000_000
-#: Policies a run directory may name (Stable-Baselines3's aliases).
-POLICIES = ("MlpPolicy",)
+#: Policies a run directory may name (Stable-Baselines3's aliases): ``CnnPolicy`` (Nature
+#: CNN features, then ``net_arch``) for the image observations of ``obs_mode="pixels"``.
+POLICIES = ("MlpPolicy", "CnnPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
 POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
 MAX_LAYER = 4096
@@ -111,12 +112,14 @@ def _algo_class(algo: str) -> type:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None) -> dict[str, Any]:
+def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None,
+                     env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The shipped hyperparameters of ``algo`` for ``env_id`` in ``action_mode`` (None: the
-    env's default mode), a copy (the task's declaration, ``TaskSpec.settings``)."""
+    env's default mode) with the env keyword arguments ``env_kwargs`` (a variant with settings
+    of its own takes those), a copy (the task's declaration, ``TaskSpec.settings``)."""
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
-    return task_spec(env_id).settings(algo, action_mode)
+    return task_spec(env_id).settings(algo, action_mode, env_kwargs)
 
 
 def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
@@ -254,7 +257,7 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
             self.best: tuple[float, float] | None = None
 
         def evaluate_now(self) -> None:
-            vn = self.model.get_vec_normalize_env()
+            vn = _obs_normalizer(self.model)
             res = run_episodes(sb3_policy(self.model, vn), env_id, eval_episodes,
                                EVAL_SEED_START, action_mode, env_kwargs)
             s = summarize(res)
@@ -281,6 +284,13 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
             return True
 
     return PeriodicEvaluation()
+
+
+def _obs_normalizer(model: BaseAlgorithm) -> VecNormalize | None:
+    """The model's ``VecNormalize`` if it normalizes observations (not images, whose rewards
+    alone it normalizes), else None."""
+    vn = model.get_vec_normalize_env()
+    return vn if vn is not None and vn.norm_obs else None
 
 
 def save_policy(model: BaseAlgorithm, path: Path) -> None:
@@ -398,8 +408,11 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         overrides["n_envs"] = int(check_positive("n_envs", n_envs, integer=True,
                                                  maximum=4096))
     if env_kwargs:
-        overrides["env_kwargs"] = check_env_kwargs(env_id, env_kwargs)
-    hp = {**load_hyperparams(algo, env_id, action_mode), **overrides}
+        env_kwargs = check_env_kwargs(env_id, env_kwargs)
+    hp = {**load_hyperparams(algo, env_id, action_mode, env_kwargs), **overrides}
+    if env_kwargs:
+        hp["env_kwargs"] = {**hp.get("env_kwargs", {}), **env_kwargs}
+        overrides["env_kwargs"] = env_kwargs
     _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
@@ -425,10 +438,13 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     venv = None
     try:
         venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
+        _check_policy_fits(hp, venv.observation_space)
         # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
         kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
         if hp.get("normalize", False):
-            venv = VecNormalize(venv, norm_obs=True,
+            # (images are not normalized: the CNN policy scales pixels by 1/255 itself; the
+            # rewards still are)
+            venv = VecNormalize(venv, norm_obs=not _is_image(venv.observation_space),
                                 norm_reward=hp.get("normalize_reward", True),
                                 gamma=kwargs.get("gamma", 0.99))
         started = time.perf_counter()
@@ -447,7 +463,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
             callback.evaluate_now()
         seconds = time.perf_counter() - started
         save_policy(model, partial / POLICY_FILES["final"])
-        vn = model.get_vec_normalize_env()
+        vn = _obs_normalizer(model)
         if vn is not None:
             save_normalization(vn, partial / NORMALIZATION_FILES["final"])
         config = {"format": FORMAT, "env": env_id, "action_mode": action_mode, "algo": algo,
@@ -468,6 +484,28 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
             venv.close()
         shutil.rmtree(partial, ignore_errors=True)  # (gone already when renamed)
     return config
+
+
+def _is_image(space: gym.Space) -> bool:
+    """An image observation (``uint8`` ``(H, W, C)`` in [0, 255], as ``obs_mode="pixels"``
+    gives): what SB3's ``CnnPolicy`` takes."""
+    from stable_baselines3.common.preprocessing import is_image_space
+
+    return is_image_space(space, check_channels=True)
+
+
+def _check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
+    """ValueError naming the setting unless the policy suits the observation: images go to
+    ``CnnPolicy``, anything else to ``MlpPolicy``."""
+    policy = hp.get("policy", "MlpPolicy")
+    if _is_image(space):
+        if policy != "CnnPolicy":
+            raise ValueError(f"policy: image observations {space.shape} need "
+                             f"policy=CnnPolicy, got {policy!r} (--hyperparams "
+                             "policy=CnnPolicy)")
+    elif policy == "CnnPolicy":
+        raise ValueError(f"policy: CnnPolicy takes image observations (obs_mode='pixels'), "
+                         f"got a {type(space).__name__} of shape {space.shape}")
 
 
 def _read_config(config_path: Path) -> Any:
@@ -592,7 +630,12 @@ def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
     hp = config["hyperparams"]
     policy_class = _algo_class(config["algo"]).policy_aliases[hp.get("policy", "MlpPolicy")]
     spaces = config["_spaces"]
-    policy = policy_class(spaces["observation"], spaces["action"], lambda _: 0.0,
+    observation = spaces["observation"]
+    if _is_image(observation):  # (trained channel-first: SB3 transposes images for torch)
+        from stable_baselines3.common.vec_env import VecTransposeImage
+
+        observation = VecTransposeImage.transpose_space(observation)
+    policy = policy_class(observation, spaces["action"], lambda _: 0.0,
                           **hp.get("policy_kwargs", {}))
     try:
         with warnings.catch_warnings():  # (torch's notes on a file it then refuses)

@@ -20,6 +20,7 @@ from .train import (
     MAX_SEED,
     OLD_FILES,
     POLICY_FILES,
+    _check_policy_fits,
     _check_policy_settings,
     check_convertible,
     check_overrides,
@@ -97,9 +98,16 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
             if name == "env_kwargs":
                 args.env_kwargs = check_env_kwargs(args.env, args.env_kwargs)
             else:
-                hp = {**load_hyperparams(args.algo, args.env, args.action_mode),
+                hp = {**load_hyperparams(args.algo, args.env, args.action_mode,
+                                         args.env_kwargs),
                       **check_overrides(args.algo, args.hyperparams)}
                 _check_policy_settings(Path("hyperparams"), hp)
+                env = task_spec(args.env).env(action_mode=args.action_mode,
+                                              **{**hp.get("env_kwargs", {}), **args.env_kwargs})
+                try:
+                    _check_policy_fits(hp, env.observation_space)
+                finally:
+                    env.close()
         except ImportError:
             pass  # (the rl extra's check below says what is missing)
         except ValueError as exc:

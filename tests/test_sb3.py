@@ -251,7 +251,7 @@ def test_train_takes_zoo_options_and_records_them(tmp_path, capsys, monkeypatch)
     assert res["env_kwargs"] == {"target": "swingup"}
     for argv, words in ((["--hyperparams", "learnin_rate=1e-4"], ["'learnin_rate'",
                                                                   "learning_rate"]),
-                        (["--hyperparams", "policy=CnnPolicy"], ["policy", "MlpPolicy"])):
+                        (["--hyperparams", "policy=CnnPolicy"], ["policy", "CnnPolicy", "image"])):
         with pytest.raises(SystemExit) as exc:
             cli.main(["train", "SliderCrank-v0", "--out", str(tmp_path / "x"), *argv])
         err = capsys.readouterr().err
@@ -408,3 +408,67 @@ def test_sac_with_hindsight_relabelling_runs_on_goal_observations():
     expected = env.unwrapped.compute_reward(obs["achieved_goal"].numpy(),
                                             obs["desired_goal"].numpy(), {})
     assert np.array_equal(batch.rewards.numpy().ravel(), expected.astype(np.float32))
+
+
+def test_a_cnn_policy_trains_on_pixels_and_evaluates_the_same(tmp_path, capsys, monkeypatch):
+    """``obs_mode=pixels`` trains SB3's CnnPolicy (images channel-first for torch, rewards
+    normalized, pixels not); ``evaluate`` rebuilds it from the weights and plays the final
+    periodic evaluation's episode again with the same return; an MLP on images is refused
+    before any work."""
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "cnn"
+    assert cli.main(["train", "ClothSlide-v0", "--seed", "3", "--out", str(out),
+                     "--timesteps", "256", "--eval-episodes", "1", "--eval-freq", "100000",
+                     "--no-progress", "--env-kwargs", "obs_mode=pixels", "pixel_size=40",
+                     "--hyperparams", "policy=CnnPolicy", "n_steps=32", "batch_size=64",
+                     "--n-envs", "4"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["hyperparams"]["policy"] == "CnnPolicy"
+    assert config["spaces"]["observation"]["shape"] == [40, 40, 3]
+    assert config["spaces"]["observation"]["dtype"] == "uint8"
+    last = json.loads((out / "evaluations.json").read_text())[-1]
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
+                     "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["mean_return"] == pytest.approx(last["mean_return"], abs=1e-9)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["train", "ClothSlide-v0", "--out", str(tmp_path / "x"), "--env-kwargs",
+                  "obs_mode=pixels"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "CnnPolicy" in err and "image" in err, err
+    assert not (tmp_path / "x").exists()
+
+
+def test_baselines_keep_a_variant_apart_from_the_default(tmp_path, capsys):
+    """A variant's records (ChainSwing's swing-up) merge beside the default configuration's,
+    its runs are named apart, its rows are labelled in the table; a keyword argument the env
+    does not take is refused before any work."""
+    pytest.importorskip("matplotlib")
+    from envs.baselines import main, merge, report, run_name
+
+    assert run_name("ChainSwing-v0", "force", "ppo", 0) == "ChainSwing-v0-force-ppo-0"
+    assert (run_name("ChainSwing-v0", "force", "ppo", 0, "target=swingup")
+            == "ChainSwing-v0-target-swingup-force-ppo-0")
+
+    def rec(variant, seed, success):
+        return {"env": "ChainSwing-v0", **({"variant": variant} if variant else {}),
+                "action_mode": "force", "algo": "ppo", "seed": seed, "deterministic": True,
+                "timesteps": 1000, "success_rate": success, "mean_return": 1.0,
+                "wall_seconds": 60.0, "run": run_name("ChainSwing-v0", "force", "ppo", seed,
+                                                      variant)}
+
+    path = tmp_path / "results.json"
+    merge(path, [rec("", 0, 1.0), rec("target=swingup", 0, 0.5)])
+    merged = merge(path, [rec("target=swingup", 0, 0.25)])  # (replaces the variant's only)
+    assert sorted(r["success_rate"] for r in merged) == [0.25, 1.0]
+    table = report(path, tmp_path, tmp_path)
+    rows = [line for line in table.splitlines() if line.startswith("| ChainSwing")]
+    assert len(rows) == 2 and any("ChainSwing-v0 (target=swingup)" in r and "25%" in r
+                                  for r in rows)
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--runs", str(tmp_path / "runs"), "--envs", "ChainSwing-v0",
+              "--variants", "targt=swingup"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "'targt'" in err and "target" in err, err
+    assert not (tmp_path / "runs" / "results.json").exists()

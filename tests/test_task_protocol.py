@@ -263,3 +263,36 @@ def test_the_docs_overview_table_is_the_declarations():
         pytest.skip("docs are not installed beside the package")
     shipped = tuple(envs.task_spec(env_id) for env_id in envs.ENV_IDS)
     assert overview_table(shipped) in page.read_text(), "run python -m envs.overview"
+
+
+def test_a_variant_ships_settings_of_its_own():
+    """``variant_hyperparams`` are taken for exactly their keyword arguments, which they
+    record; other keyword arguments keep the mode's settings; malformed keys are refused."""
+    from envs.task import parse_variant, variant_key
+
+    spec = TaskSpec(id="X-v0", env=RopeCarryEnv, vector_env=RopeCarryVectorEnv,
+                    action_modes=("spring", "force"), scripted_agent=RopeCarryController,
+                    summary="", hyperparams={"ppo": {"spring": ppo(1000, (8,))}},
+                    variant_hyperparams={"obs_mode=pixels": {"ppo": {"spring": ppo(
+                        2000, (16,), policy="CnnPolicy")}}})
+    base = spec.settings("ppo", "spring")
+    assert base["n_timesteps"] == 1000 and "env_kwargs" not in base
+    own = spec.settings("ppo", "spring", {"obs_mode": "pixels"})
+    assert own["n_timesteps"] == 2000 and own["policy"] == "CnnPolicy"
+    assert own["env_kwargs"] == {"obs_mode": "pixels"}
+    # more or other keyword arguments: the mode's settings
+    assert spec.settings("ppo", "spring", {"obs_mode": "pixels", "pixel_size": 84}) == base
+    assert spec.settings("ppo", "spring", {"pixel_size": (84, 84)}) == base
+    with pytest.raises(ValueError, match="no ppo settings shipped"):
+        spec.settings("ppo", "force", {"obs_mode": "pixels"})
+    for bad, words in (({"pixels,obs_mode": {}}, "variant"), ({"b=1,a=2": {}}, "sorted"),
+                       ({"obs_mode=pixels": {"ppo": {"draw": {}}}}, "not action modes"),
+                       ({"action_mode=force": {}}, "inner key")):
+        with pytest.raises(ValueError, match=words):
+            TaskSpec(id="X-v0", env=RopeCarryEnv, vector_env=RopeCarryVectorEnv,
+                     action_modes=("spring", "force"), scripted_agent=RopeCarryController,
+                     summary="", variant_hyperparams=bad)
+    for kwargs in ({}, {"target": "swingup"}, {"a": 2, "b": 1.5, "c": True}):
+        assert parse_variant(variant_key(kwargs)) == kwargs
+    with pytest.raises(ValueError, match="variant"):
+        parse_variant("target")
