@@ -77,7 +77,10 @@ HELD_OUT_SEED_START = 2_000_000
 #: Distance (m) from the goal within which ``evaluate`` measures the RMS speed.
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
-OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
+OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
+            "frame_stack")
+#: Most frames ``frame_stack`` may stack (rl-baselines3-zoo's key: SB3's ``VecFrameStack``).
+MAX_FRAME_STACK = 16
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -166,11 +169,27 @@ def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
+def stack_frames(stack: np.ndarray | None, obs: np.ndarray, frames: int) -> np.ndarray:
+    """The last ``frames`` observations of each copy concatenated along their last axis,
+    oldest first, as SB3's ``VecFrameStack`` holds them: ``stack`` (None at an episode's
+    start: the older frames zero) shifted by one frame and ``obs`` (num_envs, ..., C) put
+    last. Returns the new stack (num_envs, ..., frames * C)."""
+    c = obs.shape[-1]
+    if stack is None:
+        stack = np.zeros((*obs.shape[:-1], frames * c), dtype=obs.dtype)
+    else:
+        stack = np.roll(stack, -c, axis=-1)
+    stack[..., -c:] = obs
+    return stack
+
+
 def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
                  action_mode: str = "force", env_kwargs: dict[str, Any] | None = None,
-                 batch: int = 100) -> dict[str, Any]:
+                 batch: int = 100, frame_stack: int = 1) -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds ``seed_start + k``) with ``policy`` (batched raw
-    observations -> actions) in native vector envs of up to ``batch`` copies.
+    observations -> actions) in native vector envs of up to ``batch`` copies;
+    ``frame_stack > 1`` hands the policy each copy's last ``frame_stack`` observations
+    (:func:`stack_frames`), as training with that setting did.
 
     Returns the per-episode arrays ``return``, ``length``, ``success``, ``final_distance`` (m),
     ``final_speed`` (m/s), and the summaries ``mean_abs_squeeze`` (N, ClothSlide force mode, else
@@ -189,11 +208,14 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
                            action_mode=action_mode, **(env_kwargs or {}))
         task = env.unwrapped.task
         obs, _ = env.reset(seed=seed_start + start)
+        seen = stack_frames(None, obs, frame_stack) if frame_stack > 1 else obs
         ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
         success, done = np.zeros(n, bool), np.zeros(n, bool)
         dist, speed = np.zeros(n), np.zeros(n)
         while not done.all():
-            obs, reward, terminated, truncated, info = env.step(policy(obs))
+            obs, reward, terminated, truncated, info = env.step(policy(seen))
+            # (a copy that ended keeps stepping, ignored, until the batch is done)
+            seen = stack_frames(seen, obs, frame_stack) if frame_stack > 1 else obs
             live = ~done
             m = task.measure()
             ret[live] += reward[live]
@@ -243,7 +265,7 @@ def sb3_policy(model: BaseAlgorithm | BasePolicy,
 
 
 def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
-              eval_freq: int, eval_episodes: int, started: float) -> Any:
+              eval_freq: int, eval_episodes: int, started: float, frame_stack: int = 1) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class PeriodicEvaluation(BaseCallback):
@@ -259,7 +281,8 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
         def evaluate_now(self) -> None:
             vn = _obs_normalizer(self.model)
             res = run_episodes(sb3_policy(self.model, vn), env_id, eval_episodes,
-                               EVAL_SEED_START, action_mode, env_kwargs)
+                               EVAL_SEED_START, action_mode, env_kwargs,
+                               frame_stack=frame_stack)
             s = summarize(res)
             rec = {"timesteps": int(self.num_timesteps),
                    "seconds": round(time.perf_counter() - started, 1),
@@ -439,6 +462,12 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     try:
         venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
         _check_policy_fits(hp, venv.observation_space)
+        env_space = venv.observation_space
+        frame_stack = int(hp.get("frame_stack", 1))
+        if frame_stack > 1:
+            from stable_baselines3.common.vec_env import VecFrameStack
+
+            venv = VecFrameStack(venv, frame_stack, channels_order="last")
         # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
         kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
         if hp.get("normalize", False):
@@ -457,7 +486,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
                                               str(Path(tensorboard_log) / out.name)))
         model.set_logger(Logger(str(partial), writers))
         callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
-                             eval_episodes, started)
+                             eval_episodes, started, frame_stack)
         model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:
             callback.evaluate_now()
@@ -469,9 +498,9 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         config = {"format": FORMAT, "env": env_id, "action_mode": action_mode, "algo": algo,
                   "seed": seed, "timesteps": int(model.num_timesteps), "hyperparams": hp,
                   "overrides": overrides, "device": str(model.device),
-                  "observation_shape": list(venv.observation_space.shape),
+                  "observation_shape": list(env_space.shape),
                   "action_shape": list(venv.action_space.shape),
-                  "spaces": {"observation": space_record(venv.observation_space),
+                  "spaces": {"observation": space_record(env_space),
                              "action": space_record(venv.action_space)},
                   "normalized": vn is not None,
                   "wall_seconds": round(seconds, 1), "threads": threads,
@@ -547,6 +576,10 @@ def _check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
     if not isinstance(pk.get("use_sde", False), bool):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
                          "false")
+    stack = hp.get("frame_stack", 1)
+    if type(stack) is not int or not 1 <= stack <= MAX_FRAME_STACK:
+        raise ValueError(f"{config_path}: hyperparams.frame_stack must be a whole number in "
+                         f"[1, {MAX_FRAME_STACK}], got {stack!r}")
     log_std = pk.get("log_std_init", 0.0)
     if type(log_std) not in (int, float) or not np.isfinite(log_std):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.log_std_init must be a "
@@ -631,6 +664,11 @@ def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
     policy_class = _algo_class(config["algo"]).policy_aliases[hp.get("policy", "MlpPolicy")]
     spaces = config["_spaces"]
     observation = spaces["observation"]
+    stack = hp.get("frame_stack", 1)
+    if stack > 1:  # (the policy saw the last frames along the last axis: VecFrameStack's)
+        observation = gym.spaces.Box(np.repeat(observation.low, stack, axis=-1),
+                                     np.repeat(observation.high, stack, axis=-1),
+                                     dtype=observation.dtype)
     if _is_image(observation):  # (trained channel-first: SB3 transposes images for torch)
         from stable_baselines3.common.vec_env import VecTransposeImage
 
@@ -696,7 +734,9 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
         if not norm_path.is_file():
             raise ValueError(f"{str(out)!r} has no {norm_path.name} (its config.json says the "
                              "observations were normalized)")
-        normalizer = ObsNormalizer.load(norm_path, tuple(config["observation_shape"]))
+        shape = tuple(config["observation_shape"])
+        stack = config["hyperparams"].get("frame_stack", 1)
+        normalizer = ObsNormalizer.load(norm_path, (*shape[:-1], shape[-1] * stack))
     kwargs = {**config["hyperparams"].get("env_kwargs", {}), **(env_kwargs or {})}
     if env_kwargs:
         check_env_kwargs(config["env"], env_kwargs)
@@ -707,7 +747,8 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
             raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
                              f"space the run was trained on")
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
-                       seed_start, config["action_mode"], kwargs)
+                       seed_start, config["action_mode"], kwargs,
+                       frame_stack=config["hyperparams"].get("frame_stack", 1))
     return {"env": config["env"], "action_mode": config["action_mode"],
             **({"env_kwargs": kwargs} if kwargs else {}),
             "algo": config["algo"], "seed": config["seed"], "timesteps": config["timesteps"],

@@ -472,3 +472,50 @@ def test_baselines_keep_a_variant_apart_from_the_default(tmp_path, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "'targt'" in err and "target" in err, err
     assert not (tmp_path / "runs" / "results.json").exists()
+
+
+def test_stacked_frames_are_vec_frame_stacks():
+    """``stack_frames`` holds what SB3's ``VecFrameStack`` hands the policy over an episode
+    (zeros before the first frame, oldest first along the channels)."""
+    from stable_baselines3.common.vec_env import VecFrameStack
+
+    from envs.train import stack_frames
+
+    venv = VecFrameStack(native(n=2, obs_mode="pixels", pixel_size=16), 3,
+                         channels_order="last")
+    venv.seed(5)
+    theirs = venv.reset()
+    mine = stack_frames(None, theirs[..., -3:], 3)  # (the first frame, last)
+    assert np.array_equal(mine, theirs) and not theirs[..., :6].any() and theirs.any()
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        theirs, _, dones, _ = venv.step(rng.uniform(-1, 1, (2, 2)).astype(np.float32))
+        assert not dones.any()
+        mine = stack_frames(mine, theirs[..., -3:], 3)
+        assert np.array_equal(mine, theirs)
+
+
+def test_a_cnn_on_stacked_frames_evaluates_as_it_trained(tmp_path, capsys, monkeypatch):
+    """``frame_stack`` (rl-baselines3-zoo's key) trains on ``VecFrameStack`` and evaluates
+    with the same stacks: the final periodic evaluation's episode plays again with its
+    return."""
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "stack"
+    assert cli.main(["train", "ChainSwing-v0", "--seed", "3", "--out", str(out),
+                     "--timesteps", "128", "--eval-episodes", "1", "--eval-freq", "100000",
+                     "--no-progress", "--env-kwargs", "obs_mode=pixels", "pixel_size=36",
+                     "pixel_channels=1", "--hyperparams", "policy=CnnPolicy", "frame_stack=3",
+                     "n_steps=16", "batch_size=32", "--n-envs", "4"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["spaces"]["observation"]["shape"] == [36, 36, 1]
+    assert config["hyperparams"]["frame_stack"] == 3
+    last = json.loads((out / "evaluations.json").read_text())[-1]
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
+                     "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["mean_return"] == pytest.approx(last["mean_return"], abs=1e-9)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["train", "ChainSwing-v0", "--out", str(tmp_path / "x"),
+                  "--hyperparams", "frame_stack=0"])
+    assert exc.value.code == 2 and "frame_stack" in capsys.readouterr().err
