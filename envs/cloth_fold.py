@@ -133,9 +133,15 @@ class ClothFold(TableCloth):
                               axis=1)
 
     def target_segments(self) -> np.ndarray:
-        """The fold lines, from ``a`` to ``b`` (num_envs, 1, 2, 2)."""
+        """The fold lines, from ``a`` to ``b``, each with a tick a quarter of its length from
+        its middle into the half to move (left of ``a -> b``), so a picture tells the halves
+        apart (num_envs, 2, 2, 2)."""
         t = self.target
-        return np.stack([t[:, 0:2], t[:, 2:4]], axis=1)[:, None]
+        a, b = t[:, 0:2], t[:, 2:4]
+        middle, d = 0.5 * (a + b), b - a
+        left = np.stack([-d[:, 1], d[:, 0]], axis=1)  # (|d| long)
+        return np.stack([np.stack([a, b], axis=1),
+                         np.stack([middle, middle + 0.25 * left], axis=1)], axis=1)
 
 
 class ClothFoldEnv(PickPlaceEnv):

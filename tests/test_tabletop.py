@@ -261,3 +261,18 @@ def test_the_scripted_agent_solves_seeded_episodes(env_id):
             done = terminated or truncated
         assert info["is_success"] and terminated, (env_id, seed, info)
         assert info["normalized_performance"] > 0.5
+
+
+def test_the_fold_picture_marks_the_half_to_move():
+    """The fold line's tick points into the half that moves (what a pixel observation has to
+    tell the agent; the state observation gives it by the line's direction)."""
+    env = ClothFoldEnv()
+    t = env.task
+    for seed in range(8):
+        env.reset(seed=seed)
+        (a, b), (middle, tip) = t.target_segments()[0]
+        moved = t.kinds[int(t.target[0, 4])][0]
+        x = t.system.x
+        assert np.allclose(middle, 0.5 * (a + b))
+        assert np.dot(tip - middle, x[moved].mean(axis=0) - middle) > 0
+        assert np.dot(tip - middle, b - a) == pytest.approx(0.0, abs=1e-12)
