@@ -101,6 +101,39 @@ POLICIES = ("MlpPolicy",)
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
 POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
 MAX_LAYER = 4096
+#: Settings that may also be given as a schedule, ``"lin_<value>"``: ``value`` at the start,
+#: decayed linearly to 0 at the end of the budget (rl-baselines3-zoo's notation).
+SCHEDULE_KEYS = ("learning_rate", "clip_range")
+
+
+class LinearSchedule:
+    """``value * progress_remaining``: Stable-Baselines3 calls a schedule with the fraction of
+    the budget left (1 at the start, 0 at the end), so the setting decays linearly to 0."""
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def __call__(self, progress_remaining: float) -> float:
+        return self.value * progress_remaining
+
+    def __repr__(self) -> str:
+        return f"lin_{self.value:g}"
+
+
+def schedule(key: str, value: Any) -> Any:
+    """The value of setting ``key`` for Stable-Baselines3: ``"lin_<value>"`` (a key of
+    :data:`SCHEDULE_KEYS`, a finite ``value`` > 0) as a :class:`LinearSchedule`, anything else
+    unchanged; ValueError naming the key for any other string there."""
+    if key not in SCHEDULE_KEYS or not isinstance(value, str):
+        return value
+    try:
+        start = float(value[4:]) if value.startswith("lin_") else float("nan")
+    except ValueError:
+        start = float("nan")
+    if not (np.isfinite(start) and start > 0):
+        raise ValueError(f"hyperparams: {key} must be a number or 'lin_<value>' (a linear "
+                         f"decay from value > 0 to 0 over the budget), got {value!r}")
+    return LinearSchedule(start)
 
 
 def _algo_class(algo: str) -> type:
@@ -134,6 +167,8 @@ def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"hyperparams: {', '.join(map(repr, unknown))} not a setting of "
                          f"{algo}; it takes {', '.join(sorted(valid))}")
+    for key, value in overrides.items():
+        schedule(key, value)
     return json.loads(json.dumps(overrides))
 
 
@@ -401,6 +436,8 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         overrides["env_kwargs"] = check_env_kwargs(env_id, env_kwargs)
     hp = {**load_hyperparams(algo, env_id, action_mode), **overrides}
     _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
+    for key, value in hp.items():  # (a schedule's notation, before any work)
+        schedule(key, value)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -427,6 +464,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
         # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
         kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
+        kwargs = {k: schedule(k, v) for k, v in kwargs.items()}
         if hp.get("normalize", False):
             venv = VecNormalize(venv, norm_obs=True,
                                 norm_reward=hp.get("normalize_reward", True),
