@@ -77,7 +77,8 @@ HELD_OUT_SEED_START = 2_000_000
 #: Distance (m) from the goal within which ``evaluate`` measures the RMS speed.
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
-OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs")
+OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
+            "log_std_final")
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -318,6 +319,46 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
     return PeriodicEvaluation()
 
 
+def _std_ceiling(start: float, final: float, timesteps: int) -> Any:
+    """A callback that caps a PPO policy's log standard deviations, before each rollout and at
+    the end, at a ceiling lowered linearly from ``start`` (no cap at step 0) to ``final`` at
+    ``timesteps`` (``log_std_final``): the policy explores as widely as ``log_std_init`` lets
+    it early and acts with at most ``exp(final)`` of noise at the end, whatever the gradient
+    did with it."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class StdCeiling(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            done = min(1.0, self.num_timesteps / timesteps)
+            with torch.no_grad():
+                self.model.policy.log_std.clamp_(max=start + (final - start) * done)
+
+        def _on_training_end(self) -> None:
+            self._on_rollout_start()  # (the final policy: at most exp(final))
+
+        def _on_step(self) -> bool:
+            return True
+
+    return StdCeiling()
+
+
+def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:
+    """``hp["log_std_final"]`` (None without it): a finite number below the policy's
+    ``log_std_init``, for PPO only; ValueError naming the key otherwise."""
+    final = hp.get("log_std_final")
+    if final is None:
+        return None
+    start = hp.get("policy_kwargs", {}).get("log_std_init", 0.0)
+    if algo != "ppo" or hp.get("policy_kwargs", {}).get("use_sde", False):
+        raise ValueError("hyperparams: log_std_final caps the log standard deviation of a PPO "
+                         "policy without use_sde")
+    if type(final) not in (int, float) or not np.isfinite(final) or final >= start:
+        raise ValueError(f"hyperparams: log_std_final must be a number below log_std_init "
+                         f"({start}), got {final!r}")
+    return float(final)
+
+
 def save_policy(model: BaseAlgorithm, path: Path) -> None:
     """Write the weights of ``model``'s policy to ``path``: a PyTorch state dict of CPU
     tensors, which :func:`load_policy` reads with ``weights_only`` (no code runs)."""
@@ -438,6 +479,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
     for key, value in hp.items():  # (a schedule's notation, before any work)
         schedule(key, value)
+    std_final = check_std_final(algo, hp)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -480,7 +522,11 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         model.set_logger(Logger(str(partial), writers))
         callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
                              eval_episodes, started)
-        model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
+        callbacks: list[Any] = [callback]
+        if std_final is not None:
+            callbacks.append(_std_ceiling(hp["policy_kwargs"].get("log_std_init", 0.0),
+                                          std_final, timesteps))
+        model.learn(total_timesteps=timesteps, callback=callbacks, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:
             callback.evaluate_now()
         seconds = time.perf_counter() - started

@@ -23,6 +23,7 @@ from .train import (
     _check_policy_settings,
     check_convertible,
     check_overrides,
+    check_std_final,
     convert_run,
     evaluate,
     load_hyperparams,
@@ -100,6 +101,7 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
                 hp = {**load_hyperparams(args.algo, args.env, args.action_mode),
                       **check_overrides(args.algo, args.hyperparams)}
                 _check_policy_settings(Path("hyperparams"), hp)
+                check_std_final(args.algo, hp)
         except ImportError:
             pass  # (the rl extra's check below says what is missing)
         except ValueError as exc:
