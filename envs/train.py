@@ -78,7 +78,7 @@ HELD_OUT_SEED_START = 2_000_000
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
-            "frame_stack")
+            "frame_stack", "log_std_final")
 #: Most frames ``frame_stack`` may stack (rl-baselines3-zoo's key: SB3's ``VecFrameStack``).
 MAX_FRAME_STACK = 16
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
@@ -105,6 +105,39 @@ POLICIES = ("MlpPolicy", "CnnPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
 POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
 MAX_LAYER = 4096
+#: Settings that may also be given as a schedule, ``"lin_<value>"``: ``value`` at the start,
+#: decayed linearly to 0 at the end of the budget (rl-baselines3-zoo's notation).
+SCHEDULE_KEYS = ("learning_rate", "clip_range")
+
+
+class LinearSchedule:
+    """``value * progress_remaining``: Stable-Baselines3 calls a schedule with the fraction of
+    the budget left (1 at the start, 0 at the end), so the setting decays linearly to 0."""
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def __call__(self, progress_remaining: float) -> float:
+        return self.value * progress_remaining
+
+    def __repr__(self) -> str:
+        return f"lin_{self.value:g}"
+
+
+def schedule(key: str, value: Any) -> Any:
+    """The value of setting ``key`` for Stable-Baselines3: ``"lin_<value>"`` (a key of
+    :data:`SCHEDULE_KEYS`, a finite ``value`` > 0) as a :class:`LinearSchedule`, anything else
+    unchanged; ValueError naming the key for any other string there."""
+    if key not in SCHEDULE_KEYS or not isinstance(value, str):
+        return value
+    try:
+        start = float(value[4:]) if value.startswith("lin_") else float("nan")
+    except ValueError:
+        start = float("nan")
+    if not (np.isfinite(start) and start > 0):
+        raise ValueError(f"hyperparams: {key} must be a number or 'lin_<value>' (a linear "
+                         f"decay from value > 0 to 0 over the budget), got {value!r}")
+    return LinearSchedule(start)
 
 
 def _algo_class(algo: str) -> type:
@@ -140,6 +173,8 @@ def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"hyperparams: {', '.join(map(repr, unknown))} not a setting of "
                          f"{algo}; it takes {', '.join(sorted(valid))}")
+    for key, value in overrides.items():
+        schedule(key, value)
     return json.loads(json.dumps(overrides))
 
 
@@ -316,6 +351,46 @@ def _obs_normalizer(model: BaseAlgorithm) -> VecNormalize | None:
     return vn if vn is not None and vn.norm_obs else None
 
 
+def _std_ceiling(start: float, final: float, timesteps: int) -> Any:
+    """A callback that caps a PPO policy's log standard deviations, before each rollout and at
+    the end, at a ceiling lowered linearly from ``start`` (no cap at step 0) to ``final`` at
+    ``timesteps`` (``log_std_final``): the policy explores as widely as ``log_std_init`` lets
+    it early and acts with at most ``exp(final)`` of noise at the end, whatever the gradient
+    did with it."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class StdCeiling(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            done = min(1.0, self.num_timesteps / timesteps)
+            with torch.no_grad():
+                self.model.policy.log_std.clamp_(max=start + (final - start) * done)
+
+        def _on_training_end(self) -> None:
+            self._on_rollout_start()  # (the final policy: at most exp(final))
+
+        def _on_step(self) -> bool:
+            return True
+
+    return StdCeiling()
+
+
+def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:
+    """``hp["log_std_final"]`` (None without it): a finite number below the policy's
+    ``log_std_init``, for PPO only; ValueError naming the key otherwise."""
+    final = hp.get("log_std_final")
+    if final is None:
+        return None
+    start = hp.get("policy_kwargs", {}).get("log_std_init", 0.0)
+    if algo != "ppo" or hp.get("policy_kwargs", {}).get("use_sde", False):
+        raise ValueError("hyperparams: log_std_final caps the log standard deviation of a PPO "
+                         "policy without use_sde")
+    if type(final) not in (int, float) or not np.isfinite(final) or final >= start:
+        raise ValueError(f"hyperparams: log_std_final must be a number below log_std_init "
+                         f"({start}), got {final!r}")
+    return float(final)
+
+
 def save_policy(model: BaseAlgorithm, path: Path) -> None:
     """Write the weights of ``model``'s policy to ``path``: a PyTorch state dict of CPU
     tensors, which :func:`load_policy` reads with ``weights_only`` (no code runs)."""
@@ -437,6 +512,9 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         hp["env_kwargs"] = {**hp.get("env_kwargs", {}), **env_kwargs}
         overrides["env_kwargs"] = env_kwargs
     _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
+    for key, value in hp.items():  # (a schedule's notation, before any work)
+        schedule(key, value)
+    std_final = check_std_final(algo, hp)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -470,6 +548,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
             venv = VecFrameStack(venv, frame_stack, channels_order="last")
         # (a copy: SB3 writes into policy_kwargs, and config.json records the settings given)
         kwargs = json.loads(json.dumps({k: v for k, v in hp.items() if k not in OWN_KEYS}))
+        kwargs = {k: schedule(k, v) for k, v in kwargs.items()}
         if hp.get("normalize", False):
             # (images are not normalized: the CNN policy scales pixels by 1/255 itself; the
             # rewards still are)
@@ -487,7 +566,11 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         model.set_logger(Logger(str(partial), writers))
         callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
                              eval_episodes, started, frame_stack)
-        model.learn(total_timesteps=timesteps, callback=callback, progress_bar=progress_bar)
+        callbacks: list[Any] = [callback]
+        if std_final is not None:
+            callbacks.append(_std_ceiling(hp["policy_kwargs"].get("log_std_init", 0.0),
+                                          std_final, timesteps))
+        model.learn(total_timesteps=timesteps, callback=callbacks, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:
             callback.evaluate_now()
         seconds = time.perf_counter() - started

@@ -259,6 +259,47 @@ def test_train_takes_zoo_options_and_records_them(tmp_path, capsys, monkeypatch)
     assert not (tmp_path / "x").exists()
 
 
+def test_train_decays_a_lin_setting_and_the_std_ceiling(tmp_path, capsys, monkeypatch):
+    """``learning_rate=lin_<value>`` (rl-baselines3-zoo's notation) starts at ``value`` and
+    decays linearly to 0 over the budget; config.json keeps the string. ``log_std_final``
+    caps the final policy's log standard deviations. Any other string there, or a
+    ``log_std_final`` not below ``log_std_init`` or for SAC, is refused before any work."""
+    import torch
+
+    from envs.train import LinearSchedule, schedule
+
+    assert schedule("learning_rate", "lin_3e-4")(1.0) == pytest.approx(3e-4)
+    assert schedule("clip_range", "lin_0.2")(0.25) == pytest.approx(0.05)
+    assert schedule("learning_rate", 1e-4) == 1e-4 and schedule("gamma", "lin_1") == "lin_1"
+    assert repr(LinearSchedule(1e-4)) == "lin_0.0001"
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "lin"
+    assert cli.main(["train", "SliderCrank-v0", "--seed", "1", "--out", str(out), "--timesteps",
+                     "512", "--eval-episodes", "1", "--no-progress", "--hyperparams",
+                     "learning_rate=lin_1e-3", "n_steps=32", "batch_size=64",
+                     "log_std_final=-2.5", "--n-envs", "4", "--device", "cpu"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["hyperparams"]["learning_rate"] == "lin_1e-3"
+    assert config["hyperparams"]["log_std_final"] == -2.5
+    log_std = torch.load(out / "policy.pt", weights_only=True)["log_std"]
+    assert float(log_std.max()) <= -2.5 + 1e-6
+    rows = (out / "progress.csv").read_text().splitlines()
+    column = rows[0].split(",").index("train/learning_rate")
+    rates = [float(r.split(",")[column]) for r in rows[1:] if r.split(",")[column]]
+    assert len(rates) >= 2 and rates == sorted(rates, reverse=True) and rates[0] < 1e-3
+    assert rates[-1] == pytest.approx(1e-3 / 4, rel=1e-6)  # (the last of 4 updates: 1/4 left)
+    capsys.readouterr()
+    for argv, words in [(["--hyperparams", f"learning_rate={bad}"], ["learning_rate", "lin_"])
+                        for bad in ("lin_x", "lin_-1e-4", "cos_1e-4")] + [
+            (["--hyperparams", "log_std_final=0"], ["log_std_final", "log_std_init"]),
+            (["--algo", "sac", "--hyperparams", "log_std_final=-3"], ["log_std_final", "PPO"])]:
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["train", "SliderCrank-v0", "--out", str(tmp_path / "x"), *argv])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and all(w in err for w in words), err
+    assert not (tmp_path / "x").exists()
+
+
 def test_the_results_table_reads_right_for_one_seed_and_for_five():
     from envs.baselines import _median_cell, median_ci
 
