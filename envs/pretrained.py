@@ -23,10 +23,24 @@ from pathlib import Path
 ROOT = Path(__file__).with_name("pretrained")
 
 
-def shipped() -> dict[tuple[str, str], Path]:
-    """The shipped agents: ``{(env id, action mode): run directory}``, read from each folder's
-    ``config.json`` (folders without one are ignored)."""
-    found: dict[tuple[str, str], Path] = {}
+def _variant(config: dict) -> str:
+    """The variant (:func:`envs.task.variant_key` form, ``""`` for the default
+    configuration) a run's ``config.json`` trained on."""
+    from .task import variant_key
+
+    kwargs = config.get("hyperparams", {}).get("env_kwargs", {})
+    try:
+        return variant_key(kwargs if isinstance(kwargs, dict) else {})
+    except ValueError:
+        return ""
+
+
+def shipped() -> dict[tuple[str, str, str], Path]:
+    """The shipped agents: ``{(env id, action mode, variant): run directory}`` (``variant``:
+    the env keyword arguments it trained with as :func:`envs.task.variant_key` writes them,
+    ``""`` for the default configuration), read from each folder's ``config.json`` (folders
+    without one are ignored)."""
+    found: dict[tuple[str, str, str], Path] = {}
     if not ROOT.is_dir():
         return found
     for folder in sorted(ROOT.iterdir()):
@@ -35,19 +49,21 @@ def shipped() -> dict[tuple[str, str], Path]:
             continue
         with open(config, encoding="utf-8") as f:
             data = json.load(f)
-        found[(str(data.get("env")), str(data.get("action_mode")))] = folder
+        found[(str(data.get("env")), str(data.get("action_mode")), _variant(data))] = folder
     return found
 
 
-def pretrained_dir(env_id: str, action_mode: str | None = None) -> Path:
+def pretrained_dir(env_id: str, action_mode: str | None = None, variant: str = "") -> Path:
     """The run directory of the shipped agent for ``env_id`` in ``action_mode`` (default: the
-    env's default mode if an agent is shipped for it, else its only shipped mode). ValueError
+    env's default mode if an agent is shipped for it, else its only shipped mode) trained on
+    ``variant`` (``"target=swingup"``; default ``""``, the default configuration). ValueError
     naming the argument, with what is shipped, when there is none."""
     agents = shipped()
-    modes = [mode for (env, mode) in agents if env == env_id]
+    modes = [mode for (env, mode, v) in agents if env == env_id and v == variant]
     if not modes:
-        have = ", ".join(f"{e} ({m})" for e, m in agents) or "none"
-        raise ValueError(f"env_id: no pretrained agent is shipped for {env_id!r} "
+        have = ", ".join(describe(k) for k in agents) or "none"
+        what = f"{env_id!r}" + (f" with {variant}" if variant else "")
+        raise ValueError(f"env_id: no pretrained agent is shipped for {what} "
                          f"(shipped: {have})")
     if action_mode is None:
         from .task import task_spec
@@ -57,7 +73,13 @@ def pretrained_dir(env_id: str, action_mode: str | None = None) -> Path:
         except ValueError:
             default = modes[0]
         action_mode = default if default in modes else modes[0]
-    if (env_id, action_mode) not in agents:
+    if (env_id, action_mode, variant) not in agents:
         raise ValueError(f"action_mode: no pretrained agent for {env_id!r} in mode "
                          f"{action_mode!r} (shipped modes: {', '.join(modes)})")
-    return agents[(env_id, action_mode)]
+    return agents[(env_id, action_mode, variant)]
+
+
+def describe(key: tuple[str, str, str]) -> str:
+    """``"ChainSwing-v0 (force, target=swingup)"`` for a key of :func:`shipped`."""
+    env, mode, variant = key
+    return f"{env} ({mode}{', ' + variant if variant else ''})"

@@ -13,7 +13,7 @@ from constrained_particles.arguments import int_at_least, key_values, new_direct
 from constrained_particles.extras import require
 
 from . import pretrained
-from .task import check_env_kwargs, task_spec, task_specs
+from .task import check_env_kwargs, task_spec, task_specs, variant_key
 from .train import (
     ALGOS,
     HELD_OUT_SEED_START,
@@ -140,8 +140,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     shipped = sorted(pretrained.shipped())
     parser.add_argument("--pretrained", metavar="ENV_ID",
                         help="evaluate the agent shipped with the package for ENV_ID instead "
-                        "of a run directory (default: none; shipped: "
-                        f"{', '.join(f'{e} ({m})' for e, m in shipped) or 'none'})")
+                        "of a run directory; with --env-kwargs naming a variant, the agent "
+                        "trained on it (default: none; shipped: "
+                        f"{', '.join(map(pretrained.describe, shipped)) or 'none'})")
     parser.add_argument("--action-mode",
                         help="with --pretrained: the action mode of the shipped agent "
                         "(default: the env's default mode)")
@@ -172,7 +173,19 @@ def check_evaluate_arguments(parser: argparse.ArgumentParser, args: argparse.Nam
                      "own)")
     if args.pretrained is not None:
         try:
-            args.dir = str(pretrained.pretrained_dir(args.pretrained, args.action_mode))
+            given = key_values(args.env_kwargs, "--env-kwargs")
+        except ValueError as exc:
+            parser.error(f"argument --env-kwargs: {exc}")
+        try:
+            variant = variant_key(given)
+        except ValueError:
+            variant = ""
+        if variant and not any(k[0] == args.pretrained and k[2] == variant
+                               for k in pretrained.shipped()):
+            variant = ""  # (the default configuration's agent, played on the variant)
+        try:
+            args.dir = str(pretrained.pretrained_dir(args.pretrained, args.action_mode,
+                                                     variant))
         except ValueError as exc:
             name = "--action-mode" if str(exc).startswith("action_mode") else "--pretrained"
             parser.error(f"argument {name}: {str(exc).split(': ', 1)[1]}")

@@ -19,6 +19,7 @@ from cparticles import cli  # noqa: E402
 from envs import pretrained  # noqa: E402
 from envs.agents import make_agent  # noqa: E402
 from envs.sb3 import to_sb3  # noqa: E402
+from envs.task import parse_variant  # noqa: E402
 from envs.train import load_hyperparams  # noqa: E402
 
 
@@ -184,12 +185,15 @@ def test_every_shipped_agent_still_solves_its_task(key, capsys, monkeypatch):
     """A shipped agent keeps its published figure on the env as it is now: on 10 held-out
     episodes its deterministic success is at least 0.7 of the figure in its published.json
     (100 held-out episodes) (a change to the task that breaks the agent fails here)."""
-    env_id, mode = key
+    env_id, mode, variant = key
     monkeypatch.setattr(sys, "argv", ["cparticles"])
+    more = ["--env-kwargs", *variant.split(",")] if variant else []
     assert cli.main(["evaluate", "--pretrained", env_id, "--action-mode", mode,
-                     "--episodes", "10", "--json"]) == 0
+                     "--episodes", "10", "--json", *more]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (res["env"], res["action_mode"], res["deterministic"]) == (env_id, mode, True)
+    if variant:  # (the variant's own agent, on the variant)
+        assert res["env_kwargs"] == parse_variant(variant)
     published = json.loads((pretrained.shipped()[key] / "published.json").read_text())
     assert published["deterministic"]["eval_episodes"] == 100
     assert res["success_rate"] >= 0.7 * published["deterministic"]["success_rate"]
