@@ -274,8 +274,10 @@ class PickPlaceTask(ShapedTask, ParticleTask):
 
     def simulate(self) -> np.ndarray:
         """One pick-and-place per copy (module docstring); returns the (num_envs,) mask of
-        copies whose simulation diverged (all of them, put back in their state from before
-        the step, when a physics step diverges: no NaN leaves this method)."""
+        copies whose simulation diverged: each is put back in its state from before the step
+        (grippers open, not settled) while the others go on as they would alone (copy ``i``
+        still reproduces a single env); no NaN leaves this method. When every copy diverges,
+        the whole step is taken back (the clock too)."""
         s, N, G, n = self.system, self.num_envs, self.num_grippers, self.n
         idle = np.zeros(N, bool) if self._idle is None else self._idle
         self._idle = None
@@ -303,6 +305,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         moving = int(carry.max(initial=0))  # (chunks in which some anchor still moves)
         was_on = None
         lifted = self.table.lifted  # (the friction block covers every particle, in order)
+        diverged = np.zeros(N, bool)
         try:
             while not done.all():
                 on = (held & (j < release)[:, None] & ~done[:, None]).reshape(-1)
@@ -314,7 +317,19 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                     lifted[:] = False
                     lifted[flat_particle[on]] = True
                     was_on = on
-                s.step(self.dt, self.integrator, steps=self.chunk)
+                bad = self._chunk()
+                if bad.any():  # (those copies end the step as they began it)
+                    bad &= ~done
+                    if (diverged | bad).sum() == (~idle).sum() and not (done & ~idle).any():
+                        return self._undo(x0, v0, t0, lam0)  # (every copy: as alone)
+                    diverged |= bad
+                    rows = np.repeat(bad, n)
+                    x_done[rows], v_done[rows] = x0[rows], v0[rows]
+                    lam_done[bad[rows_of]] = lam0[bad[rows_of]]
+                    settled[bad] = False
+                    done |= bad
+                    was_on = None
+                    continue
                 j += 1
                 if j < release[~done].min():  # (no copy can be done yet)
                     continue
@@ -339,7 +354,45 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         lrows = keep[rows_of]
         lam[lrows] = lam_done[lrows]
         self.settled[keep] = settled[keep]
-        return np.zeros(N, bool)
+        return diverged
+
+    def _chunk(self) -> np.ndarray:
+        """``chunk`` physics steps of the whole system; returns the (num_envs,) mask of the
+        copies that diverge in them (none: the system advanced). When some do, the system is
+        left as before the chunk, with those copies frozen (at rest, grippers open, on the
+        table) so that the next try runs the others alone: each copy's arithmetic is its
+        own, so which copies diverge is found by stepping each one with every other frozen."""
+        s = self.system
+        try:
+            s.step(self.dt, self.integrator, steps=self.chunk)
+            return np.zeros(self.num_envs, bool)
+        except SimulationDiverged:
+            pass
+        x, v, t, lam = s.x.copy(), s.v.copy(), s.t, self._lam().copy()
+        active, lifted = self.grippers.active.copy(), self.table.lifted.copy()
+        bad = np.zeros(self.num_envs, bool)
+        for c in range(self.num_envs):
+            others = np.ones(self.num_envs, bool)
+            others[c] = False
+            self._freeze(others)
+            try:
+                s.step(self.dt, self.integrator, steps=self.chunk)
+            except SimulationDiverged:
+                bad[c] = True
+            s.x, s.v, s.t = x.copy(), v.copy(), t
+            self._lam()[:] = lam
+            self.grippers.active[:], self.table.lifted[:] = active, lifted
+        if not bad.any():  # (only together: none can be told apart)
+            bad[:] = True
+        self._freeze(bad)
+        return bad
+
+    def _freeze(self, copies: np.ndarray) -> None:
+        """The masked copies at rest where they are, their grippers open, on the table."""
+        s, n, G = self.system, self.n, self.num_grippers
+        s.v[np.repeat(copies, n)] = 0.0
+        self.grippers.active.reshape(self.num_envs, G)[copies] = False
+        self.table.lifted.reshape(self.num_envs, n)[copies] = False
 
     def _drag(self, idle: np.ndarray) -> np.ndarray:
         """One step of drag mode: each gripper with ``grip > 0`` holds (or grabs, within
@@ -378,20 +431,32 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         self.table.lifted[:] = False
         self.table.lifted[flat[on]] = True
         x0, v0, lam0, t0 = s.x.copy(), s.v.copy(), self._lam().copy(), s.t
-        try:
-            for j in range(self.drag_chunks):
-                u = (j + 1) / self.drag_chunks
-                frac = u * u * (3.0 - 2.0 * u)  # (smooth: the gripper starts and stops at rest)
-                springs.anchor[:] = (start + (target - start) * frac).reshape(-1, 2)
-                s.step(self.dt, self.integrator, steps=self.chunk)
-        except SimulationDiverged:
-            return self._undo(x0, v0, t0, lam0)
+        diverged = np.zeros(N, bool)
+        j = 0
+        while j < self.drag_chunks:
+            u = (j + 1) / self.drag_chunks
+            frac = u * u * (3.0 - 2.0 * u)  # (smooth: the gripper starts and stops at rest)
+            springs.anchor[:] = (start + (target - start) * frac).reshape(-1, 2)
+            bad = self._chunk()
+            if bad.any():
+                if (diverged | bad).all():
+                    return self._undo(x0, v0, t0, lam0)  # (every copy: as alone)
+                diverged |= bad
+                continue  # (the chunk again, those copies frozen by _chunk)
+            j += 1
         self._let_go()
-        self.gripper_pos[~idle] = target[~idle]
+        moved = ~idle & ~diverged
+        self.gripper_pos[moved] = target[moved]
         v = s.v
         speed2 = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]).reshape(N, n).max(axis=1)
         self.settled[:] = speed2 < self.rest_speed**2
-        return np.zeros(N, bool)
+        if diverged.any():  # (as they began the step)
+            rows = np.repeat(diverged, n)
+            s.x[rows], s.v[rows] = x0[rows], v0[rows]
+            lrows = diverged[self._row_env]
+            self._lam()[lrows] = lam0[lrows]
+            self.settled[diverged] = False
+        return diverged
 
     def _undo(self, x0: np.ndarray, v0: np.ndarray, t0: float, lam0: np.ndarray
               ) -> np.ndarray:

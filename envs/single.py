@@ -117,6 +117,9 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         check_task_kwargs(self.task_class, kwargs, also=("render_mode", "obs_mode",
                                                          "pixel_size", "pixel_channels"))
         self.task = self.task_class(1, **kwargs)
+        limit = self._registered_limit()  # (what a divergence pays for, as in a vector env
+        if limit is not None:  # made with the registered limit; task.episode_steps changes it)
+            self.task.episode_steps = limit
         self.action_space = self.task.single_action_space
         self.observation_space = self._one_space()
         self.render_mode = render_mode
@@ -161,6 +164,15 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode == "human":
             self.render()
         return obs, info
+
+    def _registered_limit(self) -> int | None:
+        """The time limit (env steps) the task is registered with, None if it is not."""
+        from .task import spec_of_task
+
+        try:
+            return spec_of_task(self.task).max_episode_steps
+        except ValueError:
+            return None
 
     def step(self, action: ArrayLike) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` for one env step (``substeps`` physics steps)."""

@@ -276,3 +276,31 @@ def test_the_fold_picture_marks_the_half_to_move():
         assert np.allclose(middle, 0.5 * (a + b))
         assert np.dot(tip - middle, x[moved].mean(axis=0) - middle) > 0
         assert np.dot(tip - middle, b - a) == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["pick_place", "drag"])
+def test_a_copy_that_diverges_leaves_the_others_as_they_would_be_alone(mode):
+    """One copy of a vector env launched hard enough to diverge ends the step flagged, as it
+    began it; the other copies step exactly as single envs seeded alike (bit for bit), and a
+    single env given the same launch diverges too."""
+    N, seed = 3, 7
+    venv = gym.make_vec("RopeStraighten-v0", num_envs=N, vectorization_mode="vector_entry_point",
+                        action_mode=mode)
+    obs, _ = venv.reset(seed=seed)
+    a = make_agent("random", venv, seed=1)(obs)
+    t = venv.unwrapped.task
+    n = t.n
+    t.system.v[n:n + 3] = 9e5  # (copy 1's first particles, launched)
+    before = t.system.x[n:2 * n].copy()
+    obs, reward, term, trunc, info = venv.step(a)
+    assert info["diverged"].tolist() == [False, True, False]
+    assert np.isfinite(obs).all()
+    assert np.array_equal(t.system.x[n:2 * n], before)
+    for i in range(N):
+        env = gym.make("RopeStraighten-v0", action_mode=mode)
+        env.reset(seed=seed + i)
+        if i == 1:
+            env.unwrapped.task.system.v[:3] = 9e5
+        o, r, te, tr, inf = env.step(a[i])
+        assert inf["diverged"] == (i == 1)
+        assert np.array_equal(o, obs[i]) and r == reward[i], i
