@@ -1,7 +1,8 @@
 """Pretrained agents shipped with the package: ``cparticles evaluate --pretrained ENV_ID``.
 
 Each agent is a run directory of ``cparticles train`` kept under ``envs/pretrained/`` (the
-folder is named ``<env id>-<action mode>``): ``config.json`` (the run's settings, JSON),
+folder is named ``<env id>-<action mode>``, with a variant's keyword arguments between the
+two as the baselines' run directories have them: ``ChainSwing-v0-target-swingup-force``): ``config.json`` (the run's settings, JSON),
 ``policy.pt`` (the policy's weights, a PyTorch state dict of tensors read with
 ``weights_only``) and, when the run normalized its observations, ``normalization.npz`` (plain
 arrays). Loading one runs no code stored in it, as for any run directory
