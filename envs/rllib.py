@@ -47,7 +47,7 @@ from .task import task_spec, task_specs
 if TYPE_CHECKING:  # (the ray extra)
     from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 
-__all__ = ["configure", "make_env", "register"]
+__all__ = ["configure", "make_env", "register", "scaled_pixels_connector"]
 
 #: RLlib's name for our vectorization: each EnvRunner calls the env's vector entry point.
 VECTORIZE_MODE = "vector_entry_point"
@@ -116,8 +116,48 @@ def configure(config: AlgorithmConfig, env_id: str, *, num_env_runners: int = 2,
     if num_envs_per_env_runner < 1:
         raise ValueError(f"num_envs_per_env_runner must be >= 1, got {num_envs_per_env_runner}")
     register([env_id])
-    return (config
-            .environment(env_id, env_config=dict(env_config or {}))
-            .env_runners(num_env_runners=num_env_runners,
-                         num_envs_per_env_runner=num_envs_per_env_runner,
-                         gym_env_vectorize_mode=VECTORIZE_MODE))
+    config = (config
+              .environment(env_id, env_config=dict(env_config or {}))
+              .env_runners(num_env_runners=num_env_runners,
+                           num_envs_per_env_runner=num_envs_per_env_runner,
+                           gym_env_vectorize_mode=VECTORIZE_MODE))
+    if (env_config or {}).get("obs_mode") in ("pixels", "state_pixels"):
+        config = config.env_runners(env_to_module_connector=_scaled_pixels)
+    return config
+
+
+def _scaled_pixels(env: Any = None, spaces: Any = None, device: Any = None) -> Any:
+    """RLlib env-to-module connector factory: :func:`scaled_pixels_connector`'s piece."""
+    return scaled_pixels_connector()
+
+
+def scaled_pixels_connector() -> Any:
+    """An RLlib env-to-module connector piece that hands the module each ``uint8`` image of a
+    pixel observation (``obs_mode="pixels"``, or the ``"pixels"`` entry of
+    ``"state_pixels"``) as ``float32`` in [0, 1], the input RLlib's CNN encoders take (they do
+    not convert images themselves). :func:`configure` adds it for those observation modes."""
+    require("ray.rllib", command="envs.rllib.scaled_pixels_connector")
+    import numpy as np
+    from ray.rllib.connectors.env_to_module.observation_preprocessor import (
+        SingleAgentObservationPreprocessor,
+    )
+
+    def scaled(space: gym.Space) -> gym.Space:
+        if isinstance(space, gym.spaces.Box) and space.dtype == np.uint8:
+            return gym.spaces.Box(0.0, 1.0, space.shape, np.float32)
+        if isinstance(space, gym.spaces.Dict) and "pixels" in space.spaces:
+            return gym.spaces.Dict({**space.spaces, "pixels": scaled(space["pixels"])})
+        return space
+
+    class ScaledPixels(SingleAgentObservationPreprocessor):
+        def recompute_output_observation_space(self, input_observation_space: gym.Space,
+                                               input_action_space: gym.Space) -> gym.Space:
+            return scaled(input_observation_space)
+
+        def preprocess(self, observation: Any, episode: Any) -> Any:
+            if isinstance(observation, dict):
+                return {**observation,
+                        "pixels": observation["pixels"].astype(np.float32) * (1.0 / 255.0)}
+            return observation.astype(np.float32) * (1.0 / 255.0)
+
+    return ScaledPixels()
