@@ -227,13 +227,16 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
     (:func:`stack_frames`), as training with that setting did.
 
     Returns the per-episode arrays ``return``, ``length``, ``success``, ``final_distance`` (m),
-    ``final_speed`` (m/s), and the summaries ``mean_abs_squeeze`` (N, ClothSlide force mode, else
-    None) and ``rms_speed_near_goal`` (m/s, RMS particle speed over all steps within
-    ``NEAR_GOAL`` m of the goal, None if there were none).
+    ``final_speed`` (m/s), ``final_performance`` (the last ``info["normalized_performance"]``,
+    SoftGym's measure, of the tasks that report it; NaN for the others), and the summaries
+    ``mean_abs_squeeze`` (N, ClothSlide force mode, else None) and ``rms_speed_near_goal``
+    (m/s, RMS particle speed over all steps within ``NEAR_GOAL`` m of the goal, None if there
+    were none).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    keys = ("return", "length", "success", "final_distance", "final_speed")
+    keys = ("return", "length", "success", "final_distance", "final_speed",
+            "final_performance")
     out: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     squeeze: list[np.ndarray] = []
     near: list[np.ndarray] = []
@@ -246,7 +249,7 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
         seen = stack_frames(None, obs, frame_stack) if frame_stack > 1 else obs
         ret, length = np.zeros(n), np.zeros(n, dtype=np.int64)
         success, done = np.zeros(n, bool), np.zeros(n, bool)
-        dist, speed = np.zeros(n), np.zeros(n)
+        dist, speed, perf = np.zeros(n), np.zeros(n), np.full(n, np.nan)
         while not done.all():
             obs, reward, terminated, truncated, info = env.step(policy(seen))
             # (a copy that ended keeps stepping, ignored, until the batch is done)
@@ -261,9 +264,11 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
             near.append(m["speed"][live & (m["distance"] < NEAR_GOAL)])
             ended = live & (terminated | truncated)
             success[ended] = info["is_success"][ended]
+            if "normalized_performance" in info:
+                perf[ended] = info["normalized_performance"][ended]
             done |= ended
         env.close()
-        for k, v in zip(keys, (ret, length, success, dist, speed), strict=True):
+        for k, v in zip(keys, (ret, length, success, dist, speed, perf), strict=True):
             out[k].append(v)
     res: dict[str, Any] = {k: np.concatenate(v) for k, v in out.items()}
     res["mean_abs_squeeze"] = float(np.mean(np.concatenate(squeeze))) if squeeze else None
@@ -274,12 +279,16 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
 
 
 def summarize(res: dict[str, Any]) -> dict[str, Any]:
-    """The JSON-able summary of :func:`run_episodes`."""
+    """The JSON-able summary of :func:`run_episodes` (``mean_normalized_performance``: None
+    for a task that does not report it)."""
     fail = ~res["success"]
+    perf = res.get("final_performance")
+    has_perf = perf is not None and not np.isnan(perf).all()
     return {"episodes": int(len(res["success"])),
             "success_rate": float(res["success"].mean()),
             "mean_return": float(res["return"].mean()),
             "mean_length": float(res["length"].mean()),
+            "mean_normalized_performance": float(np.mean(perf)) if has_perf else None,
             "mean_abs_squeeze": res["mean_abs_squeeze"],
             "rms_speed_near_goal": res["rms_speed_near_goal"],
             "failures_final_distance": res["final_distance"][fail].round(4).tolist(),

@@ -224,7 +224,9 @@ def main_evaluate(args: argparse.Namespace) -> int:
               f"{'deterministic' if res['deterministic'] else 'stochastic'}, seeds "
               f"{args.seed_start}..{args.seed_start + args.episodes - 1}")
         print(f"success rate {res['success_rate']:.0%}, mean return {res['mean_return']:.2f}, "
-              f"mean length {res['mean_length']:.1f} steps")
+              f"mean length {res['mean_length']:.1f} steps"
+              + ("" if res.get("mean_normalized_performance") is None else
+                 f", mean normalized performance {res['mean_normalized_performance']:.2f}"))
     print(json.dumps(res))
     return 0
 
