@@ -2,13 +2,13 @@
 
 Each agent is a run directory of ``cparticles train`` kept under ``envs/pretrained/`` (the
 folder is named ``<env id>-<action mode>``, with a variant's keyword arguments between the
-two as the baselines' run directories have them: ``ChainSwing-v0-target-swingup-force``): ``config.json`` (the run's settings, JSON),
-``policy.pt`` (the policy's weights, a PyTorch state dict of tensors read with
-``weights_only``) and, when the run normalized its observations, ``normalization.npz`` (plain
-arrays). Loading one runs no code stored in it, as for any run directory
-(:func:`envs.train.evaluate`); ``evaluations.json`` keeps the run's periodic evaluations and
-``published.json`` its figures on 100 held-out episodes (seeds from 2,000,000), deterministic
-and stochastic, as the baselines table gives them.
+two as the baselines' run directories have them: ``ChainSwing-v0-target-swingup-force``):
+``config.json`` (the run's settings, JSON), ``policy.pt`` (the policy's weights, a PyTorch
+state dict of tensors read with ``weights_only``) and, when the run normalized its
+observations, ``normalization.npz`` (plain arrays). Loading one runs no code stored in it, as
+for any run directory (:func:`envs.train.evaluate`); ``evaluations.json`` keeps the run's
+periodic evaluations and ``published.json`` its figures on 100 held-out episodes (seeds from
+2,000,000), deterministic and stochastic, as the baselines table gives them.
 
 >>> from envs.pretrained import shipped
 >>> all(path.is_dir() for path in shipped().values())
