@@ -46,6 +46,7 @@ from .task import task_spec, task_specs
 
 if TYPE_CHECKING:  # (the ray extra)
     from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+    from ray.rllib.connectors.connector_v2 import ConnectorV2
 
 __all__ = ["configure", "make_env", "register", "scaled_pixels_connector"]
 
@@ -126,12 +127,13 @@ def configure(config: AlgorithmConfig, env_id: str, *, num_env_runners: int = 2,
     return config
 
 
-def _scaled_pixels(env: Any = None, spaces: Any = None, device: Any = None) -> Any:
+def _scaled_pixels(env: object = None, spaces: object = None, device: object = None
+                   ) -> ConnectorV2:
     """RLlib env-to-module connector factory: :func:`scaled_pixels_connector`'s piece."""
     return scaled_pixels_connector()
 
 
-def scaled_pixels_connector() -> Any:
+def scaled_pixels_connector() -> ConnectorV2:
     """An RLlib env-to-module connector piece that hands the module each ``uint8`` image of a
     pixel observation (``obs_mode="pixels"``, or the ``"pixels"`` entry of
     ``"state_pixels"``) as ``float32`` in [0, 1], the input RLlib's CNN encoders take (they do

@@ -124,7 +124,11 @@ class LinearSchedule:
         return f"lin_{self.value:g}"
 
 
-def schedule(key: str, value: Any) -> Any:
+#: A setting's value as ``config.json`` holds it (JSON data).
+Setting = str | int | float | bool | list | dict | None
+
+
+def schedule(key: str, value: Setting) -> Setting | LinearSchedule:
     """The value of setting ``key`` for Stable-Baselines3: ``"lin_<value>"`` (a key of
     :data:`SCHEDULE_KEYS`, a finite ``value`` > 0) as a :class:`LinearSchedule`, anything else
     unchanged; ValueError naming the key for any other string there."""
