@@ -565,7 +565,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         if hp.get("normalize", False):
             # (images are not normalized: the CNN policy scales pixels by 1/255 itself; the
             # rewards still are)
-            venv = VecNormalize(venv, norm_obs=not _is_image(venv.observation_space),
+            venv = VecNormalize(venv, norm_obs=not _is_image(env_space),
                                 norm_reward=hp.get("normalize_reward", True),
                                 gamma=kwargs.get("gamma", 0.99))
         started = time.perf_counter()
@@ -614,9 +614,10 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
 def _is_image(space: gym.Space) -> bool:
     """An image observation (``uint8`` ``(H, W, C)`` in [0, 255], as ``obs_mode="pixels"``
     gives): what SB3's ``CnnPolicy`` takes."""
-    from stable_baselines3.common.preprocessing import is_image_space
-
-    return is_image_space(space, check_channels=True)
+    return (isinstance(space, gym.spaces.Box) and space.dtype == np.uint8
+            and len(space.shape) == 3 and bool(np.all(space.low == 0))
+            and bool(np.all(space.high == 255))
+            and (space.shape[-1] in (1, 3, 4) or space.shape[0] in (1, 3, 4)))
 
 
 def _check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
@@ -734,6 +735,10 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
                          f"({exc})") from None
     spaces = {"observation": env.observation_space, "action": env.action_space}
     env.close()
+    try:
+        _check_policy_fits(config["hyperparams"], spaces["observation"])
+    except ValueError as exc:
+        raise ValueError(f"{config_path}: hyperparams.{exc}") from None
     if not isinstance(config.get("normalized", False), bool):
         raise ValueError(f"{config_path}: field 'normalized' must be true or false")
     recorded = config.get("spaces")
@@ -765,7 +770,7 @@ def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
         observation = gym.spaces.Box(np.repeat(observation.low, stack, axis=-1),
                                      np.repeat(observation.high, stack, axis=-1),
                                      dtype=observation.dtype)
-    if _is_image(observation):  # (trained channel-first: SB3 transposes images for torch)
+    if _is_image(spaces["observation"]):  # (trained channel-first: SB3 transposes images)
         from stable_baselines3.common.vec_env import VecTransposeImage
 
         observation = VecTransposeImage.transpose_space(observation)

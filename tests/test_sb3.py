@@ -549,11 +549,12 @@ def test_a_cnn_on_stacked_frames_evaluates_as_it_trained(tmp_path, capsys, monke
     assert cli.main(["train", "ChainSwing-v0", "--seed", "3", "--out", str(out),
                      "--timesteps", "128", "--eval-episodes", "1", "--eval-freq", "100000",
                      "--no-progress", "--env-kwargs", "obs_mode=pixels", "pixel_size=36",
-                     "pixel_channels=1", "--hyperparams", "policy=CnnPolicy", "frame_stack=3",
+                     "--hyperparams", "policy=CnnPolicy", "frame_stack=3",
                      "n_steps=16", "batch_size=32", "--n-envs", "4"]) == 0
     config = json.loads((out / "config.json").read_text())
-    assert config["spaces"]["observation"]["shape"] == [36, 36, 1]
+    assert config["spaces"]["observation"]["shape"] == [36, 36, 3]  # (9 channels stacked)
     assert config["hyperparams"]["frame_stack"] == 3
+    assert config["normalized"] is False  # (rewards only: images are not normalized)
     last = json.loads((out / "evaluations.json").read_text())[-1]
     capsys.readouterr()
     assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
