@@ -270,7 +270,7 @@ def test_train_decays_a_lin_setting_and_the_std_ceiling(tmp_path, capsys, monkey
     ``log_std_final`` not below ``log_std_init`` or for SAC, is refused before any work."""
     import torch
 
-    from envs.train import LinearSchedule, schedule
+    from envs.train_settings import LinearSchedule, schedule
 
     assert schedule("learning_rate", "lin_3e-4")(1.0) == pytest.approx(3e-4)
     assert schedule("clip_range", "lin_0.2")(0.25) == pytest.approx(0.05)

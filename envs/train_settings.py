@@ -1,0 +1,158 @@
+"""The training settings ``cparticles train`` checks and applies beside Stable-Baselines3's
+own: the policies a run may name and their keyword arguments, linear schedules
+(``"lin_<value>"``), the ceiling on a PPO policy's noise (``log_std_final``), frame stacking,
+and which policy suits which observation (images: ``CnnPolicy``).
+
+Requires the ``rl`` extra only where a function says so (:func:`std_ceiling`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+
+if TYPE_CHECKING:  # (the rl extra)
+    from stable_baselines3.common.callbacks import BaseCallback
+
+#: Most frames ``frame_stack`` may stack (rl-baselines3-zoo's key: SB3's ``VecFrameStack``).
+MAX_FRAME_STACK = 16
+
+
+#: Policies a run directory may name (Stable-Baselines3's aliases): ``CnnPolicy`` (Nature
+#: CNN features, then ``net_arch``) for the image observations of ``obs_mode="pixels"``.
+POLICIES = ("MlpPolicy", "CnnPolicy")
+#: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
+MAX_LAYER = 4096
+#: Settings that may also be given as a schedule, ``"lin_<value>"``: ``value`` at the start,
+#: decayed linearly to 0 at the end of the budget (rl-baselines3-zoo's notation).
+SCHEDULE_KEYS = ("learning_rate", "clip_range")
+
+
+class LinearSchedule:
+    """``value * progress_remaining``: Stable-Baselines3 calls a schedule with the fraction of
+    the budget left (1 at the start, 0 at the end), so the setting decays linearly to 0."""
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def __call__(self, progress_remaining: float) -> float:
+        return self.value * progress_remaining
+
+    def __repr__(self) -> str:
+        return f"lin_{self.value:g}"
+
+
+#: A setting's value as ``config.json`` holds it (JSON data).
+Setting = str | int | float | bool | list | dict | None
+
+
+def schedule(key: str, value: Setting) -> Setting | LinearSchedule:
+    """The value of setting ``key`` for Stable-Baselines3: ``"lin_<value>"`` (a key of
+    :data:`SCHEDULE_KEYS`, a finite ``value`` > 0) as a :class:`LinearSchedule`, anything else
+    unchanged; ValueError naming the key for any other string there."""
+    if key not in SCHEDULE_KEYS or not isinstance(value, str):
+        return value
+    try:
+        start = float(value[4:]) if value.startswith("lin_") else float("nan")
+    except ValueError:
+        start = float("nan")
+    if not (np.isfinite(start) and start > 0):
+        raise ValueError(f"hyperparams: {key} must be a number or 'lin_<value>' (a linear "
+                         f"decay from value > 0 to 0 over the budget), got {value!r}")
+    return LinearSchedule(start)
+
+
+def std_ceiling(start: float, final: float, timesteps: int) -> BaseCallback:
+    """A callback that caps a PPO policy's log standard deviations, before each rollout and at
+    the end, at a ceiling lowered linearly from ``start`` (no cap at step 0) to ``final`` at
+    ``timesteps`` (``log_std_final``): the policy explores as widely as ``log_std_init`` lets
+    it early and acts with at most ``exp(final)`` of noise at the end, whatever the gradient
+    did with it."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class StdCeiling(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            done = min(1.0, self.num_timesteps / timesteps)
+            with torch.no_grad():
+                self.model.policy.log_std.clamp_(max=start + (final - start) * done)
+
+        def _on_training_end(self) -> None:
+            self._on_rollout_start()  # (the final policy: at most exp(final))
+
+        def _on_step(self) -> bool:
+            return True
+
+    return StdCeiling()
+
+
+def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:
+    """``hp["log_std_final"]`` (None without it): a finite number below the policy's
+    ``log_std_init``, for PPO only; ValueError naming the key otherwise."""
+    final = hp.get("log_std_final")
+    if final is None:
+        return None
+    start = hp.get("policy_kwargs", {}).get("log_std_init", 0.0)
+    if algo != "ppo" or hp.get("policy_kwargs", {}).get("use_sde", False):
+        raise ValueError("hyperparams: log_std_final caps the log standard deviation of a PPO "
+                         "policy without use_sde")
+    if type(final) not in (int, float) or not np.isfinite(final) or final >= start:
+        raise ValueError(f"hyperparams: log_std_final must be a number below log_std_init "
+                         f"({start}), got {final!r}")
+    return float(final)
+
+
+def is_image(space: gym.Space) -> bool:
+    """An image observation (``uint8`` ``(H, W, C)`` in [0, 255], as ``obs_mode="pixels"``
+    gives): what SB3's ``CnnPolicy`` takes."""
+    return (isinstance(space, gym.spaces.Box) and space.dtype == np.uint8
+            and len(space.shape) == 3 and bool(np.all(space.low == 0))
+            and bool(np.all(space.high == 255))
+            and (space.shape[-1] in (1, 3, 4) or space.shape[0] in (1, 3, 4)))
+
+
+def check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
+    """ValueError naming the setting unless the policy suits the observation: images go to
+    ``CnnPolicy``, anything else to ``MlpPolicy``."""
+    policy = hp.get("policy", "MlpPolicy")
+    if is_image(space):
+        if policy != "CnnPolicy":
+            raise ValueError(f"policy: image observations {space.shape} need "
+                             f"policy=CnnPolicy, got {policy!r} (--hyperparams "
+                             "policy=CnnPolicy)")
+    elif policy == "CnnPolicy":
+        raise ValueError(f"policy: CnnPolicy takes image observations (obs_mode='pixels'), "
+                         f"got a {type(space).__name__} of shape {space.shape}")
+
+
+def check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
+    """ValueError unless the policy settings of ``hp`` are ones ``evaluate`` can rebuild: a
+    policy of :data:`POLICIES` and ``policy_kwargs`` of :data:`POLICY_KWARGS` with layers of
+    1 to :data:`MAX_LAYER` units."""
+    if hp.get("policy", "MlpPolicy") not in POLICIES:
+        raise ValueError(f"{config_path}: hyperparams.policy must be one of {POLICIES}, got "
+                         f"{hp.get('policy')!r}")
+    pk = hp.get("policy_kwargs", {})
+    if not isinstance(pk, dict) or set(pk) - set(POLICY_KWARGS):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs may hold only "
+                         f"{', '.join(POLICY_KWARGS)}")
+    arch = pk.get("net_arch", [64, 64])
+    if not (isinstance(arch, list) and len(arch) <= 16
+            and all(type(n) is int and 1 <= n <= MAX_LAYER for n in arch)):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.net_arch must be a list of "
+                         f"at most 16 layer widths in [1, {MAX_LAYER}]")
+    if not isinstance(pk.get("use_sde", False), bool):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
+                         "false")
+    stack = hp.get("frame_stack", 1)
+    if type(stack) is not int or not 1 <= stack <= MAX_FRAME_STACK:
+        raise ValueError(f"{config_path}: hyperparams.frame_stack must be a whole number in "
+                         f"[1, {MAX_FRAME_STACK}], got {stack!r}")
+    log_std = pk.get("log_std_init", 0.0)
+    if type(log_std) not in (int, float) or not np.isfinite(log_std):
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.log_std_init must be a "
+                         "finite number")
