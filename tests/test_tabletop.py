@@ -304,3 +304,21 @@ def test_a_copy_that_diverges_leaves_the_others_as_they_would_be_alone(mode):
         o, r, te, tr, inf = env.step(a[i])
         assert inf["diverged"] == (i == 1)
         assert np.array_equal(o, obs[i]) and r == reward[i], i
+
+
+def test_run_episodes_reports_the_normalized_performance_of_a_tabletop_task():
+    # envs.train's evaluation loop (cparticles evaluate, envs.baselines) keeps SoftGym's
+    # measure at each episode's end: the scripted agent straightens every rope (p >= 0.95,
+    # so at least (0.95 - p0) / (1 - p0) >= 0.9 from starts with p0 <= 0.5); a task without it
+    # gives None
+    from envs.train import run_episodes, summarize
+
+    env = gym.make("RopeStraighten-v0")
+    agent = make_agent("scripted", env)
+    res = summarize(run_episodes(agent, "RopeStraighten-v0", 4, 100, action_mode="pick_place"))
+    assert res["success_rate"] == 1.0
+    assert 0.9 <= res["mean_normalized_performance"] <= 1.0
+    env = gym.make("SliderCrank-v0")
+    agent = make_agent("random", env)
+    res = summarize(run_episodes(agent, "SliderCrank-v0", 2, 100, action_mode="force"))
+    assert res["mean_normalized_performance"] is None
