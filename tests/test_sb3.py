@@ -455,6 +455,18 @@ def test_sac_with_hindsight_relabelling_runs_on_goal_observations():
     assert np.array_equal(batch.rewards.numpy().ravel(), expected.astype(np.float32))
 
 
+def _evaluate_replays_the_last_periodic_evaluation(out, capsys):
+    """``evaluate`` on the first periodic-evaluation seed gives the return the run's last
+    periodic evaluation (one episode, the final model) recorded: the policy is rebuilt and fed
+    as in training."""
+    last = json.loads((out / "evaluations.json").read_text())[-1]
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
+                     "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["mean_return"] == pytest.approx(last["mean_return"], abs=1e-9)
+
+
 def test_a_cnn_policy_trains_on_pixels_and_evaluates_the_same(tmp_path, capsys, monkeypatch):
     """``obs_mode=pixels`` trains SB3's CnnPolicy (images channel-first for torch, rewards
     normalized, pixels not); ``evaluate`` rebuilds it from the weights and plays the final
@@ -471,12 +483,7 @@ def test_a_cnn_policy_trains_on_pixels_and_evaluates_the_same(tmp_path, capsys, 
     assert config["hyperparams"]["policy"] == "CnnPolicy"
     assert config["spaces"]["observation"]["shape"] == [40, 40, 3]
     assert config["spaces"]["observation"]["dtype"] == "uint8"
-    last = json.loads((out / "evaluations.json").read_text())[-1]
-    capsys.readouterr()
-    assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
-                     "--json"]) == 0
-    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert res["mean_return"] == pytest.approx(last["mean_return"], abs=1e-9)
+    _evaluate_replays_the_last_periodic_evaluation(out, capsys)
     with pytest.raises(SystemExit) as exc:
         cli.main(["train", "ClothSlide-v0", "--out", str(tmp_path / "x"), "--env-kwargs",
                   "obs_mode=pixels"])
@@ -555,12 +562,7 @@ def test_a_cnn_on_stacked_frames_evaluates_as_it_trained(tmp_path, capsys, monke
     assert config["spaces"]["observation"]["shape"] == [36, 36, 3]  # (9 channels stacked)
     assert config["hyperparams"]["frame_stack"] == 3
     assert config["normalized"] is False  # (rewards only: images are not normalized)
-    last = json.loads((out / "evaluations.json").read_text())[-1]
-    capsys.readouterr()
-    assert cli.main(["evaluate", str(out), "--episodes", "1", "--seed-start", "1000000",
-                     "--json"]) == 0
-    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert res["mean_return"] == pytest.approx(last["mean_return"], abs=1e-9)
+    _evaluate_replays_the_last_periodic_evaluation(out, capsys)
     with pytest.raises(SystemExit) as exc:
         cli.main(["train", "ChainSwing-v0", "--out", str(tmp_path / "x"),
                   "--hyperparams", "frame_stack=0"])
