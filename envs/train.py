@@ -62,12 +62,13 @@ from constrained_particles.extras import require
 
 from .checks import check_positive
 from .task import check_env_kwargs, check_env_mode, task_spec
-from .train_settings import check_policy_fits as _check_policy_fits
-from .train_settings import check_policy_settings as _check_policy_settings
 from .train_settings import (
+    check_explore,
     check_std_final,
     schedule,
 )
+from .train_settings import check_policy_fits as _check_policy_fits
+from .train_settings import check_policy_settings as _check_policy_settings
 from .train_settings import is_image as _is_image
 from .train_settings import std_ceiling as _std_ceiling
 
@@ -86,7 +87,7 @@ HELD_OUT_SEED_START = 2_000_000
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
-            "frame_stack", "log_std_final")
+            "frame_stack", "log_std_final", "explore_until_success")
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -449,6 +450,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     for key, value in hp.items():  # (a schedule's notation, before any work)
         schedule(key, value)
     std_final = check_std_final(algo, hp)
+    explore = check_explore(algo, hp)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -503,7 +505,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         callbacks: list[Any] = [callback]
         if std_final is not None:
             callbacks.append(_std_ceiling(hp["policy_kwargs"].get("log_std_init", 0.0),
-                                          std_final, timesteps))
+                                          std_final, timesteps, explore))
         model.learn(total_timesteps=timesteps, callback=callbacks, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:
             callback.evaluate_now()

@@ -23,8 +23,8 @@ from .train import (
     _check_policy_fits,
     _check_policy_settings,
     check_convertible,
+    check_explore,
     check_overrides,
-    check_std_final,
     convert_run,
     evaluate,
     load_hyperparams,
@@ -103,7 +103,7 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
                                          args.env_kwargs),
                       **check_overrides(args.algo, args.hyperparams)}
                 _check_policy_settings(Path("hyperparams"), hp)
-                check_std_final(args.algo, hp)
+                check_explore(args.algo, hp)
                 env = task_spec(args.env).env(action_mode=args.action_mode,
                                               **{**hp.get("env_kwargs", {}), **args.env_kwargs})
                 try:

@@ -66,28 +66,68 @@ def schedule(key: str, value: Setting) -> Setting | LinearSchedule:
     return LinearSchedule(start)
 
 
-def std_ceiling(start: float, final: float, timesteps: int) -> BaseCallback:
+def std_ceiling(start: float, final: float, timesteps: int,
+                hold_until_success: bool = False) -> BaseCallback:
     """A callback that caps a PPO policy's log standard deviations, before each rollout and at
     the end, at a ceiling lowered linearly from ``start`` (no cap at step 0) to ``final`` at
     ``timesteps`` (``log_std_final``): the policy explores as widely as ``log_std_init`` lets
     it early and acts with at most ``exp(final)`` of noise at the end, whatever the gradient
-    did with it."""
+    did with it.
+
+    With ``hold_until_success`` (``explore_until_success``), the noise is first held up: until
+    an episode of the rollouts ends in success (``info["is_success"]``), the log standard
+    deviations are kept at least ``start`` and not capped; from the first rollout after that
+    success, at step ``t0``, the ceiling falls linearly from ``start`` to ``final`` over the
+    rest of the budget (``t0`` to ``timesteps``). A run that never succeeds explores to the end
+    instead of settling, through a shrinking noise, on whatever it did before finding a way."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
     class StdCeiling(BaseCallback):
+        #: the step from which the ceiling falls (None: held, no success yet)
+        since: int | None = None if hold_until_success else 0
+
         def _on_rollout_start(self) -> None:
-            done = min(1.0, self.num_timesteps / timesteps)
+            log_std = self.model.policy.log_std
             with torch.no_grad():
-                self.model.policy.log_std.clamp_(max=start + (final - start) * done)
+                if self.since is None:
+                    log_std.clamp_(min=start)
+                    return
+                span = max(1, timesteps - self.since)
+                done = min(1.0, max(0.0, (self.model.num_timesteps - self.since) / span))
+                log_std.clamp_(max=start + (final - start) * done)
 
         def _on_training_end(self) -> None:
-            self._on_rollout_start()  # (the final policy: at most exp(final))
+            with torch.no_grad():  # (the final policy: at most exp(final), whatever happened)
+                self.model.policy.log_std.clamp_(max=final)
 
         def _on_step(self) -> bool:
+            if self.since is None:
+                dones, infos = self.locals.get("dones"), self.locals.get("infos", ())
+                if dones is not None and any(bool(d) and bool(i.get("is_success", False))
+                                             for d, i in zip(dones, infos, strict=False)):
+                    self.since = self.model.num_timesteps
+                    if self.verbose:
+                        print(f"first success at {self.num_timesteps} steps: the noise "
+                              f"ceiling falls from here")
             return True
 
     return StdCeiling()
+
+
+def check_explore(algo: str, hp: dict[str, Any]) -> bool:
+    """``hp["explore_until_success"]`` (False without it): true or false, and only beside
+    ``log_std_final`` (checked as :func:`check_std_final` does); ValueError naming the key
+    otherwise."""
+    final = check_std_final(algo, hp)
+    hold = hp.get("explore_until_success", False)
+    if not isinstance(hold, bool):
+        raise ValueError(f"hyperparams: explore_until_success must be true or false, got "
+                         f"{hold!r}")
+    if hold and final is None:
+        raise ValueError("hyperparams: explore_until_success holds the noise until a success "
+                         "before log_std_final's ceiling falls; it needs log_std_final")
+    return hold
 
 
 def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:

@@ -567,3 +567,61 @@ def test_a_cnn_on_stacked_frames_evaluates_as_it_trained(tmp_path, capsys, monke
         cli.main(["train", "ChainSwing-v0", "--out", str(tmp_path / "x"),
                   "--hyperparams", "frame_stack=0"])
     assert exc.value.code == 2 and "frame_stack" in capsys.readouterr().err
+
+
+def test_the_noise_is_held_until_a_success_then_its_ceiling_falls_over_the_rest():
+    """``explore_until_success``: before any episode of the rollouts succeeds the policy's log
+    standard deviations are kept at least ``log_std_init`` (a gradient that shrank them is
+    undone); after the first success at step t0 the ceiling falls linearly from
+    ``log_std_init`` at t0 to ``log_std_final`` at the end of the budget; the final policy
+    is capped whatever happened. It is refused without ``log_std_final``."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from envs.train_settings import check_explore, std_ceiling
+
+    log_std = torch.full((2,), -1.0)
+    model = SimpleNamespace(policy=SimpleNamespace(log_std=log_std), num_timesteps=0,
+                            get_env=lambda: None, logger=None)
+    cb = std_ceiling(-1.0, -3.0, 1000, hold_until_success=True)
+    cb.init_callback(model)
+
+    def rollout(steps: int, success: bool = False) -> None:
+        model.num_timesteps = steps
+        cb.on_rollout_start()
+        cb.update_locals({"dones": np.array([False, True]),
+                          "infos": [{"is_success": True}, {"is_success": success}]})
+        cb.on_step()
+
+    log_std.fill_(-2.0)  # (the gradient shrank it: held up again)
+    rollout(400)
+    assert torch.all(log_std == -1.0)
+    log_std.fill_(0.5)  # (no ceiling before a success)
+    rollout(500)
+    assert torch.all(log_std == 0.5)
+    rollout(600, success=True)  # (an episode that ended in success: the ceiling falls from 600)
+    log_std.fill_(0.5)
+    rollout(800)  # (half-way from 600 to 1000)
+    assert torch.allclose(log_std, torch.tensor(-2.0))
+    log_std.fill_(-2.5)  # (below the ceiling: left alone, no floor any more)
+    rollout(900)
+    assert torch.all(log_std == -2.5)
+    model.num_timesteps = 950
+    log_std.fill_(0.0)
+    cb.on_training_end()
+    assert torch.all(log_std == -3.0)
+    # without the hold, as before: the ceiling falls from step 0
+    plain = std_ceiling(-1.0, -3.0, 1000)
+    plain.init_callback(model)
+    log_std.fill_(0.0)
+    model.num_timesteps = 500
+    plain.on_rollout_start()
+    assert torch.allclose(log_std, torch.tensor(-2.0))
+    assert check_explore("ppo", {"log_std_final": -3.0, "explore_until_success": True,
+                                 "policy_kwargs": {"log_std_init": -1.0}})
+    assert not check_explore("ppo", {})
+    for hp, word in (({"explore_until_success": True}, "log_std_final"),
+                     ({"explore_until_success": 1, "log_std_final": -3.0}, "true or false")):
+        with pytest.raises(ValueError, match=word):
+            check_explore("ppo", hp)
