@@ -682,10 +682,12 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
              deterministic: bool = True, which: str = "final", *,
              env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds from ``seed_start``) with the run in ``out``
-    (``which``: ``"final"`` or ``"best"`` model). Returns :func:`summarize` plus the run's
-    identity (env, action_mode, algo, seed, timesteps). ``env_kwargs`` change the env the run
-    trained on (a variant), over its own: the observation and action spaces must stay the
-    run's (ValueError otherwise).
+    (``which``: ``"final"`` or ``"best"`` model). A stochastic evaluation
+    (``deterministic=False``) samples its actions from torch's generator seeded with
+    ``seed_start``, so that it too gives the same figures every time. Returns
+    :func:`summarize` plus the run's identity (env, action_mode, algo, seed, timesteps).
+    ``env_kwargs`` change the env the run trained on (a variant), over its own: the
+    observation and action spaces must stay the run's (ValueError otherwise).
 
     Nothing stored in the directory can run code: :func:`read_run` checks ``config.json``
     (JSON), the policy is rebuilt from its settings and the weights read with ``weights_only``
@@ -693,6 +695,15 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
     (:class:`ObsNormalizer`); the pickles an older ``train`` wrote are never opened.
     """
     require("stable_baselines3", "torch", command="envs.train.evaluate")
+    import torch
+    with torch.random.fork_rng(devices=[]):  # (the caller's torch generator left as it was)
+        return _evaluate(out, episodes, seed_start, deterministic, which, env_kwargs)
+
+
+def _evaluate(out: str | Path, episodes: int, seed_start: int, deterministic: bool,
+              which: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """:func:`evaluate`, inside its own torch generator state."""
+    import torch
     config = read_run(out, which)
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
@@ -718,6 +729,7 @@ def evaluate(out: str | Path, episodes: int = 100, seed_start: int = HELD_OUT_SE
         if spaces != (config["spaces"]["observation"], config["spaces"]["action"]):
             raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
                              f"space the run was trained on")
+    torch.manual_seed(seed_start)  # stochastic actions: the same noise on every call
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
                        seed_start, config["action_mode"], kwargs,
                        frame_stack=config["hyperparams"].get("frame_stack", 1))

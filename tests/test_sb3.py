@@ -11,6 +11,7 @@ import pytest
 pytest.importorskip("stable_baselines3",
                     reason='needs the rl extra (pip install -e ".[rl]")')
 
+import torch  # noqa: E402
 from stable_baselines3 import PPO  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
 
@@ -175,6 +176,17 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     assert res["episodes"] == 5 and res["deterministic"] is False
     assert 0.0 <= res["success_rate"] <= 1.0 and 1 <= res["mean_length"] <= 200
     assert config["observation_shape"] == [9] and config["action_shape"] == [1]
+    # a stochastic evaluation is seeded: the same figures again, whatever torch's global
+    # generator holds (and left as it was)
+    torch.manual_seed(12345)
+    before = torch.rand(3)
+    torch.manual_seed(12345)
+    assert cli.main(["evaluate", str(out), "--episodes", "5", "--seed-start", "100",
+                     "--stochastic", "--json"]) == 0
+    assert torch.equal(torch.rand(3), before)
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again == res
+    capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
         cli.main(["evaluate", str(tmp_path / "nothing")])
     assert exc.value.code == 2
