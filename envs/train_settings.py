@@ -66,26 +66,39 @@ def schedule(key: str, value: Setting) -> Setting | LinearSchedule:
     return LinearSchedule(start)
 
 
+#: Ended training episodes over which ``explore_until_success`` measures the success rate.
+EXPLORE_WINDOW = 100
+
+
 def std_ceiling(start: float, final: float, timesteps: int,
-                hold_until_success: bool = False) -> BaseCallback:
+                hold_until: float = 0.0) -> BaseCallback:
     """A callback that caps a PPO policy's log standard deviations, before each rollout and at
     the end, at a ceiling lowered linearly from ``start`` (no cap at step 0) to ``final`` at
     ``timesteps`` (``log_std_final``): the policy explores as widely as ``log_std_init`` lets
     it early and acts with at most ``exp(final)`` of noise at the end, whatever the gradient
     did with it.
 
-    With ``hold_until_success`` (``explore_until_success``), the noise is first held up: until
-    an episode of the rollouts ends in success (``info["is_success"]``), the log standard
-    deviations are kept at least ``start`` and not capped; from the first rollout after that
-    success, at step ``t0``, the ceiling falls linearly from ``start`` to ``final`` over the
-    rest of the budget (``t0`` to ``timesteps``). A run that never succeeds explores to the end
-    instead of settling, through a shrinking noise, on whatever it did before finding a way."""
+    With ``hold_until`` > 0 (``explore_until_success``, a success rate), the noise is first
+    held up: until at least that fraction of the last :data:`EXPLORE_WINDOW` episodes of the
+    rollouts ended in success (``info["is_success"]``; the window full), the log standard
+    deviations are kept at least ``start`` and not capped; from the rollout after that, at
+    step ``t0``, the ceiling falls linearly from ``start`` to ``final`` over the rest of the
+    budget (``t0`` to ``timesteps``). A rate, not a first success: the policy's noise alone
+    wins a lucky episode now and then. A run that never gets there explores to the end instead
+    of settling, through a shrinking noise, on whatever it did before finding a way."""
+    from collections import deque
+
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
     class StdCeiling(BaseCallback):
-        #: the step from which the ceiling falls (None: held, no success yet)
-        since: int | None = None if hold_until_success else 0
+        #: the step from which the ceiling falls (None: held, the rate not reached yet)
+        since: int | None = None if hold_until > 0 else 0
+
+        def __init__(self) -> None:
+            super().__init__()
+            #: whether each of the last EXPLORE_WINDOW ended episodes succeeded
+            self.recent: deque[bool] = deque(maxlen=EXPLORE_WINDOW)
 
         def _on_rollout_start(self) -> None:
             log_std = self.model.policy.log_std
@@ -104,30 +117,35 @@ def std_ceiling(start: float, final: float, timesteps: int,
         def _on_step(self) -> bool:
             if self.since is None:
                 dones, infos = self.locals.get("dones"), self.locals.get("infos", ())
-                if dones is not None and any(bool(d) and bool(i.get("is_success", False))
-                                             for d, i in zip(dones, infos, strict=False)):
+                if dones is None:
+                    return True
+                self.recent.extend(bool(i.get("is_success", False))
+                                   for d, i in zip(dones, infos, strict=False) if d)
+                if (len(self.recent) == EXPLORE_WINDOW
+                        and sum(self.recent) >= hold_until * EXPLORE_WINDOW):
                     self.since = self.model.num_timesteps
                     if self.verbose:
-                        print(f"first success at {self.num_timesteps} steps: the noise "
-                              f"ceiling falls from here")
+                        print(f"success rate {sum(self.recent)}% at {self.num_timesteps} "
+                              f"steps: the noise ceiling falls from here")
             return True
 
     return StdCeiling()
 
 
-def check_explore(algo: str, hp: dict[str, Any]) -> bool:
-    """``hp["explore_until_success"]`` (False without it): true or false, and only beside
-    ``log_std_final`` (checked as :func:`check_std_final` does); ValueError naming the key
-    otherwise."""
+def check_explore(algo: str, hp: dict[str, Any]) -> float:
+    """``hp["explore_until_success"]`` (0.0 without it): a success rate in (0, 1], and only
+    beside ``log_std_final`` (checked as :func:`check_std_final` does); ValueError naming the
+    key otherwise."""
     final = check_std_final(algo, hp)
-    hold = hp.get("explore_until_success", False)
-    if not isinstance(hold, bool):
-        raise ValueError(f"hyperparams: explore_until_success must be true or false, got "
-                         f"{hold!r}")
-    if hold and final is None:
+    rate = hp.get("explore_until_success", 0.0)
+    if type(rate) not in (int, float) or not (rate == 0 or 0 < rate <= 1):
+        raise ValueError(f"hyperparams: explore_until_success must be a success rate in "
+                         f"(0, 1] (the training episodes' rate that ends the hold), got "
+                         f"{rate!r}")
+    if rate and final is None:
         raise ValueError("hyperparams: explore_until_success holds the noise until a success "
-                         "before log_std_final's ceiling falls; it needs log_std_final")
-    return hold
+                         "rate before log_std_final's ceiling falls; it needs log_std_final")
+    return float(rate)
 
 
 def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:

@@ -581,43 +581,47 @@ def test_a_cnn_on_stacked_frames_evaluates_as_it_trained(tmp_path, capsys, monke
     assert exc.value.code == 2 and "frame_stack" in capsys.readouterr().err
 
 
-def test_the_noise_is_held_until_a_success_then_its_ceiling_falls_over_the_rest():
-    """``explore_until_success``: before any episode of the rollouts succeeds the policy's log
-    standard deviations are kept at least ``log_std_init`` (a gradient that shrank them is
-    undone); after the first success at step t0 the ceiling falls linearly from
-    ``log_std_init`` at t0 to ``log_std_final`` at the end of the budget; the final policy
-    is capped whatever happened. It is refused without ``log_std_final``."""
+def test_the_noise_is_held_until_a_success_rate_then_its_ceiling_falls_over_the_rest():
+    """``explore_until_success`` (a rate r): until r of the last 100 ended training episodes
+    succeeded, the policy's log standard deviations are kept at least ``log_std_init`` (a
+    gradient that shrank them is undone) and not capped, whatever a few lucky episodes did;
+    from the step t0 where the rate is reached the ceiling falls linearly from
+    ``log_std_init`` at t0 to ``log_std_final`` at the end of the budget; the final policy is
+    capped whatever happened. It is refused without ``log_std_final`` or outside (0, 1]."""
     from types import SimpleNamespace
 
     import torch
 
-    from envs.train_settings import check_explore, std_ceiling
+    from envs.train_settings import EXPLORE_WINDOW, check_explore, std_ceiling
 
     log_std = torch.full((2,), -1.0)
     model = SimpleNamespace(policy=SimpleNamespace(log_std=log_std), num_timesteps=0,
                             get_env=lambda: None, logger=None)
-    cb = std_ceiling(-1.0, -3.0, 1000, hold_until_success=True)
+    cb = std_ceiling(-1.0, -3.0, 1000, hold_until=0.2)
     cb.init_callback(model)
 
-    def rollout(steps: int, success: bool = False) -> None:
+    def rollout(steps: int, wins: int, episodes: int) -> None:
+        """A rollout at ``steps`` in which ``episodes`` episodes end, the first ``wins`` of
+        them in success (two copies: the other copy's episode never ends)."""
         model.num_timesteps = steps
         cb.on_rollout_start()
-        cb.update_locals({"dones": np.array([False, True]),
-                          "infos": [{"is_success": True}, {"is_success": success}]})
-        cb.on_step()
+        for k in range(episodes):
+            cb.update_locals({"dones": np.array([False, True]),
+                              "infos": [{"is_success": True}, {"is_success": k < wins}]})
+            cb.on_step()
 
     log_std.fill_(-2.0)  # (the gradient shrank it: held up again)
-    rollout(400)
+    rollout(100, wins=5, episodes=5)  # (lucky: 5 of 5, but the window is not full)
     assert torch.all(log_std == -1.0)
-    log_std.fill_(0.5)  # (no ceiling before a success)
-    rollout(500)
+    log_std.fill_(0.5)  # (no ceiling while held)
+    rollout(200, wins=10, episodes=EXPLORE_WINDOW)  # (15 of the last 100: below 20%)
     assert torch.all(log_std == 0.5)
-    rollout(600, success=True)  # (an episode that ended in success: the ceiling falls from 600)
+    rollout(600, wins=20, episodes=EXPLORE_WINDOW)  # (20 of 100: the ceiling falls from 600)
     log_std.fill_(0.5)
-    rollout(800)  # (half-way from 600 to 1000)
+    rollout(800, wins=0, episodes=1)  # (half-way from 600 to 1000)
     assert torch.allclose(log_std, torch.tensor(-2.0))
     log_std.fill_(-2.5)  # (below the ceiling: left alone, no floor any more)
-    rollout(900)
+    rollout(900, wins=0, episodes=1)
     assert torch.all(log_std == -2.5)
     model.num_timesteps = 950
     log_std.fill_(0.0)
@@ -630,10 +634,11 @@ def test_the_noise_is_held_until_a_success_then_its_ceiling_falls_over_the_rest(
     model.num_timesteps = 500
     plain.on_rollout_start()
     assert torch.allclose(log_std, torch.tensor(-2.0))
-    assert check_explore("ppo", {"log_std_final": -3.0, "explore_until_success": True,
-                                 "policy_kwargs": {"log_std_init": -1.0}})
-    assert not check_explore("ppo", {})
-    for hp, word in (({"explore_until_success": True}, "log_std_final"),
-                     ({"explore_until_success": 1, "log_std_final": -3.0}, "true or false")):
+    assert check_explore("ppo", {"log_std_final": -3.0, "explore_until_success": 0.2,
+                                 "policy_kwargs": {"log_std_init": -1.0}}) == 0.2
+    assert check_explore("ppo", {}) == 0.0
+    for hp, word in (({"explore_until_success": 0.2}, "log_std_final"),
+                     ({"explore_until_success": True, "log_std_final": -3.0}, r"\(0, 1\]"),
+                     ({"explore_until_success": 1.5, "log_std_final": -3.0}, r"\(0, 1\]")):
         with pytest.raises(ValueError, match=word):
             check_explore("ppo", hp)
