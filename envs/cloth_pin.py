@@ -845,7 +845,7 @@ TASK = TaskSpec(
     hyperparams={"ppo": {"draw": ppo(2000000, (128, 128), log_std_init=-1.0, n_steps=256,
                                      batch_size=1024, clip_range=0.1, ent_coef=0.0, gamma=0.995,
                                      gae_lambda=0.98, learning_rate="lin_3e-4",
-                                     log_std_final=-3.0)},
+                                     log_std_final=-3.0, explore_until_success=0.1)},
                  "sac": {"draw": sac()}},
     notes=("History (tuning seeds only, never a results seed). ClothPin-v0: the ClothSlide "
            "spring-mode settings tuned on seed 100 to n_steps 256, batch 1024, clip 0.1 (98% / "
