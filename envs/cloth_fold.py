@@ -281,5 +281,6 @@ TASK = TaskSpec(
           "with Gaussian noise of 0.02 / 0.05 (8 mm / 2 cm) on its actions it succeeds in 83% / "
           "14% (benchmarks/tabletop_noise.py). SAC settings untuned. From pixels (64 x 64 "
           "grey, one frame: a step ends with the cloth at rest, SB3's CnnPolicy): the state "
-          "settings, untuned.",
+          "settings, untuned; seeds 0-2 0% deterministic and stochastic at 100k steps, "
+          "normalized performance 0.04 / 0.00 / 0.04 deterministic (seed 1 does nothing).",
     variants=({"num_grippers": 1},), max_episode_steps=20, obs_modes=PP_OBS_MODES)
