@@ -492,8 +492,8 @@ TASK = TaskSpec(
     variant_hyperparams={"target=swingup": {"ppo": {"force": ppo(600000, (64, 64)),
                                                     "spring": ppo(500000, (64, 64))}},
                          "obs_mode=pixels,pixel_channels=1,pixel_size=40": {"ppo": {
-                             "force": ppo(400000, (128, 128), policy="CnnPolicy",
-                                          frame_stack=3)}}},
+                             "force": ppo(1200000, (128, 128), policy="CnnPolicy",
+                                          frame_stack=3, n_epochs=4, target_kl=0.02)}}},
     notes="The PPO and SAC settings are untuned: carried over from SliderCrank (a small "
           "observation). The swing-up's PPO settings are the same with longer budgets, chosen "
           "on tuning seed 100 only (never a results seed): 1M steps each, the periodic "
