@@ -124,9 +124,6 @@ def std_ceiling(start: float, final: float, timesteps: int,
                 if (len(self.recent) == EXPLORE_WINDOW
                         and sum(self.recent) >= hold_until * EXPLORE_WINDOW):
                     self.since = self.model.num_timesteps
-                    if self.verbose:
-                        print(f"success rate {sum(self.recent)}% at {self.num_timesteps} "
-                              f"steps: the noise ceiling falls from here")
             return True
 
     return StdCeiling()

@@ -280,8 +280,6 @@ def test_train_decays_a_lin_setting_and_the_std_ceiling(tmp_path, capsys, monkey
     decays linearly to 0 over the budget; config.json keeps the string. ``log_std_final``
     caps the final policy's log standard deviations. Any other string there, or a
     ``log_std_final`` not below ``log_std_init`` or for SAC, is refused before any work."""
-    import torch
-
     from envs.train_settings import LinearSchedule, schedule
 
     assert schedule("learning_rate", "lin_3e-4")(1.0) == pytest.approx(3e-4)
@@ -589,8 +587,6 @@ def test_the_noise_is_held_until_a_success_rate_then_its_ceiling_falls_over_the_
     ``log_std_init`` at t0 to ``log_std_final`` at the end of the budget; the final policy is
     capped whatever happened. It is refused without ``log_std_final`` or outside (0, 1]."""
     from types import SimpleNamespace
-
-    import torch
 
     from envs.train_settings import EXPLORE_WINDOW, check_explore, std_ceiling
 
