@@ -343,9 +343,6 @@ class ChainSwingVectorEnv(ParticleVectorEnv):
 
     task_class = ChainSwing
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: object) -> None:
-        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:

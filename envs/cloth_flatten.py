@@ -268,9 +268,6 @@ class ClothFlattenVectorEnv(PickPlaceVectorEnv):
 
     task_class = ClothFlatten
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 50,
-                 render_mode: str | None = None, **kwargs: object) -> None:
-        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
 class ClothFlattenController:

@@ -219,9 +219,6 @@ class ClothFoldVectorEnv(PickPlaceVectorEnv):
 
     task_class = ClothFold
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 20,
-                 render_mode: str | None = None, **kwargs: object) -> None:
-        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
 class ClothFoldController:

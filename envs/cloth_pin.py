@@ -797,9 +797,6 @@ class ClothPinVectorEnv(ParticleVectorEnv):
 
     task_class = ClothPin
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
-                 render_mode: str | None = None, **kwargs: object) -> None:
-        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
 class ClothPinController:

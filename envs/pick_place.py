@@ -672,7 +672,7 @@ class PickPlaceVectorEnv(ParticleVectorEnv):
     task_class: ClassVar[type[PickPlaceTask]]
     metadata: ClassVar[dict[str, Any]] = {**ParticleVectorEnv.metadata, "render_fps": 4}
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 50,
+    def __init__(self, num_envs: int = 1, max_episode_steps: int | None = None,
                  render_mode: str | None = None, *, obs_mode: str = "state",
                  **kwargs: object) -> None:
         if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:

@@ -219,9 +219,6 @@ class RopeShapeVectorEnv(PickPlaceVectorEnv):
 
     task_class = RopeShape
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 40,
-                 render_mode: str | None = None, **kwargs: object) -> None:
-        super().__init__(num_envs, max_episode_steps, render_mode, **kwargs)
 
 
 class RopeShapeController:

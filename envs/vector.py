@@ -61,7 +61,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 20,
                                           "autoreset_mode": AutoresetMode.NEXT_STEP}
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int = 200,
+    def __init__(self, num_envs: int = 1, max_episode_steps: int | None = None,
                  render_mode: str | None = None, *, num_threads: int = DEFAULT_THREADS,
                  obs_mode: str = "state",
                  pixel_size: int | tuple[int, int] = pixels.DEFAULT_SIZE,
@@ -70,6 +70,9 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
                              f"None, got {render_mode!r}")
         threads = check_positive("num_threads", num_threads, integer=True)
+        if max_episode_steps is None:  # (the task's declaration says, else 200)
+            from .task import registered_episode_steps
+            max_episode_steps = registered_episode_steps(type(self))
         self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
                                                 integer=True)
         #: ``"state"`` (a flat Box), ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals),

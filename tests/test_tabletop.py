@@ -33,7 +33,8 @@ def test_the_four_tasks_are_registered_as_pick_and_place():
 
 # ------------------------------------------------------------------ the pick-and-place step
 def rope_env(**kwargs) -> RopeStraightenEnv:
-    env = RopeStraightenEnv(**kwargs)
+    """RopeStraighten with one gripper unless ``num_grippers`` says otherwise, reset."""
+    env = RopeStraightenEnv(**{"num_grippers": 1, **kwargs})
     env.reset(seed=0)
     return env
 
@@ -81,11 +82,33 @@ def test_two_grippers_on_one_particle_take_it_once():
     assert t.grabbed[0].tolist() == [True, False]
 
 
+def test_two_grippers_pulling_the_ends_past_the_length_leave_a_straight_rope():
+    """The default two grippers take both ends and carry them 1.2 rope lengths apart (past
+    what the rods allow): the rope is drawn taut without the constraint solve failing, and is
+    released straight (the success test) with every link still 2.5 cm."""
+    env = RopeStraightenEnv()
+    t = env.task
+    assert t.num_grippers == 2 and env.action_space.shape == (8,)
+    for seed in range(5):
+        env.reset(seed=seed)
+        x = t.positions()[0].copy()
+        u = np.array([np.cos(seed), np.sin(seed)])
+        c = 0.5 * (x[0] + x[-1])
+        a = np.concatenate([t.to_normalized(x[0]), t.to_normalized(c + 0.6 * t.length * u),
+                            t.to_normalized(x[-1]), t.to_normalized(c - 0.6 * t.length * u)])
+        _, _, terminated, _, info = env.step(a.astype(np.float32))
+        y = t.positions()[0]
+        assert not info["diverged"] and t.grabbed[0].all()
+        assert info["is_success"] and terminated and info["progress"] >= 0.95
+        assert np.allclose(np.linalg.norm(np.diff(y, axis=0), axis=1), t.link, atol=1e-6)
+
+
 def test_a_vector_copy_that_is_done_keeps_its_state_from_that_moment():
     # copy 0 misses (done at once), copy 1 carries far: copy 0 is what a single env makes
-    vec = gym.make_vec(TABLETOP[0], num_envs=2, vectorization_mode="vector_entry_point")
+    vec = gym.make_vec(TABLETOP[0], num_envs=2, vectorization_mode="vector_entry_point",
+                       num_grippers=1)
     vec.reset(seed=[7, 8])
-    single = gym.make(TABLETOP[0])
+    single = gym.make(TABLETOP[0], num_grippers=1)
     single.reset(seed=7)
     t = vec.unwrapped.task
     far = np.array([0.99, 0.99, -0.99, -0.99], np.float32)
@@ -96,13 +119,13 @@ def test_a_vector_copy_that_is_done_keeps_its_state_from_that_moment():
     assert t.system.t - t0 >= 0.3 / t.speed  # (the step lasted as long as copy 1's carry)
     o_one, *_ = single.step(far)
     assert o_vec[0].tobytes() == o_one.tobytes()
-    other = gym.make(TABLETOP[0])
+    other = gym.make(TABLETOP[0], num_grippers=1)
     other.reset(seed=8)
     assert o_vec[1].tobytes() == other.step(carry.astype(np.float32))[0].tobytes()
 
 
 def test_drag_mode_carries_a_gripped_particle_by_bounded_moves_and_lets_go():
-    env = RopeStraightenEnv(action_mode="drag")
+    env = RopeStraightenEnv(action_mode="drag", num_grippers=1)
     obs, _ = env.reset(seed=0)
     t = env.task
     assert env.action_space.shape == (3,) and obs.shape == (20 + 3,)
