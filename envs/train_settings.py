@@ -196,10 +196,13 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs may hold only "
                          f"{', '.join(POLICY_KWARGS)}")
     arch = pk.get("net_arch", [64, 64])
-    if not (isinstance(arch, list) and len(arch) <= 16
-            and all(type(n) is int and 1 <= n <= MAX_LAYER for n in arch)):
+    parts = list(arch.values()) if isinstance(arch, dict) and set(arch) == {"pi", "vf"} \
+        else [arch]
+    if not all(isinstance(a, list) and len(a) <= 16
+               and all(type(n) is int and 1 <= n <= MAX_LAYER for n in a) for a in parts):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.net_arch must be a list of "
-                         f"at most 16 layer widths in [1, {MAX_LAYER}]")
+                         f"at most 16 layer widths in [1, {MAX_LAYER}], or such lists for the "
+                         "policy and the value function apart, {\"pi\": [...], \"vf\": [...]}")
     if not isinstance(pk.get("use_sde", False), bool):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
                          "false")

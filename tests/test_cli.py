@@ -482,6 +482,8 @@ class Marker:
     ({"hyperparams": {"policy": "TransformerPolicy"}}, ["hyperparams.policy", "MlpPolicy"]),
     ({"hyperparams": {"policy_kwargs": {"activation_fn": "os.system"}}}, ["policy_kwargs"]),
     ({"hyperparams": {"policy_kwargs": {"net_arch": [10**9]}}}, ["net_arch"]),
+    ({"hyperparams": {"policy_kwargs": {"net_arch": {"pi": [], "qf": [8]}}}}, ["net_arch"]),
+    ({"hyperparams": {"policy_kwargs": {"net_arch": {"pi": [0], "vf": [8]}}}}, ["net_arch"]),
     (None, ["not valid JSON"]),
     ("deep", ["nested too deeply"]),
     ("huge", ["larger than"]),

@@ -151,6 +151,26 @@ def test_shipped_hyperparameters_cover_every_env_and_mode():
         load_hyperparams("dqn", "ClothSlide-v0")
 
 
+def test_a_policy_and_value_function_apart_train_and_evaluate(tmp_path, capsys, monkeypatch):
+    """``net_arch`` as ``{"pi": [...], "vf": [...]}`` (here a linear policy beside a small
+    value network): trained, recorded in config.json, rebuilt by evaluate with its weights."""
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "run"
+    arch = {"pi": [], "vf": [8]}
+    assert cli.main(["train", "SliderCrank-v0", "--seed", "1", "--out", str(out),
+                     "--timesteps", "512", "--eval-freq", "512", "--eval-episodes", "2",
+                     "--no-progress", "--hyperparams",
+                     "policy_kwargs=" + json.dumps({"net_arch": arch})]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["hyperparams"]["policy_kwargs"]["net_arch"] == arch
+    state = torch.load(out / "policy.pt", weights_only=True)
+    assert not any(k.startswith("mlp_extractor.policy_net") for k in state)  # (linear)
+    assert state["action_net.weight"].shape == (1, 9)
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(out), "--episodes", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["episodes"] == 2
+
+
 def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["cparticles"])
     out = tmp_path / "run"

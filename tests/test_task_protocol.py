@@ -162,6 +162,21 @@ def test_the_tools_read_its_declaration():
     assert (run_episodes(ROPE_ID, "random", 4, seed=0)["success"].sum() < 4)
 
 
+def test_a_vector_env_made_directly_truncates_where_its_declaration_says():
+    """The native vector env's default ``max_episode_steps`` is the declaration's (here 200,
+    the TaskSpec default; a shipped task's own, 30 for RopeStraighten), for a subclass too;
+    a class no declaration names gets 200; an explicit value wins."""
+    from envs.rope_straighten import RopeStraightenVectorEnv
+
+    assert RopeCarryVectorEnv(2).max_episode_steps == TASK.max_episode_steps
+    assert RopeStraightenVectorEnv(1).max_episode_steps == \
+        task_spec("RopeStraighten-v0").max_episode_steps == 30
+    assert type("Sub", (RopeStraightenVectorEnv,), {})(1).max_episode_steps == 30
+    assert type("Loose", (ParticleVectorEnv,), {"task_class": RopeCarry})(1) \
+        .max_episode_steps == 200
+    assert RopeStraightenVectorEnv(1, max_episode_steps=7).max_episode_steps == 7
+
+
 def test_the_command_line_lists_a_registered_task():
     import argparse
 
