@@ -504,7 +504,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         """Observations (num_envs, D) float32: the normalised positions of the keypoints
         (``obs_mode="state"``) or of every particle (``"particles"``), then the goal's
         entries; clipped to [-OBS_LIMIT, OBS_LIMIT]."""
-        x = self.positions()
+        x = self.observed_order(self.positions())
         if self.obs_mode == "state":
             x = x[:, self.keypoints]
         pos = ((x - self.center) * (1.0 / self.half)).reshape(self.num_envs, -1)
@@ -514,6 +514,11 @@ class PickPlaceTask(ShapedTask, ParticleTask):
                 self.num_envs, -1), (self.holding >= 0).astype(float)]
         obs = np.concatenate(parts, axis=1)
         return np.clip(obs, -OBS_LIMIT, OBS_LIMIT).astype(np.float32)
+
+    def observed_order(self, x: np.ndarray) -> np.ndarray:
+        """Positions (num_envs, n, 2) in the order the observation lists them: the particles'
+        own order here (a task may list a symmetric object from a canonical end)."""
+        return x
 
     def observed_points(self, obs: np.ndarray) -> np.ndarray:
         """World positions (B, k, 2) m of the observed particles in observations (B, D)."""

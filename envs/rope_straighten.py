@@ -132,6 +132,15 @@ class RopeStraighten(Rope):
         """How far (m) the ends are from ``success_ratio`` of the length apart: 0 at success."""
         return np.maximum(self.success_ratio - p, 0.0) * self.length
 
+    def observed_order(self, x: np.ndarray) -> np.ndarray:
+        """The rope listed from its left end: reversed in the copies whose last particle has
+        the smaller x. The task cannot tell the ends apart, so an agent should not have to:
+        a policy learns "take the left end with gripper 0" where, with the particles' own order,
+        "take end 0" is one end or the other from one episode to the next (and a Gaussian
+        policy averages the two)."""
+        flip = x[:, -1, 0] < x[:, 0, 0]
+        return np.where(flip[:, None, None], x[:, ::-1], x)
+
     def target_shapes(self, i: int) -> list[Shape]:
         """The success distance around the rope's first end."""
         x0 = self.positions()[i, :1]
@@ -175,8 +184,10 @@ class RopeStraightenEnv(PickPlaceEnv):
 
     ``obs_mode="state"``: ``Box(-10, 10, (20,), float32)``, the normalised positions of 10
     evenly spaced rope particles (0, 2, 4, 6, 8, 11, 13, 15, 17, 19), x then y for each.
-    ``obs_mode="particles"``: every particle's position (40 floats). The goal is fixed (a
-    straight rope anywhere), so it takes no entries.
+    ``obs_mode="particles"``: every particle's position (40 floats). Either lists the rope
+    from its left end (the end with the smaller x; particle 19 first when it is that end):
+    the ends cannot be told apart, so the observation does not tell them apart either. The
+    goal is fixed (a straight rope anywhere), so it takes no entries.
 
     ## Rewards
 

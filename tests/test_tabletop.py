@@ -19,7 +19,7 @@ from envs.cloth_flatten import ClothFlattenEnv, fold_across, grid_cells, rigid_f
 from envs.cloth_fold import ClothFoldEnv
 from envs.pick_place import PickPlaceTask
 from envs.rope_shape import SHAPES, RopeShapeEnv, curve
-from envs.rope_straighten import RopeStraightenEnv
+from envs.rope_straighten import RopeStraightenEnv, rope_keypoints
 
 TABLETOP = [s.id for s in envs.task_specs() if issubclass(s.task_class, PickPlaceTask)]
 
@@ -164,6 +164,25 @@ def test_rope_straighten_progress_is_the_end_to_end_ratio():
     assert m["normalized_performance"][0] == pytest.approx(1.0, rel=1e-12)
 
 
+def test_the_rope_is_observed_from_its_left_end():
+    """RopeStraighten lists its keypoints (and, in particles mode, every particle) from the
+    end with the smaller x, in both orders of the particles; the state is not touched."""
+    for obs_mode, idx in (("state", rope_keypoints(20)), ("particles", np.arange(20))):
+        env = RopeStraightenEnv(obs_mode=obs_mode)
+        t = env.task
+        flips = set()
+        for seed in range(12):
+            obs, _ = env.reset(seed=seed)
+            x = t.positions()[0]
+            flip = x[-1, 0] < x[0, 0]
+            flips.add(bool(flip))
+            seen = t.observed_points(obs)[0]
+            expected = (x[::-1] if flip else x)[idx]
+            assert np.allclose(seen, expected, atol=1e-6)  # (float32 observations)
+            assert seen[0, 0] <= seen[-1, 0]
+        assert flips == {True, False}
+
+
 def test_rope_starts_are_tangles_with_exact_links():
     env = RopeStraightenEnv()
     for seed in range(20):
@@ -256,7 +275,9 @@ def test_particles_mode_observes_every_particle_and_goal_mode_is_refused(env_id)
     t = env.unwrapped.task
     assert obs.shape == env.observation_space.shape
     assert obs.shape[0] == 2 * t.n + t.goal_dim
-    assert np.allclose(t.to_world(obs[:2 * t.n].reshape(-1, 2)), t.positions()[0], atol=1e-6)
+    listed = t.observed_order(t.positions())[0]  # (RopeStraighten: from the left end)
+    assert np.allclose(t.to_world(obs[:2 * t.n].reshape(-1, 2)), listed, atol=1e-6)
+    assert sorted(map(tuple, listed)) == sorted(map(tuple, t.positions()[0]))
     with pytest.raises(ValueError, match="obs_mode"):
         gym.make(env_id, obs_mode="goal")
 
