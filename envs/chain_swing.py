@@ -344,7 +344,6 @@ class ChainSwingVectorEnv(ParticleVectorEnv):
     task_class = ChainSwing
 
 
-
 def _wrap(angle: np.ndarray) -> np.ndarray:
     """Angles (rad) wrapped into [-pi, pi)."""
     return np.mod(angle + np.pi, 2 * np.pi) - np.pi

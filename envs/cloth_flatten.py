@@ -194,7 +194,6 @@ class ClothFlatten(TableCloth):
         return np.maximum(self.success_coverage - p, 0.0)
 
 
-
 class ClothFlattenEnv(PickPlaceEnv):
     """
     ## Description
@@ -267,7 +266,6 @@ class ClothFlattenVectorEnv(PickPlaceVectorEnv):
     :class:`ClothFlattenEnv`)."""
 
     task_class = ClothFlatten
-
 
 
 class ClothFlattenController:

@@ -220,7 +220,6 @@ class ClothFoldVectorEnv(PickPlaceVectorEnv):
     task_class = ClothFold
 
 
-
 class ClothFoldController:
     """The oracle: carry the moving half's corners onto their mirror images across the fold
     line (both at once with two grippers; the one further from its place with one); then,

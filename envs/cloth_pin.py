@@ -798,7 +798,6 @@ class ClothPinVectorEnv(ParticleVectorEnv):
     task_class = ClothPin
 
 
-
 class ClothPinController:
     """Draw the one spring that holds the cloth at the goal against the push, on the first step.
 

@@ -344,7 +344,6 @@ class ClothSlideVectorEnv(ParticleVectorEnv):
     task_class = ClothSlide
 
 
-
 class ClothSlideController(ScriptedAgent):
     """PD control of the cloth's centre of mass: ``F = kp (goal - c) - kd c_dot``, total force
     capped at ``f_max`` newtons so the cloth never hits the wall hard."""

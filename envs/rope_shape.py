@@ -220,7 +220,6 @@ class RopeShapeVectorEnv(PickPlaceVectorEnv):
     task_class = RopeShape
 
 
-
 class RopeShapeController:
     """The oracle: in the better order along the rope, pick the observed rope point furthest
     from its target point and place it there."""

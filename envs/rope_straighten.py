@@ -233,7 +233,6 @@ class RopeStraightenVectorEnv(PickPlaceVectorEnv):
     task_class = RopeStraighten
 
 
-
 class RopeStraightenController:
     """The oracle. Two grippers: take both ends and pull them apart along the line through
     them, to ``pull`` (1.1) rope lengths apart about their midpoint, so the rope is drawn taut

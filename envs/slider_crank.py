@@ -440,7 +440,6 @@ class SliderCrankVectorEnv(ParticleVectorEnv):
     task_class = SliderCrank
 
 
-
 class SliderCrankController(ScriptedAgent):
     """Drive the crank to the angle above the wire that puts the slider at the goal (through a
     dead centre if it starts below), with gravity compensation: ``F_t = m g cos(theta)
