@@ -260,13 +260,14 @@ def environment_class(name: str) -> type:
 
 def registered_episode_steps(vector_env: type) -> int:
     """The ``max_episode_steps`` declared by the task whose native vector env is
-    ``vector_env`` (a subclass of one counts as it), 200 for a class no declaration names:
-    the vector envs' default, as ``gym.make`` applies the registered limit to a single env."""
+    ``vector_env`` (a subclass of one counts as it), a declaration's default (200) for a
+    class no declaration names: the vector envs' default, as ``gym.make`` applies the
+    registered limit to a single env."""
     for cls in vector_env.__mro__:
         for spec in _SPECS.values():
             if spec.vector_env is cls:
                 return spec.max_episode_steps
-    return 200
+    return TaskSpec.max_episode_steps
 
 
 def task_specs() -> tuple[TaskSpec, ...]:

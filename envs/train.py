@@ -446,7 +446,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     if env_kwargs:
         hp["env_kwargs"] = {**hp.get("env_kwargs", {}), **env_kwargs}
         overrides["env_kwargs"] = env_kwargs
-    _check_policy_settings(Path("hyperparams"), hp)  # (what evaluate will accept)
+    _check_policy_settings(Path("hyperparams"), hp, algo)  # (what evaluate will accept)
     for key, value in hp.items():  # (a schedule's notation, before any work)
         schedule(key, value)
     std_final = check_std_final(algo, hp)
@@ -594,7 +594,7 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
     env_kwargs = config["hyperparams"].get("env_kwargs", {})
     if not isinstance(env_kwargs, dict):
         raise ValueError(f"{config_path}: hyperparams.env_kwargs must be an object")
-    _check_policy_settings(config_path, config["hyperparams"])
+    _check_policy_settings(config_path, config["hyperparams"], config["algo"])
     policy = out / POLICY_FILES[which]
     if not policy.is_file():
         raise ValueError(f"{str(out)!r} has no {policy.name} (train writes it when a run "

@@ -102,7 +102,7 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
                 hp = {**load_hyperparams(args.algo, args.env, args.action_mode,
                                          args.env_kwargs),
                       **check_overrides(args.algo, args.hyperparams)}
-                _check_policy_settings(Path("hyperparams"), hp)
+                _check_policy_settings(Path("hyperparams"), hp, args.algo)
                 check_explore(args.algo, hp)
                 env = task_spec(args.env).env(action_mode=args.action_mode,
                                               **{**hp.get("env_kwargs", {}), **args.env_kwargs})

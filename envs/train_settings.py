@@ -184,10 +184,16 @@ def check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
                          f"got a {type(space).__name__} of shape {space.shape}")
 
 
-def check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
-    """ValueError unless the policy settings of ``hp`` are ones ``evaluate`` can rebuild: a
-    policy of :data:`POLICIES` and ``policy_kwargs`` of :data:`POLICY_KWARGS` with layers of
-    1 to :data:`MAX_LAYER` units."""
+#: The keys of ``net_arch`` given as separate networks, per algorithm (SB3's forms): the
+#: policy and the value function (PPO), the actor and the critics (SAC).
+ARCH_KEYS = {"ppo": ("pi", "vf"), "sac": ("pi", "qf")}
+
+
+def check_policy_settings(config_path: Path, hp: dict[str, Any], algo: str) -> None:
+    """ValueError unless the policy settings of ``hp`` are ones ``evaluate`` can rebuild for
+    ``algo``: a policy of :data:`POLICIES` and ``policy_kwargs`` of :data:`POLICY_KWARGS`
+    with layers of 1 to :data:`MAX_LAYER` units (``net_arch`` one list, or one per network
+    of :data:`ARCH_KEYS`)."""
     if hp.get("policy", "MlpPolicy") not in POLICIES:
         raise ValueError(f"{config_path}: hyperparams.policy must be one of {POLICIES}, got "
                          f"{hp.get('policy')!r}")
@@ -196,13 +202,15 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any]) -> None:
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs may hold only "
                          f"{', '.join(POLICY_KWARGS)}")
     arch = pk.get("net_arch", [64, 64])
-    parts = list(arch.values()) if isinstance(arch, dict) and set(arch) == {"pi", "vf"} \
+    keys = ARCH_KEYS.get(algo, ("pi", "vf"))
+    parts = list(arch.values()) if isinstance(arch, dict) and set(arch) == set(keys) \
         else [arch]
     if not all(isinstance(a, list) and len(a) <= 16
                and all(type(n) is int and 1 <= n <= MAX_LAYER for n in a) for a in parts):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.net_arch must be a list of "
                          f"at most 16 layer widths in [1, {MAX_LAYER}], or such lists for the "
-                         "policy and the value function apart, {\"pi\": [...], \"vf\": [...]}")
+                         f"networks apart ({algo}: {{\"{keys[0]}\": [...], \"{keys[1]}\": "
+                         "[...]})")
     if not isinstance(pk.get("use_sde", False), bool):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
                          "false")

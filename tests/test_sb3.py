@@ -287,7 +287,10 @@ def test_train_takes_zoo_options_and_records_them(tmp_path, capsys, monkeypatch)
     assert res["env_kwargs"] == {"target": "swingup"}
     for argv, words in ((["--hyperparams", "learnin_rate=1e-4"], ["'learnin_rate'",
                                                                   "learning_rate"]),
-                        (["--hyperparams", "policy=CnnPolicy"], ["policy", "CnnPolicy", "image"])):
+                        (["--hyperparams", "policy=CnnPolicy"], ["policy", "CnnPolicy", "image"]),
+                        (["--algo", "sac", "--hyperparams",  # (PPO's form given to SAC)
+                          'policy_kwargs={"net_arch": {"pi": [], "vf": [8]}}'],
+                         ["net_arch", "sac", "qf"])):
         with pytest.raises(SystemExit) as exc:
             cli.main(["train", "SliderCrank-v0", "--out", str(tmp_path / "x"), *argv])
         err = capsys.readouterr().err
