@@ -3,6 +3,7 @@
     python -m envs.baselines run --runs runs --jobs 2                   # the full grid
     python -m envs.baselines run --runs runs --envs ClothSlide-v0 --modes force --algos ppo
     python -m envs.baselines report --runs runs                         # plots + table
+    python -m envs.baselines ship runs/RUN --results runs/results.json  # a pretrained agent
 
 Everything is written where the options say, nothing elsewhere. ``run`` trains every (env,
 action mode it takes, algorithm, seed) of the grid with ``cparticles train`` (the shipped
@@ -21,6 +22,10 @@ one torch thread.
 ``OUT/table.md`` (``--out``, default ``--runs``): per (env, mode, algo), the median success rate
 over seeds with a distribution-free confidence interval for the median (order statistics; with 5
 seeds the interval is [min, max], coverage 94%), the median return, and the training time.
+
+``ship`` keeps one run as the pretrained agent of its task, action mode and variant
+(:func:`envs.pretrained.ship`: the run's data files and its held-out figures from
+``--results``; a SAC run without its critics).
 """
 
 from __future__ import annotations
@@ -242,7 +247,7 @@ def new_directory_file(text: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m envs.baselines {run,report}``."""
+    """``python -m envs.baselines {run,report,ship}``."""
     p = argparse.ArgumentParser(prog="python -m envs.baselines",
                                 description=__doc__.split("\n")[0], formatter_class=HelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -284,7 +289,24 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--results", help="records to tabulate (default: RUNS/results.json)")
     g.add_argument("--out", type=new_directory,
                    help="folder for table.md and curves.png (created; default: RUNS)")
+    h = sub.add_parser("ship", help="keep a run as the package's pretrained agent of its task",
+                       formatter_class=HelpFormatter)
+    h.add_argument("run", help="run directory (train's; a SAC run's critics are left out)")
+    h.add_argument("--results", required=True,
+                   help="the baselines' records holding the run's held-out figures")
+    h.add_argument("--root", help="folder of the shipped agents (default: the package's "
+                   "envs/pretrained)")
     args = p.parse_args(argv)
+    if args.command == "ship":
+        from . import pretrained
+
+        try:
+            folder = pretrained.ship(args.run, args.results, args.root or pretrained.ROOT)
+        except ValueError as exc:
+            what, _, words = str(exc).partition(": ")
+            p.error(f"argument {what if what == 'run' else '--' + what}: {words}")
+        print(folder)
+        return 0
     runs = Path(args.runs)
     results = Path(args.results) if args.results else runs / "results.json"
     if args.command == "report":

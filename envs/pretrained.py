@@ -18,6 +18,7 @@ True
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 #: The folder holding the shipped run directories.
@@ -84,3 +85,56 @@ def describe(key: tuple[str, str, str]) -> str:
     """``"ChainSwing-v0 (force, target=swingup)"`` for a key of :func:`shipped`."""
     env, mode, variant = key
     return f"{env} ({mode}{', ' + variant if variant else ''})"
+
+
+#: What a shipped agent keeps of its run directory (``normalization.npz`` when the run has it;
+#: ``policy.pt`` of a SAC run without its critics, which acting does not use).
+KEPT = ("config.json", "evaluations.json", "normalization.npz", "policy.pt")
+
+
+def ship(run: str | Path, results: str | Path, root: str | Path = ROOT) -> Path:
+    """Keep the run directory ``run`` as the shipped agent of its env, action mode and
+    variant: its :data:`KEPT` files and ``published.json`` (its deterministic and stochastic
+    records in the baselines' ``results`` file: success, return, length, episodes, first
+    seed) go to ``root/<env>-[<variant>-]<mode>``, replacing the agent shipped there. Returns
+    that folder; ValueError naming the argument if ``run`` is no complete run or ``results``
+    holds no records of it."""
+    import torch
+
+    from .baselines import run_name
+    from .train import CRITIC_KEYS, read_run
+
+    run = Path(run)
+    try:
+        config = read_run(run)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"run: {exc}") from None
+    try:
+        with open(results, encoding="utf-8") as f:
+            records = [r for r in json.load(f) if isinstance(r, dict) and r.get("run") == run.name]
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"results: cannot read {str(results)!r} ({exc})") from None
+    fields = ("success_rate", "mean_return", "mean_length", "eval_episodes", "eval_seed_start")
+    published = {}
+    for kind, deterministic in (("stochastic", False), ("deterministic", True)):
+        found = [r for r in records if r.get("deterministic") is deterministic]
+        if not found:
+            raise ValueError(f"results: no {kind} record of run {run.name!r} in {str(results)!r}")
+        published[kind] = {k: found[-1][k] for k in fields}
+    variant = _variant(config)
+    name = run_name(config["env"], config["action_mode"], config["algo"], config["seed"],
+                    variant).rsplit("-", 2)[0]
+    folder = Path(root) / name
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    for file in KEPT:
+        if file == "policy.pt" and config["algo"] == "sac":
+            state = torch.load(run / file, map_location="cpu", weights_only=True)
+            torch.save({k: v for k, v in state.items() if not k.startswith(CRITIC_KEYS)},
+                       folder / file)
+        elif (run / file).is_file():
+            shutil.copyfile(run / file, folder / file)
+    (folder / "published.json").write_text(json.dumps(published, indent=1) + "\n",
+                                           encoding="utf-8")
+    return folder

@@ -626,10 +626,17 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
             "action_shape": spaces["action"].shape, "_spaces": spaces}
 
 
+#: Prefixes of a SAC policy's weights that acting does not use (its critics): a SAC weights
+#: file may hold all of them or none (the actor alone, as a shipped agent does).
+CRITIC_KEYS = ("critic.", "critic_target.")
+
+
 def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
     """The SB3 policy of a run (``config`` from :func:`read_run`), rebuilt from its settings
     and spaces, with the weights in ``path`` read by PyTorch's ``weights_only`` loading (no
-    code runs); ValueError naming the file if they are not weights of that policy."""
+    code runs); ValueError naming the file if they are not weights of that policy. A SAC
+    file may leave out the critics (:data:`CRITIC_KEYS`): the policy then acts as the run's
+    did, and its critics are untrained."""
     import torch
 
     hp = config["hyperparams"]
@@ -661,6 +668,12 @@ def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
                          "tensors)")
     expected = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
     given = {k: tuple(v.shape) for k, v in state.items()}
+    if config["algo"] == "sac" and not any(k.startswith(CRITIC_KEYS) for k in given):
+        # (an acting policy: SAC's critics, kept out of a shipped agent, are not needed to
+        # act; they keep their initial values)
+        state = {**{k: v for k, v in policy.state_dict().items()
+                    if k.startswith(CRITIC_KEYS)}, **state}
+        expected = {k: v for k, v in expected.items() if not k.startswith(CRITIC_KEYS)}
     wrong = ([f"{k} missing" for k in expected if k not in given]
              + [f"{k} unknown" for k in given if k not in expected]
              + [f"{k} has shape {given[k]}, the policy's {shape}"

@@ -45,7 +45,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     modes = "; ".join(f"{spec.id}: {', '.join(spec.action_modes)}" for spec in specs)
     parser.add_argument("env", choices=ids, metavar="ENV_ID",
                         help=f"environment id: {', '.join(ids)}")
-    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="SB3 algorithm")
+    other = [f"{spec.default_algo()} for {spec.id}" for spec in specs
+             if spec.default_algo() != "ppo"]
+    parser.add_argument("--algo", choices=ALGOS,
+                        help="SB3 algorithm (default: the one the task ships first: "
+                        f"{', '.join(other + ['ppo for the others' if other else 'ppo'])})")
     parser.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
                         help="seed of the model; env copy i starts from seed + i")
     parser.add_argument("--out", required=True, type=new_directory,
@@ -88,6 +92,8 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
     if args.action_mode not in modes:
         parser.error(f"argument --action-mode: {args.env} takes {' or '.join(modes)}, "
                      f"got {args.action_mode!r}")
+    if args.algo is None:
+        args.algo = task_spec(args.env).default_algo(args.action_mode)
     try:
         load_hyperparams(args.algo, args.env, args.action_mode)
     except ValueError as exc:

@@ -25,7 +25,7 @@ MAX_FRAME_STACK = 16
 #: CNN features, then ``net_arch``) for the image observations of ``obs_mode="pixels"``.
 POLICIES = ("MlpPolicy", "CnnPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
-POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde")
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init")
 MAX_LAYER = 4096
 #: Settings that may also be given as a schedule, ``"lin_<value>"``: ``value`` at the start,
 #: decayed linearly to 0 at the end of the budget (rl-baselines3-zoo's notation).
@@ -211,9 +211,10 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any], algo: str) -> N
                          f"at most 16 layer widths in [1, {MAX_LAYER}], or such lists for the "
                          f"networks apart ({algo}: {{\"{keys[0]}\": [...], \"{keys[1]}\": "
                          "[...]})")
-    if not isinstance(pk.get("use_sde", False), bool):
-        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde must be true or "
-                         "false")
+    for flag in ("use_sde", "ortho_init"):
+        if not isinstance(pk.get(flag, False), bool):
+            raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{flag} must be true or "
+                             "false")
     stack = hp.get("frame_stack", 1)
     if type(stack) is not int or not 1 <= stack <= MAX_FRAME_STACK:
         raise ValueError(f"{config_path}: hyperparams.frame_stack must be a whole number in "

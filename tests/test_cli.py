@@ -373,7 +373,10 @@ def test_train_help_after_every_env_id(env_id, capsys):
         cli.main(["train", env_id, "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "--timesteps" in out and "(default: ppo)" in out and "ClothPin-v1: draw" in out
+    out = " ".join(out.split())
+    assert "--timesteps" in out and "ClothPin-v1: draw" in out
+    assert "(default: the one the task ships first: sac for RopeStraighten-v0, ppo for the " \
+           "others)" in out
 
 
 # ------------------------------------------------------------------ train / evaluate mistakes
@@ -487,6 +490,7 @@ class Marker:
     ({"algo": "sac", "hyperparams": {"policy_kwargs": {"net_arch": {"pi": [], "vf": [8]}}}},
      ["net_arch", "sac", "qf"]),
     ({"hyperparams": {"policy_kwargs": {"net_arch": {"pi": [0], "vf": [8]}}}}, ["net_arch"]),
+    ({"hyperparams": {"policy_kwargs": {"ortho_init": "no"}}}, ["ortho_init", "true or false"]),
     (None, ["not valid JSON"]),
     ("deep", ["nested too deeply"]),
     ("huge", ["larger than"]),

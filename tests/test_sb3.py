@@ -151,6 +151,77 @@ def test_shipped_hyperparameters_cover_every_env_and_mode():
         load_hyperparams("dqn", "ClothSlide-v0")
 
 
+def test_train_without_algo_takes_the_tasks_shipped_algorithm(tmp_path, capsys, monkeypatch):
+    """``--algo`` left out: the algorithm the task ships first for the mode (SAC for
+    RopeStraighten, whose PPO settings learn on some seeds only), recorded in config.json;
+    every task's default has settings for each mode that ships any."""
+    for spec in envs.task_specs():
+        for mode in spec.action_modes:
+            algo = spec.default_algo(mode)
+            if any(mode in table for table in spec.hyperparams.values()):
+                assert load_hyperparams(algo, spec.id, mode)["n_timesteps"] > 0
+    assert envs.task_spec("RopeStraighten-v0").default_algo() == "sac"
+    assert envs.task_spec("ClothSlide-v0").default_algo() == "ppo"
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "run"
+    assert cli.main(["train", "RopeStraighten-v0", "--seed", "1", "--out", str(out),
+                     "--timesteps", "40", "--eval-freq", "40", "--eval-episodes", "1",
+                     "--no-progress", "--hyperparams", "learning_starts=20"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["algo"] == "sac"
+    assert config["hyperparams"]["gamma"] == 0.9
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        cli.main(["train", "RopeStraighten-v0", "--help"])
+    assert "RopeStraighten-v0: sac" in " ".join(capsys.readouterr().out.split())
+
+
+def test_a_shipped_sac_agent_keeps_the_actor_and_acts_as_its_run(tmp_path, capsys,
+                                                                 monkeypatch):
+    """``python -m envs.baselines ship RUN``: the run's data files and its held-out records
+    (published.json) in a folder of the agents' root; a SAC policy without its critics, which
+    then plays the same episodes with the same figures as the whole run."""
+    from envs import baselines
+    from envs.train import evaluate
+
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    run = tmp_path / "SliderCrank-v0-force-sac-1"
+    assert cli.main(["train", "SliderCrank-v0", "--algo", "sac", "--seed", "1", "--out",
+                     str(run), "--timesteps", "64", "--eval-freq", "64", "--eval-episodes", "1",
+                     "--no-progress", "--hyperparams", "learning_starts=32"]) == 0
+    records = [{**res, "eval_episodes": res["episodes"], "eval_seed_start": res["seed_start"],
+                "run": run.name}  # (the fields of a baselines record that ship reads)
+               for res in (evaluate(run, episodes=3, seed_start=77, deterministic=d)
+                           for d in (True, False))]
+    results = tmp_path / "results.json"
+    results.write_text(json.dumps(records))
+    root = tmp_path / "agents"
+    capsys.readouterr()
+    assert baselines.main(["ship", str(run), "--results", str(results), "--root",
+                           str(root)]) == 0
+    folder = root / "SliderCrank-v0-force"
+    assert capsys.readouterr().out.strip() == str(folder)
+    state = torch.load(folder / "policy.pt", weights_only=True)
+    whole = torch.load(run / "policy.pt", weights_only=True)
+    assert any(k.startswith("critic") for k in whole)
+    assert sorted(state) == sorted(k for k in whole if k.startswith("actor."))
+    published = json.loads((folder / "published.json").read_text())
+    again = evaluate(folder, episodes=3, seed_start=77)
+    for kind, rec in zip(("deterministic", "stochastic"), records, strict=True):
+        assert published[kind]["mean_return"] == rec["mean_return"]
+    assert (again["success_rate"], again["mean_return"]) == (
+        records[0]["success_rate"], records[0]["mean_return"])
+    for argv in (["ship", str(tmp_path / "nothing"), "--results", str(results)],
+                 ["ship", str(run), "--results", str(tmp_path / "none.json")]):
+        with pytest.raises(SystemExit) as exc:
+            baselines.main(argv)
+        assert exc.value.code == 2
+    results.write_text("[]")
+    with pytest.raises(SystemExit):
+        baselines.main(["ship", str(run), "--results", str(results), "--root", str(root)])
+    assert "no stochastic record" in capsys.readouterr().err
+
+
 def test_a_policy_and_value_function_apart_train_and_evaluate(tmp_path, capsys, monkeypatch):
     """``net_arch`` as ``{"pi": [...], "vf": [...]}`` (here a linear policy beside a small
     value network): trained, recorded in config.json, rebuilt by evaluate with its weights."""
