@@ -117,7 +117,8 @@ def ship(run: str | Path, results: str | Path, root: str | Path = ROOT) -> Path:
     fields = ("success_rate", "mean_return", "mean_length", "eval_episodes", "eval_seed_start")
     published = {}
     for kind, deterministic in (("stochastic", False), ("deterministic", True)):
-        found = [r for r in records if r.get("deterministic") is deterministic]
+        found = [r for r in records if r.get("deterministic") is deterministic
+                 and all(k in r for k in fields)]
         if not found:
             raise ValueError(f"results: no {kind} record of run {run.name!r} in {str(results)!r}")
         published[kind] = {k: found[-1][k] for k in fields}

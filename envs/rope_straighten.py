@@ -290,7 +290,7 @@ TASK = TaskSpec(
     action_modes=PICK_PLACE_MODES, scripted_agent=RopeStraightenController,
     summary="straighten a tangled rope on a table by pick-and-place until its ends are 95% "
             "of its length apart",
-    hyperparams={"sac": {"pick_place": sac(40000, (256, 256), learning_starts=1000,
+    hyperparams={"sac": {"pick_place": sac(60000, (256, 256), learning_starts=1000,
                                            gamma=0.9)},
                  "ppo": {"pick_place": ppo(300000, (128, 128), log_std_init=-1.0, n_steps=64,
                                            batch_size=256, gamma=0.9, learning_rate=0.001,

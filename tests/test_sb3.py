@@ -173,7 +173,7 @@ def test_train_without_algo_takes_the_tasks_shipped_algorithm(tmp_path, capsys, 
     capsys.readouterr()
     with pytest.raises(SystemExit):
         cli.main(["train", "RopeStraighten-v0", "--help"])
-    assert "RopeStraighten-v0: sac" in " ".join(capsys.readouterr().out.split())
+    assert "sac for RopeStraighten-v0" in " ".join(capsys.readouterr().out.split())
 
 
 def test_a_shipped_sac_agent_keeps_the_actor_and_acts_as_its_run(tmp_path, capsys,
