@@ -41,14 +41,14 @@ def shipped() -> dict[tuple[str, str, str], Path]:
     """The shipped agents: ``{(env id, action mode, variant): run directory}`` (``variant``:
     the env keyword arguments it trained with as :func:`envs.task.variant_key` writes them,
     ``""`` for the default configuration), read from each folder's ``config.json`` (folders
-    without one are ignored)."""
+    without one, and hidden ones, are ignored)."""
     found: dict[tuple[str, str, str], Path] = {}
     if not ROOT.is_dir():
         return found
     for folder in sorted(ROOT.iterdir()):
         config = folder / "config.json"
-        if not config.is_file():
-            continue
+        if folder.name.startswith(".") or not config.is_file():
+            continue  # (hidden: one :func:`ship` is still writing)
         with open(config, encoding="utf-8") as f:
             data = json.load(f)
         found[(str(data.get("env")), str(data.get("action_mode")), _variant(data))] = folder
@@ -126,16 +126,19 @@ def ship(run: str | Path, results: str | Path, root: str | Path = ROOT) -> Path:
     name = run_name(config["env"], config["action_mode"], config["algo"], config["seed"],
                     variant).rsplit("-", 2)[0]
     folder = Path(root) / name
-    if folder.exists():
-        shutil.rmtree(folder)
-    folder.mkdir(parents=True)
+    new = Path(root) / f".{name}.partial"  # (written whole, then put in place)
+    shutil.rmtree(new, ignore_errors=True)
+    new.mkdir(parents=True)
     for file in KEPT:
         if file == "policy.pt" and config["algo"] == "sac":
             state = torch.load(run / file, map_location="cpu", weights_only=True)
             torch.save({k: v for k, v in state.items() if not k.startswith(CRITIC_KEYS)},
-                       folder / file)
+                       new / file)
         elif (run / file).is_file():
-            shutil.copyfile(run / file, folder / file)
-    (folder / "published.json").write_text(json.dumps(published, indent=1) + "\n",
-                                           encoding="utf-8")
+            shutil.copyfile(run / file, new / file)
+    (new / "published.json").write_text(json.dumps(published, indent=1) + "\n",
+                                        encoding="utf-8")
+    if folder.exists():
+        shutil.rmtree(folder)
+    new.rename(folder)
     return folder

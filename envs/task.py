@@ -171,22 +171,12 @@ class TaskSpec:
                              f"(it ships {have or 'none'})")
         return copy.deepcopy(json.loads(json.dumps(table[mode])))
 
-    def default_algo(self, action_mode: str | None = None,
-                     env_kwargs: Mapping[str, Any] | None = None) -> str:
+    def default_algo(self, action_mode: str | None = None) -> str:
         """The algorithm ``cparticles train`` uses when none is named: the first of
-        :attr:`hyperparams` (for a variant with settings of its own, of its table) that ships
-        settings for ``action_mode`` (None: the default mode); ``"ppo"`` if none does."""
+        :attr:`hyperparams` that ships settings for ``action_mode`` (None: the default mode);
+        ``"ppo"`` if none does."""
         mode = self.default_mode if action_mode is None else action_mode
-        try:
-            variant = variant_key(env_kwargs or {})
-        except ValueError:
-            variant = None
-        for table in (self.variant_hyperparams.get(variant, {}) if variant else {},
-                      self.hyperparams):
-            for algo, modes in table.items():
-                if mode in modes:
-                    return algo
-        return "ppo"
+        return next((algo for algo, modes in self.hyperparams.items() if mode in modes), "ppo")
 
     @property
     def trained_variants(self) -> tuple[str, ...]:

@@ -26,6 +26,8 @@ MAX_FRAME_STACK = 16
 POLICIES = ("MlpPolicy", "CnnPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
 POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init")
+#: Keys of :data:`POLICY_KWARGS` only PPO's policy takes (SB3's SAC policy has no such argument).
+PPO_POLICY_KWARGS = ("ortho_init",)
 MAX_LAYER = 4096
 #: Settings that may also be given as a schedule, ``"lin_<value>"``: ``value`` at the start,
 #: decayed linearly to 0 at the end of the budget (rl-baselines3-zoo's notation).
@@ -201,6 +203,10 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any], algo: str) -> N
     if not isinstance(pk, dict) or set(pk) - set(POLICY_KWARGS):
         raise ValueError(f"{config_path}: hyperparams.policy_kwargs may hold only "
                          f"{', '.join(POLICY_KWARGS)}")
+    for key in PPO_POLICY_KWARGS:
+        if key in pk and algo != "ppo":
+            raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{key} is a ppo setting "
+                             f"({algo}'s policy does not take it)")
     arch = pk.get("net_arch", [64, 64])
     keys = ARCH_KEYS.get(algo, ("pi", "vf"))
     parts = list(arch.values()) if isinstance(arch, dict) and set(arch) == set(keys) \

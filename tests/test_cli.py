@@ -491,6 +491,8 @@ class Marker:
      ["net_arch", "sac", "qf"]),
     ({"hyperparams": {"policy_kwargs": {"net_arch": {"pi": [0], "vf": [8]}}}}, ["net_arch"]),
     ({"hyperparams": {"policy_kwargs": {"ortho_init": "no"}}}, ["ortho_init", "true or false"]),
+    ({"algo": "sac", "hyperparams": {"policy_kwargs": {"ortho_init": False}}},
+     ["ortho_init", "ppo setting"]),
     (None, ["not valid JSON"]),
     ("deep", ["nested too deeply"]),
     ("huge", ["larger than"]),

@@ -201,6 +201,7 @@ def test_a_shipped_sac_agent_keeps_the_actor_and_acts_as_its_run(tmp_path, capsy
                            str(root)]) == 0
     folder = root / "SliderCrank-v0-force"
     assert capsys.readouterr().out.strip() == str(folder)
+    assert [p.name for p in root.iterdir()] == [folder.name]  # (nothing half-written left)
     state = torch.load(folder / "policy.pt", weights_only=True)
     whole = torch.load(run / "policy.pt", weights_only=True)
     assert any(k.startswith("critic") for k in whole)
@@ -361,7 +362,9 @@ def test_train_takes_zoo_options_and_records_them(tmp_path, capsys, monkeypatch)
                         (["--hyperparams", "policy=CnnPolicy"], ["policy", "CnnPolicy", "image"]),
                         (["--algo", "sac", "--hyperparams",  # (PPO's form given to SAC)
                           'policy_kwargs={"net_arch": {"pi": [], "vf": [8]}}'],
-                         ["net_arch", "sac", "qf"])):
+                         ["net_arch", "sac", "qf"]),
+                        (["--algo", "sac", "--hyperparams",  # (a PPO-only policy argument)
+                          'policy_kwargs={"ortho_init": false}'], ["ortho_init", "ppo"])):
         with pytest.raises(SystemExit) as exc:
             cli.main(["train", "SliderCrank-v0", "--out", str(tmp_path / "x"), *argv])
         err = capsys.readouterr().err
