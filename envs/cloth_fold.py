@@ -255,7 +255,8 @@ TASK = TaskSpec(
     action_modes=PICK_PLACE_MODES, scripted_agent=ClothFoldController,
     summary="fold a flat cloth in half along a given line by pick-and-place, two grippers at "
             "once",
-    hyperparams={"ppo": {"pick_place": ppo(100000, (128, 128), log_std_init=-2.5, n_steps=64,
+    hyperparams={"ppo": {"pick_place": ppo(600000, {"pi": (), "vf": (128, 128)},
+                                           log_std_init=-1.0, log_std_final=-4.5, n_steps=64,
                                            batch_size=256, gamma=0.5, learning_rate=0.001,
                                            n_epochs=20)},
                  "sac": {"pick_place": sac(50000, (256, 256), learning_starts=1000)}},

@@ -200,13 +200,18 @@ SAC_BASE: dict[str, Any] = {
     "ent_coef": "auto"}
 
 
-def ppo(n_timesteps: int, net_arch: tuple[int, ...], log_std_init: float = -0.5,
-        **changes: object) -> dict[str, Any]:
+def ppo(n_timesteps: int, net_arch: tuple[int, ...] | dict[str, tuple[int, ...]],
+        log_std_init: float = -0.5, **changes: object) -> dict[str, Any]:
     """A PPO entry: :data:`PPO_BASE` with ``changes``, ``n_timesteps`` (the default budget, env
-    steps) and an MLP of ``net_arch`` hidden sizes whose Gaussian policy starts from a standard
-    deviation of ``exp(log_std_init)`` in action units."""
+    steps) and an MLP of ``net_arch`` hidden sizes (one tuple for both networks, or
+    ``{"pi": ..., "vf": ...}`` apart: ``"pi": ()`` is a policy whose mean is linear in the
+    normalised observation) whose Gaussian policy starts from a standard deviation of
+    ``exp(log_std_init)`` in action units."""
+    arch: list[int] | dict[str, list[int]] = (
+        {key: list(sizes) for key, sizes in net_arch.items()} if isinstance(net_arch, dict)
+        else list(net_arch))
     return {**PPO_BASE, "n_timesteps": n_timesteps, **changes,
-            "policy_kwargs": {"net_arch": list(net_arch), "log_std_init": log_std_init}}
+            "policy_kwargs": {"net_arch": arch, "log_std_init": log_std_init}}
 
 
 def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256),
