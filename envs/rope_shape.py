@@ -125,6 +125,16 @@ class RopeShape(Rope):
         backward = np.linalg.norm(x - c[:, ::-1], axis=2).mean(axis=1)
         return np.minimum(forward, backward), backward < forward
 
+    def observed_order(self, x: np.ndarray) -> np.ndarray:
+        """The rope listed in the order along it that the shape distance takes (reversed in
+        the copies where the reversed order lies nearer the target curve), so that observed
+        rope point ``i`` belongs on the observation's target point ``i``. The task cannot tell
+        the rope's ends apart, so an agent should not have to: with the particles' own order,
+        a rope point's target is one end of the curve or the other from one episode to the
+        next."""
+        flip = self.shape_distance(x, self.target)[1]
+        return np.where(flip[:, None, None], x[:, ::-1], x)
+
     def progress(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
         """Minus the shape distance (m): 0 on the curve."""
         return -self.shape_distance(x, target)[0]
@@ -177,7 +187,9 @@ class RopeShapeEnv(PickPlaceEnv):
     ``obs_mode="state"``: ``Box(-10, 10, (40,), float32)``: the normalised positions of 10
     evenly spaced rope particles (0, 2, 4, 6, 8, 11, 13, 15, 17, 19), then the target curve's
     points for the same particles. ``obs_mode="particles"``: every particle, then the target
-    point of every particle (80 floats).
+    point of every particle (80 floats). The rope is listed in the order along it that lies
+    nearer the curve (the order the success test takes), so observed rope point ``i`` belongs
+    on target point ``i``.
 
     ## Rewards
 

@@ -284,6 +284,28 @@ def test_rope_shape_distance_takes_the_better_order():
     assert t.measure()["distance"][0] == pytest.approx(0.03, rel=1e-9)
 
 
+
+@pytest.mark.parametrize("obs_mode", ["state", "particles"])
+def test_rope_shape_observes_the_rope_in_the_order_that_matches_its_target(obs_mode):
+    env = RopeShapeEnv(obs_mode=obs_mode)
+    for seed in range(4):
+        obs, _ = env.reset(seed=seed)
+        t = env.task
+        x = t.positions()[0].copy()
+        # the rope's particles numbered the other way round: the same rope, the same observation
+        env.set_state(dict(env.get_state(), x=x[::-1].copy(), v=np.zeros_like(x)))
+        assert np.array_equal(t.observe()[0], obs)
+        # observed point i is nearer target point i than the reversed pairing puts it
+        rope, goal = t.observed_points(obs)[0], t.to_world(t.goal_part(obs)[0].reshape(-1, 2))
+        assert (np.linalg.norm(rope - goal, axis=1).mean()
+                <= np.linalg.norm(rope - goal[::-1], axis=1).mean())
+    target = t.curves(t.target[:1])[0]
+    for laid in (target, target[::-1]):  # laid on the curve either way: rope points on targets
+        env.set_state(dict(env.get_state(), x=laid.copy(), v=np.zeros_like(laid)))
+        o = t.observe()
+        assert np.allclose(t.observed_points(o)[0], t.to_world(t.goal_part(o)[0].reshape(-1, 2)),
+                           atol=1e-6)
+
 # ------------------------------------------------------------------ spaces and arguments
 @pytest.mark.parametrize("env_id", TABLETOP)
 def test_particles_mode_observes_every_particle_and_goal_mode_is_refused(env_id):
