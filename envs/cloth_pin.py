@@ -540,11 +540,32 @@ class ClothPin(ShapedTask, ParticleTask):
         cloth at rest: the cloth's centre of mass after the rigid shift along x at which the
         springs' horizontal pull balances the push (``nx * push`` N), or after the shift that
         brings its right edge to the wall if they cannot hold it before (as with no springs).
-        The shift: up to :data:`PLAN_NEWTON_STEPS` Newton steps from the wall's, where the pull
-        (convex in the shift while the cloth ends are right of their anchors) makes them
-        approach the balance from the wall's side. Exact after one step for the scripted
-        agent's horizontal spring on the top row; for other springs it leaves out the cloth's
-        own deformation. A function of the current state alone (springs, positions, goal)."""
+        The shift: up to :data:`PLAN_NEWTON_STEPS` Newton steps from the wall's, each copy
+        stopping once its force left over is below :data:`PLAN_TOLERANCE`; the pull (convex in
+        the shift while the cloth ends are right of their anchors) makes them approach the
+        balance from the wall's side. Exact after one step for the scripted agent's horizontal
+        spring on the top row; for other springs it leaves out the cloth's own deformation. A
+        function of each copy's own state alone (springs, positions, goal). In one compiled
+        pass (:func:`envs.cloth_pin_kernels.pin_plan`) where the arrays allow it, else by the
+        numpy reference :meth:`plan_distance_reference`; the same bits either way."""
+        N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs
+        sp, flat, goal = self.springs, self.system.x, self.goal  # (read once)
+        si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
+        if (cloth_pin_kernels.pin_plan is not None and type(n) is int and type(nc) is int
+                and type(B) is int and 0 < nc <= n and _owned(flat, np.float64, (N * n, 2))
+                and _owned(goal, np.float64, (N,)) and _owned(si, np.int64, (N * B,))
+                and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
+                and _owned(rest, np.float64, (N * B,))):
+            out = np.empty(N)
+            center = self.tracked(flat.reshape(N, n, 2))
+            if cloth_pin_kernels.pin_plan(flat, (si, sj, ks, rest), n, nc, B, center, goal,
+                                          (self.wall_x, float(self.nx * self.push),
+                                           PLAN_NEWTON_STEPS, PLAN_TOLERANCE), out):
+                return out
+        return self.plan_distance_reference()
+
+    def plan_distance_reference(self) -> np.ndarray:
+        """:meth:`plan_distance` in numpy (the reference of the compiled pass)."""
         N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs
         sp, flat = self.springs, self.system.x
         base = (np.arange(N) * n)[:, None]
@@ -559,6 +580,7 @@ class ClothPin(ShapedTask, ParticleTask):
         push = self.nx * self.push
         wall = self.wall_x - x.max(axis=1)  # the shift that puts the right edge on the wall
         shift = wall.copy()
+        going = np.zeros(N, bool)  # (the copies still taking Newton steps)
         for step in range(PLAN_NEWTON_STEPS):
             sx = u[:, :, 0] + shift[:, None]
             length = np.maximum(np.sqrt(sx * sx + uy2), 1e-12)
@@ -566,12 +588,12 @@ class ClothPin(ShapedTask, ParticleTask):
             excess = push - np.sum(ks * (length - rest) * sx / length, axis=1)
             slope = -np.sum(ks * (1.0 - rest * uy2 / (length * length * length)), axis=1)
             if step == 0:
-                held = excess < 0  # (else the springs cannot stop it before the wall)
-                if not held.any():
-                    break
-            elif np.max(np.abs(np.where(held, excess, 0.0))) < PLAN_TOLERANCE:
+                going = excess < 0  # (else the springs cannot stop it before the wall)
+            else:
+                going &= ~(np.abs(excess) < PLAN_TOLERANCE)
+            if not going.any():
                 break
-            shift = np.where(held & (slope < 0), shift - excess / np.minimum(slope, -1e-12),
+            shift = np.where(going & (slope < 0), shift - excess / np.minimum(slope, -1e-12),
                              shift)
         shift = np.minimum(shift, wall)
         return np.abs(self.tracked(self.positions()) + shift - self.goal)

@@ -80,6 +80,8 @@ pin_observe: Callable[..., bool] | None = None
 pin_measures_observe: Callable[..., bool] | None = None
 #: the drawing check (None when ``_measure.ENABLED`` is False)
 pin_draws: Callable[..., bool] | None = None
+#: ``ClothPin.plan_distance`` (None when ``_measure.ENABLED`` is False)
+pin_plan: Callable[..., bool] | None = None
 
 if _measure.ENABLED:
     from constrained_particles.jit import njit
@@ -247,6 +249,104 @@ if _measure.ENABLED:
         _pin_observe(x, v, goal.n, goal.goal, View(*view), slots, obs)
         return True
 
+    @njit
+    def _pairwise_sum(a, n):  # pragma: no cover - compiled
+        """``np.sum`` of ``a[:n]`` with numpy's own order of additions (its pairwise sum, for
+        ``n <= 128``: eight running sums), so that the compiled pass gives numpy's bits."""
+        if n < 8:
+            res = 0.0
+            for q in range(n):
+                res += a[q]
+            return res
+        r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+        q = 8
+        while q < n - n % 8:
+            r0 += a[q]
+            r1 += a[q + 1]
+            r2 += a[q + 2]
+            r3 += a[q + 3]
+            r4 += a[q + 4]
+            r5 += a[q + 5]
+            r6 += a[q + 6]
+            r7 += a[q + 7]
+            q += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while q < n:
+            res += a[q]
+            q += 1
+        return res
+
+    @njit
+    def _np_min(a, b):  # pragma: no cover - compiled
+        """``np.minimum(a, b)`` of two numbers (NaN if either is)."""
+        if a != a or b != b:
+            return a + b
+        return a if a <= b else b
+
+    @njit(nogil=True)
+    def _pin_plan(x, springs, n, nc, slots, center, goal, plan, out):
+        # pragma: no cover - compiled
+        """``ClothPin.plan_distance_reference`` of every copy into ``out`` (N,), with its
+        arithmetic in its order (numpy's pairwise sums over the ``slots`` springs of a copy):
+        the same bits. ``springs = (i, j, ks, rest)`` of ``N * slots`` springs, ``center`` the
+        cloth's centre of mass x per copy (m), ``plan = (wall_x, push, steps, tolerance)``.
+        False, writing nothing, unless the arrays fit (N copies of ``n`` particles, ``0 < nc
+        <= n``, spring ends particles of ``x``) and ``slots <= 128``."""
+        si, sj, ks, rest = springs
+        wall_x, push, steps, tol = plan
+        N = goal.shape[0]
+        if not (0 < nc <= n and 0 <= slots <= 128 and x.shape[0] == N * n
+                and si.shape[0] == N * slots and sj.shape[0] == N * slots
+                and ks.shape[0] == N * slots and rest.shape[0] == N * slots
+                and center.shape[0] == N and out.shape[0] == N):
+            return False
+        for e in range(si.shape[0]):
+            if si[e] < 0 or si[e] >= x.shape[0] or sj[e] < 0 or sj[e] >= x.shape[0]:
+                return False
+        ux = np.empty(slots)
+        uy2 = np.empty(slots)
+        k = np.empty(slots)
+        pull = np.empty(slots)
+        bend = np.empty(slots)
+        for c in range(N):
+            base, e0 = c * n, c * slots
+            for b in range(slots):
+                e = e0 + b
+                sign = (1.0 if sj[e] - base < nc else 0.0) - (1.0 if si[e] - base < nc else 0.0)
+                ux[b] = sign * (x[sj[e], 0] - x[si[e], 0])
+                uy = sign * (x[sj[e], 1] - x[si[e], 1])
+                uy2[b] = uy * uy
+                k[b] = ks[e] if sign != 0 else 0.0
+            top = x[base, 0]
+            for q in range(base + 1, base + nc):
+                v = x[q, 0]
+                if v > top or v != v:  # (np.max: NaN wins)
+                    if top == top:
+                        top = v
+            wall = wall_x - top
+            shift = wall
+            for step in range(steps):
+                for b in range(slots):
+                    sx = ux[b] + shift
+                    length = math.sqrt(sx * sx + uy2[b])
+                    if length < 1e-12:
+                        length = 1e-12
+                    r = rest[e0 + b]
+                    pull[b] = k[b] * (length - r) * sx / length
+                    bend[b] = k[b] * (1.0 - r * uy2[b] / (length * length * length))
+                excess = push - _pairwise_sum(pull, slots)
+                slope = -_pairwise_sum(bend, slots)
+                if step == 0:
+                    if not excess < 0:  # (the springs cannot stop it before the wall)
+                        break
+                elif abs(excess) < tol:
+                    break
+                if slope < 0:
+                    shift = shift - excess / _np_min(slope, -1e-12)
+            out[c] = abs(center[c] + _np_min(shift, wall) - goal[c])
+        return True
+
+    pin_plan = _pin_plan
     pin_observe = _pin_observe_entry
     pin_measures_observe = _pin_measures_observe_entry
     pin_draws = _pin_draws

@@ -293,3 +293,66 @@ def test_the_v0_id_names_its_successor():
 
     with pytest.raises(DeprecatedEnv, match="ClothPin-v1"):
         gym.make("ClothPin-v0")
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off: nothing to compare")
+@pytest.mark.parametrize(("max_springs", "push"), [(4, 0.1), (4, 1e-4), (12, 1e-4)])
+def test_cloth_pin_compiled_plan_distance_is_the_numpy_reference_and_each_copys_own(
+        max_springs, push):
+    """``plan_distance`` (compiled) against ``plan_distance_reference`` bit for bit, over random
+    drawings (weak pushes: most are taken, Newton steps run); and copy i of the vector env
+    against the same state in a one-copy task: each copy's Newton steps stop on its own test,
+    so a copy's figure never depends on the others'."""
+    N = 6
+    env = gym.make_vec("ClothPin-v1", num_envs=N, vectorization_mode="vector_entry_point",
+                       max_springs=max_springs, push=push)
+    env.reset(seed=5)
+    task = env.unwrapped.task
+    alone = envs.cloth_pin.ClothPin(1, max_springs=max_springs, push=push)
+    rng = np.random.default_rng(1)
+    lo_x, lo_y, hi_x, hi_y = task.anchor_region
+    held = 0
+    for step in range(60):
+        x = task.positions()
+        cloth = x[np.arange(N), rng.integers(0, task.cloth_n, N)]
+        region = np.stack([rng.uniform(lo_x, hi_x, N), rng.uniform(lo_y, hi_y, N)], axis=1)
+        a = np.concatenate([task.to_normalized(cloth), task.to_normalized(region),
+                            rng.uniform(-1, 1, (N, 1)), np.where(rng.random((N, 1)) < 0.5, 1, -1)],
+                           axis=1).astype(np.float32)
+        env.step(a)
+        compiled, reference = task.plan_distance(), task.plan_distance_reference()
+        assert compiled.tobytes() == reference.tobytes()
+        right = task.positions()[:, :task.cloth_n, 0].max(axis=1)
+        wall = np.abs(task.tracked(task.positions()) + (task.wall_x - right) - task.goal)
+        held += int(np.count_nonzero(compiled != wall))  # (the springs hold it off the wall)
+        if step % 10 == 9:
+            for i in range(N):
+                alone.set_state(0, task.get_state(i))
+                assert alone.plan_distance().tobytes() == compiled[i:i + 1].tobytes()
+    assert held > 20  # Newton steps were taken, not only the wall's shift
+    assert task.placed.min() >= 1
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
+def test_cloth_pin_compiled_plan_distance_refuses_arrays_that_do_not_fit():
+    env = gym.make_vec("ClothPin-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    env.reset(seed=0)
+    task = env.unwrapped.task
+    sp, x, n, nc, B = task.springs, task.system.x, task.n, task.cloth_n, task.max_springs
+    center = task.tracked(task.positions())
+    plan = (task.wall_x, float(task.nx * task.push), 6, 1e-9)
+    springs = (sp.i, sp.j, sp.ks, sp.rest)
+
+    def run(x=x, springs=springs, n=n, nc=nc, B=B, center=center, goal=task.goal):
+        out = np.full(2, 7.0)
+        return cloth_pin_kernels.pin_plan(x, springs, n, nc, B, center, goal, plan, out), out
+
+    done, out = run()
+    assert done and out.tobytes() == task.plan_distance_reference().tobytes()
+    bad_end = sp.j.copy()
+    bad_end[-1] = len(x)
+    for bad in ({"x": np.ascontiguousarray(x[:-1])}, {"springs": (sp.i, bad_end, sp.ks, sp.rest)},
+                {"springs": (sp.i[:-1].copy(), sp.j, sp.ks, sp.rest)}, {"nc": n + 1},
+                {"nc": 0}, {"center": center[:1].copy()}, {"B": 129}):
+        done, out = run(**bad)
+        assert not done and np.all(out == 7.0)  # nothing written
