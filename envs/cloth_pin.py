@@ -323,7 +323,8 @@ class ClothPin(ShapedTask, ParticleTask):
         drawn = self._drawn(actions, idle)
         if drawn is not None:
             ends, ok = drawn
-            ok &= self.still()  # (a moving cloth refuses, as in place)
+            if np.count_nonzero(ok):  # (a moving cloth refuses, as in place)
+                ok &= self.still()
             self.placed_now[:] = ok
             if np.count_nonzero(ok):
                 envs = np.flatnonzero(ok)
