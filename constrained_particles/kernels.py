@@ -22,6 +22,7 @@ import numpy as np
 ENABLED = False  #: True when the compiled paths are in use
 spring_forces = None  #: compiled DampedSpring block accumulation, or None
 group_pieces = None  #: compiled step splitting for groups of particles (envs), or None
+mouse_forces = None  #: compiled MouseSpring block accumulation (envs' step splitting), or None
 
 if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
     try:
@@ -242,3 +243,31 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
                         rows[q] = count
             return largest
 
+        @njit(nogil=True)
+        def mouse_forces(x: np.ndarray, v: np.ndarray, particle: np.ndarray,
+                         anchor: np.ndarray, ks: np.ndarray, kd: np.ndarray,
+                         active: np.ndarray, F: np.ndarray) -> bool:  # pragma: no cover
+            """Add the forces (N) of mouse springs ``(particle, anchor, ks, kd, active)`` at
+            ``(x, v)`` into ``F``, as ``MouseSpring.accumulate`` does (nothing unless some
+            spring is active; then every spring's force times its flag, summed per particle in
+            element order): the same bits. False, with nothing written, unless the shapes
+            agree and every spring's particle is one of ``x``'s (``accumulate`` then raises)."""
+            n, k = x.shape[0], particle.shape[0]
+            if not (v.shape[0] == n and F.shape[0] == n and anchor.shape[0] == k
+                    and ks.shape[0] == k and kd.shape[0] == k and active.shape[0] == k):
+                return False
+            on = False
+            for e in range(k):
+                if particle[e] < 0 or particle[e] >= n:
+                    return False
+                on = on or active[e]
+            if not on:
+                return True
+            for e in range(k):
+                p = particle[e]
+                fx, fy = mouse_element(x[p, 0], x[p, 1], v[p, 0], v[p, 1], anchor[e, 0],
+                                       anchor[e, 1], ks[e], kd[e])
+                flag = 1.0 if active[e] else 0.0
+                F[p, 0] += fx * flag
+                F[p, 1] += fy * flag
+            return True

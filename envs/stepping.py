@@ -24,6 +24,22 @@ MAX_PIECES = 64
 _NO_ROWS = np.zeros(0, np.int64)  # group_pieces: the forces are given per particle
 
 
+def _mouse_forces(act: object, x: np.ndarray, v: np.ndarray, F: np.ndarray) -> bool:
+    """A mouse-spring actuator's forces (N) added into the zeros of ``F`` by the compiled
+    kernel (``kernels.mouse_forces``, the bits of ``MouseSpring.accumulate``): True; False,
+    with nothing written, where ``accumulate`` must (another actuator, arrays not of the
+    kernel's types, or a particle index it does not accept)."""
+    if kernels.mouse_forces is None or not isinstance(act, MouseSpring):
+        return False
+    p, anchor, ks, kd, on = act.particle, act.anchor, act.ks, act.kd, act.active
+    k, n = len(p), len(x)
+    return bool(_owned(p, np.int64, (k,)) and _owned(anchor, np.float64, (k, 2))
+                and _owned(ks, np.float64, (k,)) and _owned(kd, np.float64, (k,))
+                and _owned(on, np.bool_, (k,)) and _owned(x, np.float64, (n, 2))
+                and _owned(v, np.float64, (n, 2)) and _owned(F, np.float64, (n, 2))
+                and kernels.mouse_forces(x, v, p, anchor, ks, kd, on, F))
+
+
 class SteppedCopies:
     """The physics of a task's ``num_envs`` tiled copies (mixed into
     :class:`envs.base.ParticleTask`)."""
@@ -79,8 +95,10 @@ class SteppedCopies:
             largest = kernels.group_pieces(v, act.force, frow, inv_mass, self.n, horizon,
                                             self.dt, self.step_travel, MAX_PIECES, out, rows)
             return out, rows, largest
-        F = np.zeros_like(s.x)
-        act.accumulate(s.x, s.v, s.mass, F)
+        x = s.x
+        F = np.zeros_like(x)
+        if not (compiled and _mouse_forces(act, x, v, F)):
+            act.accumulate(s.x, s.v, s.mass, F)
         if compiled and _owned(F, np.float64, (total, 2)):  # the same formula, compiled
             out, rows = np.empty(copies, np.int64), np.empty(total, np.int64)
             largest = kernels.group_pieces(v, F, _NO_ROWS, inv_mass, self.n, horizon,

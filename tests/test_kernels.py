@@ -102,6 +102,44 @@ def test_group_pieces_matches_the_numpy_rule():
     assert 1 < len(np.unique(out)) and out.max() <= cap
 
 
+def test_mouse_forces_are_the_mouse_spring_blocks_bits():
+    """The compiled mouse-spring accumulation (the envs' step splitting) against
+    ``MouseSpring.accumulate``: bit for bit, with springs sharing a particle, released
+    springs, non-finite states, and none active (nothing added); an index it cannot read
+    writes nothing and leaves the error to ``accumulate``."""
+    if kernels.mouse_forces is None:
+        pytest.skip("compiled path disabled (CPARTICLES_NUMBA=0)")
+    from constrained_particles.forces import MouseSpring
+
+    rng = np.random.default_rng(3)
+    n, k = 40, 25
+    for trial in range(6):
+        x, v = rng.normal(0, 2, (n, 2)), rng.normal(0, 5, (n, 2))
+        if trial == 1:
+            x[3, 0], v[7, 1] = np.inf, np.nan
+        particle = rng.integers(0, n, k)
+        particle[1] = particle[0]  # (two springs on one particle)
+        active = rng.random(k) < (0.0 if trial == 2 else 0.6)
+        block = MouseSpring(particle, anchor=rng.normal(0, 1, (k, 2)),
+                            ks=rng.uniform(0, 300, k), kd=rng.uniform(0, 3, k))
+        block.active = active
+        want, got = np.zeros((n, 2)), np.zeros((n, 2))
+        with np.errstate(invalid="ignore"):
+            block.accumulate(x, v, np.ones(n), want)
+        assert kernels.mouse_forces(x, v, block.particle, block.anchor, block.ks, block.kd,
+                                    block.active, got)
+        assert got.tobytes() == want.tobytes(), trial
+        assert (trial == 2) == (not got.any())
+    beyond = np.array(block.particle)
+    beyond[4] = n
+    got = np.full((n, 2), 7.0)
+    assert not kernels.mouse_forces(x, v, beyond, block.anchor, block.ks, block.kd,
+                                    block.active, got)
+    assert not kernels.mouse_forces(x, v[:-1], block.particle, block.anchor, block.ks,
+                                    block.kd, block.active, got)
+    assert np.all(got == 7.0)
+
+
 def test_group_pieces_reads_a_force_block_through_its_row_map():
     """Forces given as a block's rows and a per-particle row map (-1: not pushed) split the
     steps exactly as the same forces written out per particle."""
