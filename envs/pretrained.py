@@ -138,7 +138,10 @@ def ship(run: str | Path, results: str | Path, root: str | Path = ROOT) -> Path:
             shutil.copyfile(run / file, new / file)
     (new / "published.json").write_text(json.dumps(published, indent=1) + "\n",
                                         encoding="utf-8")
+    old = Path(root) / f".{name}.replaced"  # (the agent shipped before, until the new one
+    shutil.rmtree(old, ignore_errors=True)  # is in place: an agent is always there)
     if folder.exists():
-        shutil.rmtree(folder)
+        folder.rename(old)
     new.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
     return folder

@@ -212,6 +212,11 @@ def test_a_shipped_sac_agent_keeps_the_actor_and_acts_as_its_run(tmp_path, capsy
         assert published[kind]["mean_return"] == rec["mean_return"]
     assert (again["success_rate"], again["mean_return"]) == (
         records[0]["success_rate"], records[0]["mean_return"])
+    (folder / "stale.txt").write_text("from the agent shipped before")
+    assert baselines.main(["ship", str(run), "--results", str(results), "--root",
+                           str(root)]) == 0  # (replaces it: the old folder moved aside first)
+    assert [p.name for p in root.iterdir()] == [folder.name]
+    assert not (folder / "stale.txt").exists() and (folder / "published.json").is_file()
     for argv in (["ship", str(tmp_path / "nothing"), "--results", str(results)],
                  ["ship", str(run), "--results", str(tmp_path / "none.json")]):
         with pytest.raises(SystemExit) as exc:
