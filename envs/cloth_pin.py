@@ -549,21 +549,8 @@ class ClothPin(ShapedTask, ParticleTask):
         function of each copy's own state alone (springs, positions, goal). In one compiled
         pass (:func:`envs.cloth_pin_kernels.pin_plan`) where the arrays allow it, else by the
         numpy reference :meth:`plan_distance_reference`; the same bits either way."""
-        N, n, nc, B = self.num_envs, self.n, self.cloth_n, self.max_springs
-        sp, flat, goal = self.springs, self.system.x, self.goal  # (read once)
-        si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
-        if (cloth_pin_kernels.pin_plan is not None and type(n) is int and type(nc) is int
-                and type(B) is int and 0 < nc <= n and _owned(flat, np.float64, (N * n, 2))
-                and _owned(goal, np.float64, (N,)) and _owned(si, np.int64, (N * B,))
-                and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
-                and _owned(rest, np.float64, (N * B,))):
-            out = np.empty(N)
-            center = self.tracked(flat.reshape(N, n, 2))
-            if cloth_pin_kernels.pin_plan(flat, (si, sj, ks, rest), n, nc, B, center, goal,
-                                          (self.wall_x, float(self.nx * self.push),
-                                           PLAN_NEWTON_STEPS, PLAN_TOLERANCE), out):
-                return out
-        return self.plan_distance_reference()
+        out = cloth_pin_kernels.plan(self, (PLAN_NEWTON_STEPS, PLAN_TOLERANCE))
+        return self.plan_distance_reference() if out is None else out
 
     def plan_distance_reference(self) -> np.ndarray:
         """:meth:`plan_distance` in numpy (the reference of the compiled pass)."""

@@ -74,6 +74,27 @@ def pin_record(task: ClothPin, N: int, n: object, nc: object) -> tuple | None:
         ratio = task._log_ratio = (ks_range, float(np.log(hi / lo)))
     return B, placed, si, sj, ks, rest, float(lo), float(hi), ratio[1], nc
 
+def plan(task: ClothPin, newton: tuple[int, float]) -> np.ndarray | None:
+    """``task.plan_distance()`` of every copy (m) by the compiled pass :data:`pin_plan`
+    (``newton``: its most steps and force tolerance, N), or None where the numpy reference
+    must run (compiled bookkeeping off, or arrays not of the shapes and types it reads)."""
+    N, n, nc, B = task.num_envs, task.n, task.cloth_n, task.max_springs
+    sp, flat, goal = task.springs, task.system.x, task.goal  # (read once)
+    si, sj, ks, rest = sp.i, sp.j, sp.ks, sp.rest
+    if not (pin_plan is not None and type(n) is int and type(nc) is int and type(B) is int
+            and 0 < nc <= n and _owned(flat, np.float64, (N * n, 2))
+            and _owned(goal, np.float64, (N,)) and _owned(si, np.int64, (N * B,))
+            and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
+            and _owned(rest, np.float64, (N * B,))):
+        return None
+    out = np.empty(N)
+    center = task.tracked(flat.reshape(N, n, 2))
+    if pin_plan(flat, (si, sj, ks, rest), n, nc, B, center, goal,
+                (task.wall_x, float(task.nx * task.push), *newton), out):
+        return out
+    return None
+
+
 #: the compiled observation (None when ``_measure.ENABLED`` is False)
 pin_observe: Callable[..., bool] | None = None
 #: the measures then the observation, in one call (None when ``_measure.ENABLED`` is False)

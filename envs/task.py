@@ -201,17 +201,23 @@ SAC_BASE: dict[str, Any] = {
 
 
 def ppo(n_timesteps: int, net_arch: tuple[int, ...] | dict[str, tuple[int, ...]],
-        log_std_init: float = -0.5, **changes: object) -> dict[str, Any]:
+        log_std_init: float = -0.5, points: int | None = None,
+        **changes: object) -> dict[str, Any]:
     """A PPO entry: :data:`PPO_BASE` with ``changes``, ``n_timesteps`` (the default budget, env
     steps) and an MLP of ``net_arch`` hidden sizes (one tuple for both networks, or
     ``{"pi": ..., "vf": ...}`` apart: ``"pi": ()`` is a policy whose mean is linear in the
     normalised observation) whose Gaussian policy starts from a standard deviation of
-    ``exp(log_std_init)`` in action units."""
+    ``exp(log_std_init)`` in action units. ``points``: the pointer policy instead
+    (:class:`envs.policies.PointerPolicy` over that many observed points and their targets,
+    observations not normalised; ``net_arch`` sizes its value function)."""
     arch: list[int] | dict[str, list[int]] = (
         {key: list(sizes) for key, sizes in net_arch.items()} if isinstance(net_arch, dict)
         else list(net_arch))
-    return {**PPO_BASE, "n_timesteps": n_timesteps, **changes,
-            "policy_kwargs": {"net_arch": arch, "log_std_init": log_std_init}}
+    kwargs: dict[str, Any] = {"net_arch": arch, "log_std_init": log_std_init}
+    if points is not None:
+        kwargs["points"] = points
+        changes = {"policy": "PointerPolicy", "normalize": False, **changes}
+    return {**PPO_BASE, "n_timesteps": n_timesteps, **changes, "policy_kwargs": kwargs}
 
 
 def sac(n_timesteps: int = 100000, net_arch: tuple[int, ...] = (256, 256),

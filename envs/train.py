@@ -114,6 +114,17 @@ def _algo_class(algo: str) -> type:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
+def _policy_class(algo: str, hp: dict[str, Any]) -> type:
+    """The policy class ``hp`` names for ``algo``: SB3's alias, or the project's
+    :class:`envs.policies.PointerPolicy`."""
+    name = hp.get("policy", "MlpPolicy")
+    if name == "PointerPolicy":
+        from .policies import PointerPolicy
+
+        return PointerPolicy
+    return _algo_class(algo).policy_aliases[name]
+
+
 def load_hyperparams(algo: str, env_id: str, action_mode: str | None = None,
                      env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The shipped hyperparameters of ``algo`` for ``env_id`` in ``action_mode`` (None: the
@@ -493,7 +504,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
                                 gamma=kwargs.get("gamma", 0.99))
         started = time.perf_counter()
         cls = _algo_class(algo)
-        model = cls(hp.get("policy", "MlpPolicy"), venv, seed=seed, verbose=verbose,
+        model = cls(_policy_class(algo, hp), venv, seed=seed, verbose=verbose,
                     device=device, **kwargs)
         writers = [make_output_format("csv", str(partial))]
         if tensorboard_log is not None:
@@ -640,7 +651,7 @@ def load_policy(config: dict[str, Any], path: Path) -> BasePolicy:
     import torch
 
     hp = config["hyperparams"]
-    policy_class = _algo_class(config["algo"]).policy_aliases[hp.get("policy", "MlpPolicy")]
+    policy_class = _policy_class(config["algo"], hp)
     spaces = config["_spaces"]
     observation = spaces["observation"]
     stack = hp.get("frame_stack", 1)

@@ -21,11 +21,13 @@ if TYPE_CHECKING:  # (the rl extra)
 MAX_FRAME_STACK = 16
 
 
-#: Policies a run directory may name (Stable-Baselines3's aliases): ``CnnPolicy`` (Nature
-#: CNN features, then ``net_arch``) for the image observations of ``obs_mode="pixels"``.
-POLICIES = ("MlpPolicy", "CnnPolicy")
+#: Policies a run directory may name: Stable-Baselines3's aliases (``CnnPolicy``: Nature CNN
+#: features, then ``net_arch``, for the image observations of ``obs_mode="pixels"``) and
+#: the project's ``PointerPolicy`` (:class:`envs.policies.PointerPolicy`, PPO: each gripper
+#: takes one of the observed points and places it near its target).
+POLICIES = ("MlpPolicy", "CnnPolicy", "PointerPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
-POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init")
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init", "points")
 #: Keys of :data:`POLICY_KWARGS` only PPO's policy takes (SB3's SAC policy has no such argument).
 PPO_POLICY_KWARGS = ("ortho_init",)
 MAX_LAYER = 4096
@@ -184,6 +186,15 @@ def check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
     elif policy == "CnnPolicy":
         raise ValueError(f"policy: CnnPolicy takes image observations (obs_mode='pixels'), "
                          f"got a {type(space).__name__} of shape {space.shape}")
+    elif policy == "PointerPolicy":
+        points = hp.get("policy_kwargs", {}).get("points", 10)
+        shape = getattr(space, "shape", None)
+        if not (isinstance(space, gym.spaces.Box) and shape is not None and len(shape) == 1
+                and shape[0] == 4 * points):
+            raise ValueError(f"policy: PointerPolicy with points={points} reads an observation "
+                             f"of {points} points and their {points} targets ({4 * points} "
+                             f"numbers), got a {type(space).__name__} of shape {shape} (set "
+                             "policy_kwargs.points to the observed points)")
 
 
 #: The keys of ``net_arch`` given as separate networks, per algorithm (SB3's forms): the
@@ -217,6 +228,24 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any], algo: str) -> N
                          f"at most 16 layer widths in [1, {MAX_LAYER}], or such lists for the "
                          f"networks apart ({algo}: {{\"{keys[0]}\": [...], \"{keys[1]}\": "
                          "[...]})")
+    policy = hp.get("policy", "MlpPolicy")
+    if policy == "PointerPolicy":
+        if algo != "ppo":
+            raise ValueError(f"{config_path}: hyperparams.policy PointerPolicy is a ppo policy, "
+                             f"not {algo}'s")
+        if hp.get("normalize", False):
+            raise ValueError(f"{config_path}: hyperparams.normalize must be false with "
+                             "PointerPolicy (it acts at the observed points themselves)")
+        if pk.get("use_sde", False):
+            raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde does not go "
+                             "with PointerPolicy (its noise is the mixture's)")
+        points = pk.get("points", 10)
+        if type(points) is not int or not 1 <= points <= 512:
+            raise ValueError(f"{config_path}: hyperparams.policy_kwargs.points must be a "
+                             f"whole number in [1, 512], got {points!r}")
+    elif "points" in pk:
+        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.points is a setting of "
+                         f"PointerPolicy, not of {policy}")
     for flag in ("use_sde", "ortho_init"):
         if not isinstance(pk.get(flag, False), bool):
             raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{flag} must be true or "
