@@ -316,5 +316,9 @@ TASK = TaskSpec(
           "noise of 0.01 (4 mm) on its actions succeeds in 8% (benchmarks/tabletop_noise.py). "
           "SAC with gamma 0.9 (RopeStraighten's SAC settings) on tuning seed 101, periodic "
           "evaluations of 20 deterministic episodes from seed 1,000,000: 0% to 55k steps, "
-          "returns -6.64 to -5.00 (50 steps of doing nothing give -5.0; stopped at 55k).",
+          "returns -6.64 to -5.00 (50 steps of doing nothing give -5.0; stopped at 55k). The "
+          "scripted rule reading only a k x k grid of particles (benchmarks/flatten_keypoints.py,"
+          " 40 episodes from seed 1000): the corners (the state observation) 0%, normalized "
+          "performance 0.62; 3 x 3 0%, 0.84; 5 x 5 100% in 33.5 steps; every particle 100% in "
+          "34.9 steps.",
     variants=({"num_grippers": 2},), max_episode_steps=50, obs_modes=PP_OBS_MODES)
