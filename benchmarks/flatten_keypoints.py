@@ -36,7 +36,9 @@ def play(k: int, episodes: int, seed: int) -> tuple[float, float, float]:
     wins, perf, length = 0, 0.0, 0
     for ep in range(episodes):
         env.reset(seed=seed + ep)
-        for step in range(1, 51):
+        steps = 0
+        for _ in range(50):  # (the registered episode length)
+            steps += 1
             x = t.positions()[0][kp]
             goal = rigid_fit(t.flat[kp][None], x[None])[0]
             c = np.clip(goal.mean(axis=0), -0.5 * t.view_half, 0.5 * t.view_half)
@@ -48,7 +50,7 @@ def play(k: int, episodes: int, seed: int) -> tuple[float, float, float]:
                 break
         wins += bool(info["is_success"])
         perf += float(info["normalized_performance"])
-        length += step
+        length += steps
     return wins / episodes, perf / episodes, length / episodes
 
 
