@@ -291,19 +291,22 @@ def test_train_then_evaluate_cli(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.parametrize("key", sorted(pretrained.shipped()))
 def test_every_shipped_agent_still_solves_its_task(key, capsys, monkeypatch):
-    """A shipped agent keeps its published figure on the env as it is now: on 10 held-out
-    episodes its deterministic success is at least 0.7 of the figure in its published.json
-    (100 held-out episodes) (a change to the task that breaks the agent fails here)."""
+    """A shipped agent keeps its published figure on the env as it is now: its deterministic
+    success is at least 0.7 of the figure in its published.json (100 held-out episodes), on
+    the first 10 of those episodes for an agent published at 90% or more, on all 100 for one
+    below (10 episodes of a 45% agent hold 3 or 4 successes by chance alone) (a change to the
+    task that breaks the agent fails here)."""
     env_id, mode, variant = key
     monkeypatch.setattr(sys, "argv", ["cparticles"])
     more = ["--env-kwargs", *variant.split(",")] if variant else []
+    published = json.loads((pretrained.shipped()[key] / "published.json").read_text())
+    episodes = 10 if published["deterministic"]["success_rate"] >= 0.9 else 100
     assert cli.main(["evaluate", "--pretrained", env_id, "--action-mode", mode,
-                     "--episodes", "10", "--json", *more]) == 0
+                     "--episodes", str(episodes), "--json", *more]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (res["env"], res["action_mode"], res["deterministic"]) == (env_id, mode, True)
     if variant:  # (the variant's own agent, on the variant)
         assert res["env_kwargs"] == parse_variant(variant)
-    published = json.loads((pretrained.shipped()[key] / "published.json").read_text())
     assert published["deterministic"]["eval_episodes"] == 100
     assert res["success_rate"] >= 0.7 * published["deterministic"]["success_rate"]
 
