@@ -1,8 +1,9 @@
 """Doctests of the modules that need an optional extra.
 
-``envs/sb3.py`` imports Stable-Baselines3 and ``envs/rllib.py``'s examples import Ray. The
-``test`` extra installs neither, so without their extra these two files are reported as skipped,
-with the reason, instead of failing to collect; with it their doctests run as usual.
+``envs/sb3.py`` imports Stable-Baselines3, ``envs/policies.py`` imports torch and
+``envs/rllib.py``'s examples import Ray. The ``test`` extra installs none of them, so without
+their extra these files are reported as skipped, with the reason, instead of failing to collect;
+with it their doctests run as usual.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent
 #: file (relative to the checkout) -> (module its doctests import, extra that installs it)
-NEEDS = {"envs/sb3.py": ("stable_baselines3", "rl"), "envs/rllib.py": ("ray", "ray")}
+NEEDS = {"envs/sb3.py": ("stable_baselines3", "rl"), "envs/policies.py": ("torch", "rl"),
+         "envs/rllib.py": ("ray", "ray")}
 
 
 class MissingExtra(pytest.File):
