@@ -11,6 +11,7 @@ from .checks import check_positive
 from .pick_place import (
     PICK_PLACE_MODES,
     PP_OBS_MODES,
+    DragPlan,
     PickPlaceEnv,
     PickPlaceTask,
     PickPlaceVectorEnv,
@@ -275,6 +276,7 @@ class ClothFlattenController:
 
     def __init__(self, task: TableCloth) -> None:
         self.task = task
+        self.plan = DragPlan()  # (drag mode)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         t = self.task
@@ -298,7 +300,7 @@ class ClothFlattenController:
             k2 = np.argmax(err2, axis=1)
             a = np.concatenate([a, t.to_normalized(x[rows, k2]), t.to_normalized(goal[rows, k2])],
                                axis=1)
-        return finish_action(t, obs, a)
+        return finish_action(t, obs, a, self.plan)
 
 
 #: The task's declaration (see :mod:`envs.task`).

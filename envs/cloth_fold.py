@@ -10,6 +10,7 @@ from .cloth_flatten import TableCloth
 from .pick_place import (
     PICK_PLACE_MODES,
     PP_OBS_MODES,
+    DragPlan,
     PickPlaceEnv,
     PickPlaceVectorEnv,
     finish_action,
@@ -228,6 +229,7 @@ class ClothFoldController:
 
     def __init__(self, task: ClothFold) -> None:
         self.task = task
+        self.plan = DragPlan()  # (drag mode)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         t = self.task
@@ -246,7 +248,7 @@ class ClothFoldController:
         for g_ in range(t.num_grippers):
             k = order[:, g_]
             parts += [t.to_normalized(x[rows, k]), t.to_normalized(goal[rows, k])]
-        return finish_action(t, obs, np.concatenate(parts, axis=1))
+        return finish_action(t, obs, np.concatenate(parts, axis=1), self.plan)
 
 
 #: The task's declaration (see :mod:`envs.task`).

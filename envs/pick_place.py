@@ -56,7 +56,7 @@ from .rewards import ShapedTask
 from .single import ParticleEnv
 from .vector import ParticleVectorEnv
 
-__all__ = ["PICK_PLACE_MODES", "PP_OBS_MODES", "PickPlaceEnv", "PickPlaceTask",
+__all__ = ["PICK_PLACE_MODES", "PP_OBS_MODES", "DragPlan", "PickPlaceEnv", "PickPlaceTask",
            "PickPlaceVectorEnv", "finish_action"]
 
 #: Valid values of a pick-and-place task's ``action_mode`` argument: one pick-and-place per
@@ -625,20 +625,65 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         return one, self.target_shapes(i), status
 
 
-def finish_action(task: PickPlaceTask, obs: np.ndarray, pick_place: np.ndarray) -> np.ndarray:
+class DragPlan:
+    """A scripted agent's memory in drag mode, where one pick-and-place takes several steps:
+    the place each gripper carries its particle to, fixed when it takes the particle and kept
+    until it lets go. An oracle that chooses afresh every step (the particle furthest from its
+    place, say) would otherwise turn towards another particle's place as soon as the one it
+    carries is no longer the furthest. One plan per agent (and batch size: a plan whose batch
+    size changes starts afresh); a row whose gripper holds nothing plans afresh, so an
+    episode's reset needs no notice."""
+
+    def __init__(self) -> None:
+        self.place: np.ndarray | None = None  # (B, G, 2) m: each gripper's kept place
+        self.kept = np.zeros((0, 0), dtype=bool)  # (B, G): the place is kept
+
+    def follow(self, pos: np.ndarray, holding: np.ndarray, pick: np.ndarray,
+               place: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pick and place points (B, G, 2) m to head for, from the grippers' positions
+        ``pos`` (B, G, 2) m and holding flags ``holding`` (B, G) and the agent's fresh pairs
+        ``pick``, ``place``: a holding gripper takes the pair whose pick point is nearest to
+        it (the pairs are swapped between grippers, not changed) and keeps its place while it
+        holds."""
+        pick, place = pick.copy(), place.copy()
+        B, G = holding.shape
+        if self.place is None or self.place.shape != place.shape:
+            self.place, self.kept = place.copy(), np.zeros((B, G), dtype=bool)
+        for b, g in zip(*np.nonzero(holding), strict=True):  # the pair of the held particle
+            j = g + int(np.argmin(np.linalg.norm(pick[b, g:] - pos[b, g], axis=1)))
+            pick[b, [g, j]], place[b, [g, j]] = pick[b, [j, g]], place[b, [j, g]]
+        keep = holding & self.kept
+        place = np.where(keep[:, :, None], self.place, place)
+        self.place = place.copy()
+        return pick, place
+
+    def carrying(self, carrying: np.ndarray) -> None:
+        """Record which grippers carry (or take, this step) a particle (B, G): their places
+        are kept from now on."""
+        self.kept = carrying.copy()
+
+
+def finish_action(task: PickPlaceTask, obs: np.ndarray, pick_place: np.ndarray,
+                  plan: DragPlan | None = None) -> np.ndarray:
     """A scripted agent's action from its pick-and-place actions ``pick_place`` (B, 4 G) in
     normalised coordinates: clipped to the Box as float32, one row for one observation; in drag
     mode turned into moves: each gripper that holds nothing heads for its pick point and grips
-    once there, one that holds a particle heads for the place point and lets go there."""
+    once there, one that holds a particle heads for the place point and lets go there.
+    ``plan``: the agent's :class:`DragPlan` (drag mode), so that a gripper carries its particle
+    to the place chosen when it took it."""
     a = np.asarray(pick_place, dtype=np.float64)
     if task.action_mode == "drag":
         B, G = len(a), task.num_grippers
         pos, holding = task.gripper_part(obs)
         pp = a.reshape(B, G, 4)
         pick, place = task.to_world(pp[:, :, :2]), task.to_world(pp[:, :, 2:])
+        if plan is not None:
+            pick, place = plan.follow(pos, holding, pick, place)
         at_pick = np.linalg.norm(pick - pos, axis=2) <= 0.5 * task.grab_radius
         at_place = np.linalg.norm(place - pos, axis=2) <= 1e-3
         carrying = holding | at_pick
+        if plan is not None:
+            plan.carrying(carrying & ~(holding & at_place))
         go = np.where(carrying[:, :, None], place, pick)
         move = (go - pos) * (1.0 / task.max_move)
         grip = np.where(carrying & ~(holding & at_place), 1.0, -1.0)

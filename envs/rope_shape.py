@@ -10,6 +10,7 @@ from .checks import check_positive
 from .pick_place import (
     PICK_PLACE_MODES,
     PP_OBS_MODES,
+    DragPlan,
     PickPlaceEnv,
     PickPlaceVectorEnv,
     finish_action,
@@ -238,6 +239,7 @@ class RopeShapeController:
 
     def __init__(self, task: RopeShape) -> None:
         self.task = task
+        self.plan = DragPlan()  # (drag mode)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         t = self.task
@@ -259,7 +261,7 @@ class RopeShapeController:
             j2 = np.argmax(err2, axis=1)
             a = np.concatenate([a, t.to_normalized(x[rows, j2]), t.to_normalized(goal[rows, j2])],
                                axis=1)
-        return finish_action(t, obs, a)
+        return finish_action(t, obs, a, self.plan)
 
 
 #: The task's declaration (see :mod:`envs.task`).

@@ -11,6 +11,7 @@ from .checks import check_positive
 from .pick_place import (
     PICK_PLACE_MODES,
     PP_OBS_MODES,
+    DragPlan,
     PickPlaceEnv,
     PickPlaceTask,
     PickPlaceVectorEnv,
@@ -245,6 +246,7 @@ class RopeStraightenController:
 
     def __init__(self, task: Rope) -> None:
         self.task = task
+        self.plan = DragPlan()  # (drag mode)
 
     def pull_ends(self, x: np.ndarray) -> np.ndarray:
         """Both ends' pick points and their places ``pull`` lengths apart (B, 8) normalised,
@@ -273,7 +275,7 @@ class RopeStraightenController:
         t = self.task
         x = t.observed_points(obs)
         if t.num_grippers == 2:
-            return finish_action(t, obs, self.pull_ends(x))
+            return finish_action(t, obs, self.pull_ends(x), self.plan)
         idx = t.keypoints if t.obs_mode == "state" else np.arange(t.n)
         goal = self.targets(x, idx)
         err = np.linalg.norm(x - goal, axis=2)
@@ -281,7 +283,7 @@ class RopeStraightenController:
         rows = np.arange(len(x))
         a = np.concatenate([t.to_normalized(x[rows, k]), t.to_normalized(goal[rows, k])],
                            axis=1)
-        return finish_action(t, obs, a)
+        return finish_action(t, obs, a, self.plan)
 
 
 #: The task's declaration (see :mod:`envs.task`).
