@@ -229,7 +229,7 @@ def _run_ranges(part: parallel.Partition, code: int, rattle: Any, h: float, step
             calls.append(functools.partial(
                 fused_split, code, rattle, *sp.variant, (h, hp[lo:hi], counts[lo:hi]), state,
                 (x_out[lo:hi], v_out[lo:hi]), plain_settings, sp.refs.engine, sp.live_ref))
-    results = part.crew().run(calls[0], calls[1:])
+    results = part.run(calls, steps)
     failed = [(int(done), int(status) == DIVERGED) for status, done in results
               if int(status) != OK]
     if not failed:

@@ -25,6 +25,11 @@ pulls a particle of its own range. Where no cut fits (one big group, elements no
 by range, a mouse spring on another range's particle) or the system is too small to gain
 (fewer than :data:`MIN_PARTICLES` particles a range), the step runs whole on one thread.
 
+**Threads or one, by timing.** A partition's :class:`Gauge` times the steps (the period of
+the loop that calls them) with the threads and, now and then, with the ranges run one after the
+other on the calling thread, and keeps the faster: on cores busy with other work, a step whose
+threads wait for each other at its end runs slower than on one thread.
+
 The threads are a :class:`Crew`: k - 1 daemon threads that wait for their next call spinning
 on a flag without the GIL for about :data:`WAIT_SECONDS` (2 ms) and then sleep on an event, the
 calling thread taking the first range. They start on the first threaded step, stop with
@@ -59,7 +64,7 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 __all__ = ["CLOSE_SECONDS", "MIN_PARTICLES", "POLL_SECONDS", "SETTLED", "WAIT_SECONDS", "Crew",
-           "Partition", "cuts", "wait_spins"]
+           "Gauge", "Partition", "cuts", "wait_spins"]
 
 #: Fewest particles a range must have for a step to be cut into ranges at all: below it, handing
 #: the ranges to threads costs more than it saves.
@@ -76,6 +81,16 @@ _CALIBRATION_SPINS = 50_000
 _CALIBRATION_RUNS = 5
 #: Longest wait (s) of :meth:`Crew.close` for a run in progress, and for each thread to end.
 CLOSE_SECONDS = 5.0
+#: Calls a :class:`Gauge` times in the other way (threads or one thread) when it tries it, and
+#: the calls of the current way it compares them with (medians).
+GAUGE_PROBE = 5
+#: Calls between a :class:`Gauge`'s tries of the other way: the first, after each change of
+#: way; doubled after each try that keeps the way, up to the last.
+GAUGE_INTERVALS = (20, 2000)
+#: How much faster (time ratio) the other way must be for a :class:`Gauge` to take it.
+GAUGE_MARGIN = 0.95
+#: Longest time (s) from one run of a partition's ranges to the next that its gauge counts.
+GAUGE_GAP = 1.0
 #: Calls a partition must serve before a new pack of the system is cut again at once: a system
 #: whose blocks change at nearly every call (a spring drawn at every step) steps a new pack
 #: whole, and cuts it only at its second call (cutting costs more than one step gains).
@@ -441,6 +456,58 @@ def _sub_block(block: Any, a: int, b: int, lo: int) -> Any:
     return sub
 
 
+class Gauge:
+    """Whether a partition's ranges run on the crew's threads or one after the other on the
+    calling thread (the same calls, so the same bits), chosen by timing both.
+
+    Threads gain only while the cores are free: with every core busy with other work (two
+    spinning processes on two cores, say), a step whose ranges wait for each other at its end
+    waits for whichever thread the scheduler left out, and two threads ran at about half the
+    speed of one on the 2-core VM of docs/performance.md. So a gauge times every call (seconds
+    per step), starts with the threads, and every so often runs :data:`GAUGE_PROBE` calls the
+    other way; it takes that way when their median time is below :data:`GAUGE_MARGIN` of the
+    median of the last :data:`GAUGE_PROBE` calls of the current way. The calls between tries
+    start at ``GAUGE_INTERVALS[0]`` and double after each try that keeps the way, up to
+    ``GAUGE_INTERVALS[1]`` (a try of the slower way costs at most 5 calls in 2,000 once the
+    machine is steady). A call's time is the period of the loop that steps the system
+    (:meth:`Partition.run`)."""
+
+    def __init__(self) -> None:
+        #: the current way: True, the crew's threads; False, the calling thread alone
+        self.threaded = True
+        #: calls of the current way since the last try, and the calls until the next
+        self.count, self.interval = 0, GAUGE_INTERVALS[0]
+        self._recent: list[float] = []  # the last GAUGE_PROBE calls' times, current way
+        self._probe: list[float] | None = None  # the times of a try in progress
+        #: the changes of way so far
+        self.changes = 0
+
+    def use_threads(self) -> bool:
+        """How the next call runs: the current way, or the other during a try."""
+        return self.threaded if self._probe is None else not self.threaded
+
+    def record(self, seconds: float) -> None:
+        """The time (s per step) of the last call, run the way :meth:`use_threads` said."""
+        if self._probe is not None:
+            self._probe.append(seconds)
+            if len(self._probe) < GAUGE_PROBE:
+                return
+            other, mine = sorted(self._probe)[GAUGE_PROBE // 2], sorted(self._recent)[
+                GAUGE_PROBE // 2]
+            self._probe, self.count = None, 0
+            if other < GAUGE_MARGIN * mine:
+                self.threaded = not self.threaded
+                self.interval, self._recent = GAUGE_INTERVALS[0], []
+                self.changes += 1
+            else:
+                self.interval = min(2 * self.interval, GAUGE_INTERVALS[1])
+            return
+        self._recent = [*self._recent[1 - GAUGE_PROBE:], seconds]
+        self.count += 1
+        if self.count >= self.interval and len(self._recent) == GAUGE_PROBE:
+            self._probe = []
+
+
 class Partition:
     """A system's particles cut into ranges stepped on threads (see the module docstring),
     made for one :class:`~.packing.Packed` form of the system; :attr:`valid` False where no
@@ -455,6 +522,9 @@ class Partition:
         self.valid = False
         #: the steps (calls) this partition has served
         self.calls = 0
+        #: threads or one thread, by timing (:class:`Gauge`); taken over by the next partition
+        self.gauge = Gauge()
+        self._last: tuple[float, int] | None = None  # the last run's start (s) and steps
         # the crew, in a box the finalizer shares: a crew handed on to the next partition
         # (take_crew) is not stopped when this one is dropped
         self._box: list[Crew | None] = [None]
@@ -563,15 +633,36 @@ class Partition:
         if (self.valid and self._box[0] is None and crew is not None and crew.live
                 and crew.size == len(self.packs) - 1):
             self._box[0], other._box[0] = crew, None
+        self.gauge = other.gauge  # (what the timing found holds for the same machine)
+
+    def run(self, calls: list[Callable[[], T]], steps: int = 1) -> list[T]:
+        """Run ``calls[r]()`` for every range r, on the ranges' threads or one after the other
+        on this thread, as :attr:`gauge` says (``steps``: the steps the calls take); every
+        result, raising the first error. What the gauge is given is the time from one run's
+        start to the next's, per step: the whole period of a stepping loop, so that what the
+        threads cost outside the calls (a crew thread spinning on a busy core while the
+        caller's Python runs) counts too; a period over :data:`GAUGE_GAP` s (a loop that
+        paused) is not counted."""
+        now = time.perf_counter()
+        last = self._last
+        if last is not None and now - last[0] <= GAUGE_GAP:
+            self.gauge.record((now - last[0]) / last[1])
+        self._last = (now, max(int(steps), 1))
+        if self.gauge.use_threads():
+            return self.crew().run(calls[0], list(calls[1:]))
+        return [call() for call in calls]
 
     def map(self, calls: list[Callable[[], T]]) -> list[T]:
         """Run ``calls[r]()`` for every range r, each on the thread that steps the range (the
-        first on the calling thread); every result once all have returned, raising the first
-        error. For per-range work after a step (an environment's measures of the copies in
-        each range): the calls must touch only their own range's data."""
+        first on the calling thread; all on it while :attr:`gauge` has the steps run there);
+        every result once all have returned, raising the first error. For per-range work after
+        a step (an environment's measures of the copies in each range): the calls must touch
+        only their own range's data."""
         if len(calls) != len(self.packs):
             raise ValueError(f"calls must hold one call per range ({len(self.packs)}), "
                              f"got {len(calls)}")
+        if not self.gauge.use_threads():  # (as the steps run now: see Gauge)
+            return [call() for call in calls]
         return self.crew().run(calls[0], list(calls[1:]))
 
     def close(self) -> None:

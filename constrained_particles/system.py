@@ -196,7 +196,10 @@ class ParticleSystem:
         """Threads a compiled step may use (default 1). With k > 1 the particles are cut into
         up to k ranges that no force element or constraint couples, each stepped on a thread
         of its own, with the same bits as on one thread (:mod:`constrained_particles.parallel`);
-        a system that cannot be cut so (or is too small to gain) steps on one."""
+        a system that cannot be cut so (or is too small to gain) steps on one, and so does one
+        whose steps the threads make slower (cores busy with other work: the ranges then run
+        one after the other, as :class:`~constrained_particles.parallel.Gauge` finds by
+        timing)."""
         return self.__dict__.get("_threads", 1)
 
     @threads.setter

@@ -189,6 +189,58 @@ def bench_threads(env_ids: tuple[str, ...] | None = None, copies: int = THREAD_C
     return out
 
 
+class _Spinners:
+    """Processes that keep every core busy (a Python loop each), started on entry and ended,
+    by their own handles, on exit."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self) -> _Spinners:
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                      for _ in range(self.count)]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self.procs:
+            p.kill()
+            p.wait()
+
+
+def bench_busy(env_id: str = "ClothSlide-v0", copies: int = THREAD_COPIES, repeats: int = 9,
+               seconds: float = 0.6, settle: float = 3.0) -> dict[str, Any]:
+    """Threads on busy cores: the native vector env of ``env_id`` (``copies`` copies, uniform
+    random actions) at 1 thread and at 2 threads, with one spinning process per core running
+    beside it (:func:`cores` of them). Each env first runs ``settle`` s among the spinners
+    (time for the thread gauge, ``constrained_particles.parallel.Gauge``, to find its way),
+    then ``repeats`` rounds time both for ``seconds`` each in turn; ``ratio``: the median
+    over rounds of 2 threads' rate over 1 thread's in the round (1.0: the second thread costs
+    nothing when it has no core to run on). The same with no spinners (``idle_ratio``) after
+    it."""
+    made = {k: _vector(env_id, copies, k) for k in (1, 2)}
+    out: dict[str, Any] = {"env_id": env_id, "copies": copies, "spinners": cores(),
+                           "repeats": repeats}
+    try:
+        for label, count in (("busy", cores()), ("idle", 0)):
+            with _Spinners(count):
+                for k in (1, 2):
+                    _rate(*made[k], settle, copies)
+                rates: dict[int, list[float]] = {1: [], 2: []}
+                for _ in range(repeats):
+                    for k in (1, 2):
+                        rates[k].append(_rate(*made[k], seconds, copies))
+            out[f"{label}_env_steps_per_s"] = {k: statistics.median(r) for k, r in rates.items()}
+            out[f"{label}_ratio"] = statistics.median(
+                b / a for a, b in zip(rates[1], rates[2], strict=True))
+            out[f"{label}_ratios"] = [b / a for a, b in zip(rates[1], rates[2], strict=True)]
+    finally:
+        for vec, _ in made.values():
+            vec.close()
+    out["ratio"] = out.pop("busy_ratio")
+    return out
+
+
 def threads_markdown(r: dict[str, Any]) -> list[str]:
     """Section (e) as Markdown lines."""
     counts = r["threads"]
@@ -286,5 +338,10 @@ def implicit_table(result: dict[str, Any]) -> str:
 if __name__ == "__main__":
     if sys.argv[1:2] == ["busy"] and len(sys.argv) in (4, 5):
         _busy(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) == 5 else None)
+    elif sys.argv[1:] == ["busy-cores"]:
+        import json
+
+        print(json.dumps(bench_busy(), indent=1))
     else:
-        sys.exit("usage: python -m cparticles.bench_scaling busy ENV_ID COPIES [WARMUP]")
+        sys.exit("usage: python -m cparticles.bench_scaling busy ENV_ID COPIES [WARMUP]\n"
+                 "       python -m cparticles.bench_scaling busy-cores")

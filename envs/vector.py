@@ -48,13 +48,13 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
 
     ``num_threads`` (default 1) steps the physics of that many ranges of consecutive copies
     on as many threads (``ParticleSystem.threads``; fewer where the copies are too few for the
-    threads to gain, see :mod:`constrained_particles.parallel`); every result is bit for bit
-    the one of ``num_threads=1``. The default is one thread
-    because the libraries that drive envs usually parallelise already: SB3's ``SubprocVecEnv``
-    and RLlib's EnvRunners run one env per process, and the policy network's torch threads
-    want the remaining cores. Give it more where one process steps many copies on a machine
-    with idle cores (for example ``num_threads=len(os.sched_getaffinity(0))``); with several
-    EnvRunners, keep ``num_env_runners * num_threads`` at most the number of cores.
+    threads to gain, see :mod:`constrained_particles.parallel`, and on one while busy cores make
+    the threads slower); every result is bit for bit the one of ``num_threads=1``. The default
+    is one thread because the libraries that drive envs usually parallelise already: SB3's
+    ``SubprocVecEnv`` and RLlib's EnvRunners run one env per process, and the policy network's
+    torch threads want the remaining cores. Give it more where one process steps many copies
+    on a machine with idle cores (for example ``num_threads=len(os.sched_getaffinity(0))``);
+    with several EnvRunners, keep ``num_env_runners * num_threads`` at most the number of cores.
     """
 
     task_class: ClassVar[type[ParticleTask]]

@@ -538,3 +538,73 @@ def test_a_crew_thread_waits_about_wait_seconds_before_it_sleeps() -> None:
 def test_a_bad_wait_is_a_clear_error(bad: object) -> None:
     with pytest.raises(ValueError, match="seconds"):
         parallel.wait_spins(bad)  # type: ignore[arg-type]
+
+
+# ------------------------------------------------------------------ threads or one, by timing
+def _feed(gauge: parallel.Gauge, threads: float, one: float, calls: int) -> list[bool]:
+    """Give ``gauge`` ``calls`` calls timed ``threads`` s (run on the threads) or ``one`` s
+    (run on one thread); the ways it chose, call by call."""
+    ways = []
+    for _ in range(calls):
+        way = gauge.use_threads()
+        ways.append(way)
+        gauge.record(threads if way else one)
+    return ways
+
+
+def test_a_gauge_keeps_the_threads_while_they_are_faster_and_tries_less_often() -> None:
+    g = parallel.Gauge()
+    first, longest = parallel.GAUGE_INTERVALS
+    ways = _feed(g, 1.0, 1.7, 40_000)
+    assert g.threaded and g.changes == 0 and g.interval == longest
+    tries = ways.count(False)
+    # each try is GAUGE_PROBE calls; the gaps between them double from the first to the longest
+    assert tries % parallel.GAUGE_PROBE == 0
+    assert ways[:first] == [True] * first and not any(ways[first:first + parallel.GAUGE_PROBE])
+    assert tries < 40_000 * 0.01
+
+
+def test_a_gauge_turns_to_one_thread_when_the_threads_get_slower_and_back() -> None:
+    g = parallel.Gauge()
+    _feed(g, 1.0, 1.7, 200)  # idle cores: threads
+    assert g.threaded
+    busy = _feed(g, 2.0, 1.0, 5_000)  # every core busy: two threads take twice one's time
+    assert not g.threaded and g.changes == 1
+    assert busy[-1000:].count(True) <= 2 * parallel.GAUGE_PROBE  # (only its tries)
+    _feed(g, 1.0, 1.7, 5_000)  # free again
+    assert g.threaded and g.changes == 2
+
+
+def test_a_gauge_ignores_differences_within_its_margin() -> None:
+    g = parallel.Gauge()
+    _feed(g, 1.0, 0.97, 10_000)  # one thread 3% faster: not enough to change
+    assert g.threaded and g.changes == 0
+
+
+def test_ranges_run_on_one_thread_give_the_same_bits() -> None:
+    """A gauge that has the ranges run one after the other on the calling thread changes no
+    bit (the same calls), nor do its tries of the threads in between."""
+    one, two = _cloths(threads=1), _cloths(threads=2)
+    for i in range(60):
+        one.step(2e-3, "rk4", steps=2)
+        two.step(2e-3, "rk4", steps=2)
+        if i == 5:
+            part = two.thread_ranges()
+            assert part is not None and part.gauge.threaded
+            part.gauge.threaded = False
+    assert _ranges(two) == 2 and not two.thread_ranges().gauge.threaded
+    np.testing.assert_array_equal(two.x, one.x)
+    np.testing.assert_array_equal(two.v, one.v)
+
+
+def test_a_paused_loop_is_not_timed() -> None:
+    s = _cloths(threads=2)
+    s.step(2e-3, "symplectic_euler")
+    s.step(2e-3, "symplectic_euler")
+    part = s.thread_ranges()
+    counted = part.gauge.count
+    s.step(2e-3, "symplectic_euler")
+    assert part.gauge.count == counted + 1
+    part._last = (time.perf_counter() - 2 * parallel.GAUGE_GAP, 1)
+    s.step(2e-3, "symplectic_euler")
+    assert part.gauge.count == counted + 1
