@@ -208,9 +208,10 @@ class _Spinners:
             p.wait()
 
 
-def bench_busy(env_id: str = "ClothSlide-v0", copies: int = THREAD_COPIES, repeats: int = 9,
+def bench_busy(env_id: str | None = None, copies: int = THREAD_COPIES, repeats: int = 9,
                seconds: float = 0.6, settle: float = 3.0) -> dict[str, Any]:
-    """Threads on busy cores: the native vector env of ``env_id`` (``copies`` copies, uniform
+    """Threads on busy cores: the native vector env of ``env_id`` (default: the first task
+    whose declaration asks for the thread benchmarks, ClothSlide) (``copies`` copies, uniform
     random actions) at 1 thread and at 2 threads, with one spinning process per core running
     beside it (:func:`cores` of them). Each env first runs ``settle`` s among the spinners
     (time for the thread gauge, ``constrained_particles.parallel.Gauge``, to find its way),
@@ -218,6 +219,10 @@ def bench_busy(env_id: str = "ClothSlide-v0", copies: int = THREAD_COPIES, repea
     over rounds of 2 threads' rate over 1 thread's in the round (1.0: the second thread costs
     nothing when it has no core to run on). The same with no spinners (``idle_ratio``) after
     it."""
+    if env_id is None:
+        from cparticles.bench import vector_envs
+
+        env_id = vector_envs()[0]
     made = {k: _vector(env_id, copies, k) for k in (1, 2)}
     out: dict[str, Any] = {"env_id": env_id, "copies": copies, "spinners": cores(),
                            "repeats": repeats}
