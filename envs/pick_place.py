@@ -649,9 +649,13 @@ class DragPlan:
         B, G = holding.shape
         if self.place is None or self.place.shape != place.shape:
             self.place, self.kept = place.copy(), np.zeros((B, G), dtype=bool)
-        for b, g in zip(*np.nonzero(holding), strict=True):  # the pair of the held particle
-            j = g + int(np.argmin(np.linalg.norm(pick[b, g:] - pos[b, g], axis=1)))
-            pick[b, [g, j]], place[b, [g, j]] = pick[b, [j, g]], place[b, [j, g]]
+        for b in np.flatnonzero(holding.any(axis=1)):  # each holding gripper takes the pair
+            claimed = np.zeros(G, dtype=bool)  # of the particle it holds: the nearest pick
+            for g in np.flatnonzero(holding[b]):  # among the pairs not yet taken so
+                free = np.flatnonzero(~claimed)
+                j = int(free[np.argmin(np.linalg.norm(pick[b, free] - pos[b, g], axis=1))])
+                pick[b, [g, j]], place[b, [g, j]] = pick[b, [j, g]], place[b, [j, g]]
+                claimed[g] = True
         keep = holding & self.kept
         place = np.where(keep[:, :, None], self.place, place)
         self.place = place.copy()

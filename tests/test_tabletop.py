@@ -368,6 +368,10 @@ def test_a_drag_plan_keeps_a_carried_particles_place_and_its_pair():
     plan.carrying(np.array([[False, False]]))  # it let go: the next pair is fresh
     p3, q3 = plan.follow(pos, np.array([[False, False]]), fresh_pick, fresh_place)
     assert np.array_equal(p3, fresh_pick) and np.array_equal(q3, fresh_place)
+    # the second gripper holds the particle the agent now ranks first: it takes that pair
+    p4, q4 = plan.follow(pos, np.array([[False, True]]), fresh_pick, fresh_place)
+    assert np.array_equal(p4[0, 1], [1.0, 1.0]) and np.array_equal(p4[0, 0], [0.2, 0.0])
+    assert np.array_equal(q4[0, 0], [0.9, 0.0])
     two = plan.follow(np.zeros((2, 2, 2)), np.ones((2, 2), dtype=bool), np.zeros((2, 2, 2)),
                       np.ones((2, 2, 2)))[1]
     assert np.array_equal(two, np.ones((2, 2, 2)))
