@@ -27,7 +27,9 @@ Sections, in the order printed:
     the first of those tasks as single env, SyncVectorEnv(64), AsyncVectorEnv(2) and native
     vector env(64), and the error of rk4 and pymunk at equal CPU time.
 (e) threads: the native vector env with 512 copies at 1, 2 and all cores' threads, beside two
-    busy processes against one (the machine's own control); see :mod:`cparticles.bench_scaling`.
+    busy processes against one (the machine's own control); then the first of those tasks at 2
+    threads against 1 with a spinning process on every core (``bench_busy``); see
+    :mod:`cparticles.bench_scaling`.
 (f) implicit Euler's cost per step on the stiff cloth at 15 x 15 to 120 x 120, with the
     conjugate-gradient and the direct solve; see :mod:`cparticles.bench_scaling`.
 
@@ -546,6 +548,12 @@ def markdown(r: dict[str, Any]) -> str:
 
     if "threads" in r:
         lines += S.threads_markdown(r["threads"])
+    if "busy_cores" in r:
+        b = r["busy_cores"]
+        lines += ["", f"Threads on busy cores ({b['env_id']}, {b['copies']} copies, a spinning "
+                  f"process on each of {b['spinners']} cores; median of {b['repeats']} rounds): "
+                  f"2 threads run at {b['ratio']:.2f}x of 1 thread "
+                  f"({b['idle_ratio']:.2f}x with the cores idle)."]
     lines += ["", S.implicit_table(r["implicit_scaling"])]
     if "chains" in r:
         from cparticles.bench_chain import markdown as chain_markdown
@@ -653,6 +661,9 @@ def run(quick: bool = False, repeats: int = MIN_REPEATS, envs: bool = True,
         if envs and threads:
             results["threads"] = S.bench_threads(vector_envs(), thread_copies, repeats,
                                                  2 * seconds, bar)
+            bar.section("threads on busy cores")
+            results["busy_cores"] = S.bench_busy(vector_envs()[0], thread_copies, repeats,
+                                                 2 * seconds, settle=3.0)
         bar.section("chains of rods")
         from cparticles.bench_chain import bench_chains
 

@@ -59,10 +59,13 @@ def test_json_carries_the_headline_keys(monkeypatch):
     monkeypatch.setattr(S, "IMPLICIT_SIZES", (4, 8))
     threads_asked = []
     monkeypatch.setattr(S, "bench_threads", lambda *a, **k: threads_asked.append(a) or {})
+    busy_asked = []
+    monkeypatch.setattr(S, "bench_busy", lambda *a, **k: busy_asked.append(a) or {})
     out = json.loads(json.dumps(B.run(repeats=1, sizes=[4], copies=(1, 2), seconds=0.0,
                                       accuracy_n=4, accuracy_seconds=0.02, thread_copies=4)))
     assert out["implicit_scaling"]["sizes"] == [4, 8]
     assert threads_asked[0][:2] == (B.vector_envs(), 4) and "threads" in out
+    assert busy_asked[0][:2] == (B.vector_envs()[0], 4) and "busy_cores" in out
     assert out["pymunk_ratio_equal_accuracy"]["4"] > 0
     assert set(out["pymunk_ratio"]) == {"1", "10"}
     assert set(out["env_step_vs_cartpole"]) == {f"{e}/{m}" for e, m in B.small_envs()}
@@ -114,6 +117,26 @@ def test_thread_section_reports_speedups_and_the_control():
     assert min(row["env_steps_per_s"].values()) > 0 and row["control_one_process"] > 0
     assert row["control_speedup"] > 0 and row["of_control"] > 0
     assert "SliderCrank-v0" in "\n".join(S.threads_markdown(r))
+
+
+def test_busy_core_section_times_both_thread_counts_and_ends_its_spinners(monkeypatch):
+    """bench_busy at 4 copies, one round of zero-length batches, no settling: both thread
+    counts timed with the spinners running and without; every spinner it started has ended
+    when it returns."""
+    started = []
+    real = S._Spinners.__enter__
+
+    def enter(self):
+        out = real(self)
+        started.extend(self.procs)
+        return out
+
+    monkeypatch.setattr(S._Spinners, "__enter__", enter)
+    r = S.bench_busy("SliderCrank-v0", copies=4, repeats=1, seconds=0.0, settle=0.0)
+    assert r["spinners"] == S.cores() and len(started) == S.cores()
+    assert all(p.poll() is not None for p in started)
+    assert min(r["busy_env_steps_per_s"].values()) > 0 and r["ratio"] > 0
+    assert r["idle_ratio"] > 0 and len(r["busy_ratios"]) == 1
 
 
 def test_small_envs_time_a_variant_in_each_of_its_modes():
