@@ -322,5 +322,11 @@ TASK = TaskSpec(
           "scripted rule reading only a k x k grid of particles (benchmarks/flatten_keypoints.py,"
           " 40 episodes from seed 1000): the corners (the state observation) 0%, normalized "
           "performance 0.62; 3 x 3 0%, 0.84; 5 x 5 100% in 33.5 steps; every particle 100% in "
-          "34.9 steps.",
+          "34.9 steps. The scripted agent, 30 episodes from seed 1000 (a script outside the "
+          "package): with Gaussian noise on its place points only, 4 mm 53%, 8 mm 0%; choosing "
+          "its particle by a softmax over the particles' distances from their places, at a "
+          "temperature of 5 mm 83%, 1 cm 3%; placing beyond the fitted place (10% or 20% of the "
+          "way from the centre outward, or 30% or 100% past it) 0%. PPO with the settings "
+          "above, tuning seed 101, 500k steps: 0%, return -5.00 (it learns to pick empty "
+          "table).",
     variants=({"num_grippers": 2},), max_episode_steps=50, obs_modes=PP_OBS_MODES)
