@@ -260,7 +260,11 @@ TASK = TaskSpec(
     hyperparams={"ppo": {"pick_place": ppo(600000, {"pi": (), "vf": (128, 128)},
                                            log_std_init=-2.0, log_std_final=-4.5, n_steps=64,
                                            batch_size=256, gamma=0.5, learning_rate=0.001,
-                                           n_epochs=20)},
+                                           n_epochs=20),
+                         "drag": ppo(300000, (256, 256), log_std_init=-2.0, log_std_final=-3.0,
+                                     n_steps=64, batch_size=256, gamma=0.95,
+                                     learning_rate=0.0001, n_epochs=20, normalize=False,
+                                     imitate=40000)},
                  "sac": {"pick_place": sac(50000, (256, 256), learning_starts=1000)}},
     variant_hyperparams={"obs_mode=pixels,pixel_channels=1": {"ppo": {
         "pick_place": ppo(100000, (128, 128), log_std_init=-2.5, n_steps=64, batch_size=256,

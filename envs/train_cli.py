@@ -24,6 +24,7 @@ from .train import (
     _check_policy_settings,
     check_convertible,
     check_explore,
+    check_imitate,
     check_overrides,
     convert_run,
     evaluate,
@@ -110,6 +111,7 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
                       **check_overrides(args.algo, args.hyperparams)}
                 _check_policy_settings(Path("hyperparams"), hp, args.algo)
                 check_explore(args.algo, hp)
+                check_imitate(args.algo, hp)
                 env = task_spec(args.env).env(action_mode=args.action_mode,
                                               **{**hp.get("env_kwargs", {}), **args.env_kwargs})
                 try:

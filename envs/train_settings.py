@@ -1,9 +1,11 @@
 """The training settings ``cparticles train`` checks and applies beside Stable-Baselines3's
 own: the policies a run may name and their keyword arguments, linear schedules
 (``"lin_<value>"``), the ceiling on a PPO policy's noise (``log_std_final``), frame stacking,
-and which policy suits which observation (images: ``CnnPolicy``).
+which policy suits which observation (images: ``CnnPolicy``), and a start from a clone of the
+task's scripted agent (``imitate``).
 
-Requires the ``rl`` extra only where a function says so (:func:`std_ceiling`).
+Requires the ``rl`` extra only where a function says so (:func:`std_ceiling`,
+:func:`imitate_scripted`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,18 @@ import numpy as np
 if TYPE_CHECKING:  # (the rl extra)
     from stable_baselines3.common.callbacks import BaseCallback
 
+#: Most scripted-agent env steps ``imitate`` may clone.
+MAX_IMITATE = 10_000_000
+#: How :func:`imitate_scripted` clones: env copies that collect the scripted agent's steps,
+#: the Gaussian noise (action units) on the actions they execute (so that the clone also sees
+#: states a little off the agent's path; it learns the agent's own actions), the minibatch and
+#: the Adam updates of the policy's mean and then of its value function (learning rate 1e-3),
+#: and the clone's own env steps whose discounted returns the value function is fit to.
+IMITATE_COPIES, IMITATE_NOISE, IMITATE_BATCH = 16, 0.1, 512
+IMITATE_POLICY_UPDATES, IMITATE_VALUE_UPDATES, IMITATE_VALUE_STEPS = 15_000, 5_000, 20_000
+#: First seed of the episodes :func:`imitate_scripted` plays (``+ 100 * seed`` per training
+#: seed): apart from the periodic evaluations (1,000,000) and the held-out ones (2,000,000).
+IMITATE_SEED_START = 4_000_000
 #: Most frames ``frame_stack`` may stack (rl-baselines3-zoo's key: SB3's ``VecFrameStack``).
 MAX_FRAME_STACK = 16
 
@@ -147,6 +161,102 @@ def check_explore(algo: str, hp: dict[str, Any]) -> float:
         raise ValueError("hyperparams: explore_until_success holds the noise until a success "
                          "rate before log_std_final's ceiling falls; it needs log_std_final")
     return float(rate)
+
+
+def check_imitate(algo: str, hp: dict[str, Any]) -> int:
+    """``hp["imitate"]`` (0 without it): the scripted agent's env steps to clone before PPO
+    trains (:func:`imitate_scripted`), an int in [0, :data:`MAX_IMITATE`]; only for PPO with
+    ``MlpPolicy``, observations not normalised and no frame stacking (the clone reads what
+    the scripted agent reads). ValueError naming the key otherwise."""
+    steps = hp.get("imitate", 0)
+    if type(steps) is not int or not 0 <= steps <= MAX_IMITATE:
+        raise ValueError(f"hyperparams: imitate must be an int in [0, {MAX_IMITATE}] (the "
+                         f"scripted agent's env steps to clone), got {steps!r}")
+    if steps and (algo != "ppo" or hp.get("policy", "MlpPolicy") != "MlpPolicy"
+                  or hp.get("normalize", False) or int(hp.get("frame_stack", 1)) != 1):
+        raise ValueError("hyperparams: imitate clones the scripted agent into a PPO MlpPolicy "
+                         "that reads the observation as the agent does: it needs algo ppo, "
+                         "policy MlpPolicy, normalize false and no frame_stack")
+    return steps
+
+
+def imitate_scripted(model: Any, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
+                     seed: int, steps: int) -> dict[str, float]:
+    """Start PPO's ``model`` from a clone of the task's scripted agent (rl extra).
+
+    ``steps`` env steps of the scripted agent (:data:`IMITATE_COPIES` copies of the native
+    vector env, episodes seeded from :data:`IMITATE_SEED_START` ``+ 100 seed``, Gaussian
+    noise of :data:`IMITATE_NOISE` on the actions executed) give pairs (observation, the
+    agent's action); the policy's mean is fit to them by least squares
+    (:data:`IMITATE_POLICY_UPDATES` Adam updates of :data:`IMITATE_BATCH` pairs). The value
+    function is then fit to the discounted returns (the model's ``gamma``) of the clone's
+    own deterministic play over :data:`IMITATE_VALUE_STEPS` env steps, so that PPO's first
+    updates start from a critic that knows what the clone earns (from an untrained one, the
+    first updates undo the clone). Its standard deviation is left at ``log_std_init``.
+    Returns the final mean squared errors (``policy_mse``, action units squared;
+    ``value_mse``) and the clone's mean discounted return (``clone_return``)."""
+    import torch
+
+    from .agents import make_agent
+
+    vec = gym.make_vec(env_id, num_envs=IMITATE_COPIES, vectorization_mode="vector_entry_point",
+                       action_mode=action_mode, **env_kwargs)
+    try:
+        agent = make_agent("scripted", vec)
+        rng = np.random.default_rng(seed)
+        gen = torch.Generator().manual_seed(seed)
+        obs, _ = vec.reset(seed=IMITATE_SEED_START + 100 * seed)
+        seen, acts = [], []
+        for _ in range(max(1, steps // IMITATE_COPIES)):
+            a = agent(obs)
+            seen.append(obs.copy())
+            acts.append(a.copy())
+            noisy = np.clip(a + rng.normal(0.0, IMITATE_NOISE, a.shape), -1.0, 1.0)
+            obs, *_ = vec.step(noisy.astype(np.float32))
+        policy = model.policy
+        x = torch.as_tensor(np.concatenate(seen), dtype=torch.float32, device=policy.device)
+        y = torch.as_tensor(np.concatenate(acts), dtype=torch.float32, device=policy.device)
+        value_names = ("mlp_extractor.value_net.", "value_net.")
+        actor = [p for n, p in policy.named_parameters()
+                 if n != "log_std" and not n.startswith(value_names)]
+        critic = [p for n, p in policy.named_parameters() if n.startswith(value_names)]
+        opt = torch.optim.Adam(actor, lr=1e-3)
+        for _ in range(IMITATE_POLICY_UPDATES):
+            idx = torch.randint(0, len(x), (IMITATE_BATCH,), generator=gen)
+            mean = policy.get_distribution(x[idx]).distribution.mean
+            policy_loss = ((mean - y[idx]) ** 2).mean()
+            opt.zero_grad()
+            policy_loss.backward()
+            opt.step()
+        obs, _ = vec.reset(seed=IMITATE_SEED_START + 100 * seed + 50)
+        seen, rewards, ends = [], [], []
+        for _ in range(max(1, IMITATE_VALUE_STEPS // IMITATE_COPIES)):
+            seen.append(obs.copy())
+            with torch.no_grad():
+                mean = policy.get_distribution(torch.as_tensor(
+                    obs, dtype=torch.float32, device=policy.device)).distribution.mean
+            obs, r, terminated, truncated, _ = vec.step(
+                np.clip(mean.cpu().numpy(), -1.0, 1.0).astype(np.float32))
+            rewards.append(r)
+            ends.append(terminated | truncated)
+        returns, future = [], np.zeros(IMITATE_COPIES)
+        for r, end in zip(reversed(rewards), reversed(ends), strict=True):
+            future = r + model.gamma * future * ~end
+            returns.append(future)
+        target = np.concatenate(returns[::-1])
+        xv = torch.as_tensor(np.concatenate(seen), dtype=torch.float32, device=policy.device)
+        yv = torch.as_tensor(target, dtype=torch.float32, device=policy.device)
+        opt = torch.optim.Adam(critic, lr=1e-3)
+        for _ in range(IMITATE_VALUE_UPDATES):
+            idx = torch.randint(0, len(xv), (IMITATE_BATCH,), generator=gen)
+            value_loss = ((policy.predict_values(xv[idx]).squeeze(-1) - yv[idx]) ** 2).mean()
+            opt.zero_grad()
+            value_loss.backward()
+            opt.step()
+    finally:
+        vec.close()
+    return {"policy_mse": float(policy_loss.detach()), "value_mse": float(value_loss.detach()),
+            "clone_return": float(target.mean())}
 
 
 def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:

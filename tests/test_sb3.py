@@ -743,3 +743,75 @@ def test_the_noise_is_held_until_a_success_rate_then_its_ceiling_falls_over_the_
                      ({"explore_until_success": 1.5, "log_std_final": -3.0}, r"\(0, 1\]")):
         with pytest.raises(ValueError, match=word):
             check_explore("ppo", hp)
+
+
+# ----------------------------------------------------------------------------- imitation
+@pytest.mark.parametrize("hp, algo", [
+    ({"imitate": -1}, "ppo"), ({"imitate": 1.5}, "ppo"), ({"imitate": True}, "ppo"),
+    ({"imitate": 100}, "sac"), ({"imitate": 100, "normalize": True}, "ppo"),
+    ({"imitate": 100, "frame_stack": 2}, "ppo"),
+    ({"imitate": 100, "policy": "CnnPolicy"}, "ppo")])
+def test_bad_imitation_settings_are_value_errors_naming_the_key(hp, algo):
+    from envs.train_settings import check_imitate
+
+    with pytest.raises(ValueError, match="imitate"):
+        check_imitate(algo, hp)
+    assert check_imitate("ppo", {}) == 0 and check_imitate("ppo", {"imitate": 64}) == 64
+
+
+def test_imitation_clones_the_scripted_agent_and_fits_the_critic(monkeypatch):
+    """imitate_scripted on ClothFold in drag mode (fewer updates than shipped): the policy's
+    mean moves from far off the scripted agent's actions to near them, on states of other
+    episodes than those it learnt from, and the value function ends closer to the clone's
+    discounted returns than the constant that fits them best does."""
+    from envs import train_settings as T
+
+    monkeypatch.setattr(T, "IMITATE_POLICY_UPDATES", 1500)
+    monkeypatch.setattr(T, "IMITATE_VALUE_UPDATES", 1500)
+    monkeypatch.setattr(T, "IMITATE_VALUE_STEPS", 640)
+    venv = native("ClothFold-v0", n=2, action_mode="drag")
+    model = PPO("MlpPolicy", venv, n_steps=16, batch_size=32, seed=3, gamma=0.95,
+                policy_kwargs={"net_arch": [64, 64]})
+    probe = gym.make_vec("ClothFold-v0", num_envs=8, vectorization_mode="vector_entry_point",
+                         action_mode="drag")
+    agent = make_agent("scripted", probe)
+    obs, _ = probe.reset(seed=12345)
+    seen, acts = [], []
+    for _ in range(12):
+        a = agent(obs)
+        seen.append(obs)
+        acts.append(a)
+        obs, *_ = probe.step(a)
+    x, y = np.concatenate(seen), np.concatenate(acts)
+
+    def error() -> float:
+        with torch.no_grad():
+            mean = model.policy.get_distribution(torch.as_tensor(x)).distribution.mean
+        return float(((np.clip(mean.numpy(), -1, 1) - y) ** 2).mean())
+
+    before = error()
+    out = T.imitate_scripted(model, "ClothFold-v0", "drag", {}, 3, 4000)
+    after = error()
+    assert after < 0.5 * before, (before, after)
+    assert out["policy_mse"] < 0.2 and np.isfinite(out["clone_return"])
+    # (the constant that fits the returns best leaves their variance)
+    assert out["value_mse"] < 1.0 + 0.5 * abs(out["clone_return"]) ** 2
+
+
+def test_train_records_the_imitation(tmp_path, monkeypatch):
+    """``--hyperparams imitate=N``: the run starts from the clone and config.json records the
+    setting and the clone's fit."""
+    from envs import train_settings as T
+
+    monkeypatch.setattr(T, "IMITATE_POLICY_UPDATES", 20)
+    monkeypatch.setattr(T, "IMITATE_VALUE_UPDATES", 20)
+    monkeypatch.setattr(T, "IMITATE_VALUE_STEPS", 32)
+    monkeypatch.setattr(sys, "argv", ["cparticles"])
+    out = tmp_path / "run"
+    assert cli.main(["train", "ClothFold-v0", "--action-mode", "drag", "--seed", "1", "--out",
+                     str(out), "--timesteps", "64", "--eval-freq", "64", "--eval-episodes",
+                     "1", "--no-progress", "--hyperparams", "imitate=64", "n_envs=2",
+                     "n_steps=32", "batch_size=32"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["hyperparams"]["imitate"] == 64 and config["overrides"]["imitate"] == 64
+    assert set(config["imitation"]) == {"policy_mse", "value_mse", "clone_return"}
