@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 if TYPE_CHECKING:  # (the rl extra)
+    from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
 
 #: Most scripted-agent env steps ``imitate`` may clone.
@@ -180,7 +181,7 @@ def check_imitate(algo: str, hp: dict[str, Any]) -> int:
     return steps
 
 
-def imitate_scripted(model: Any, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
+def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
                      seed: int, steps: int) -> dict[str, float]:
     """Start PPO's ``model`` from a clone of the task's scripted agent (rl extra).
 
