@@ -648,6 +648,11 @@ class Partition:
         if last is not None and now - last[0] <= GAUGE_GAP:
             self.gauge.record((now - last[0]) / last[1])
         self._last = (now, max(int(steps), 1))
+        return self._dispatch(calls)
+
+    def _dispatch(self, calls: list[Callable[[], T]]) -> list[T]:
+        """``calls`` on the crew's threads, or one after the other on this thread while
+        :attr:`gauge` has the steps run there."""
         if self.gauge.use_threads():
             return self.crew().run(calls[0], list(calls[1:]))
         return [call() for call in calls]
@@ -661,9 +666,7 @@ class Partition:
         if len(calls) != len(self.packs):
             raise ValueError(f"calls must hold one call per range ({len(self.packs)}), "
                              f"got {len(calls)}")
-        if not self.gauge.use_threads():  # (as the steps run now: see Gauge)
-            return [call() for call in calls]
-        return self.crew().run(calls[0], list(calls[1:]))
+        return self._dispatch(calls)
 
     def close(self) -> None:
         """Stop the threads (safe to call twice)."""

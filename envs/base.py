@@ -725,7 +725,7 @@ class ParticleTask(SteppedCopies):
                 obs = np.empty((len(goal.goal), 4 * goal.n + 1), np.float32)
             rest, view = self._rest(), tuple(self._view())
             stepped, blocked = self._mask(stepped), self._mask(blocked)
-            if not (s.__dict__.get("_threads", 1) > 1  # (ranges only with threads)
+            if not (s.threads > 1  # (ranges only with threads)
                     and self._measures_ranges(post, rest, walls, stepped, blocked, out,
                                               success, view, obs)):
                 _measure.measures_observe((x, v, mass), tuple(goal), p.refs.blocks, walls,
