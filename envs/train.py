@@ -89,7 +89,8 @@ HELD_OUT_SEED_START = 2_000_000
 NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
-            "frame_stack", "log_std_final", "explore_until_success", "imitate")
+            "frame_stack", "log_std_final", "explore_until_success", "imitate",
+            "imitate_noise", "imitate_updates")
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -464,7 +465,7 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         schedule(key, value)
     std_final = check_std_final(algo, hp)
     explore = check_explore(algo, hp)
-    imitate = check_imitate(algo, hp)
+    imitate, imitate_noise, imitate_updates = check_imitate(algo, hp)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -520,7 +521,8 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
         if std_final is not None:
             callbacks.append(_std_ceiling(hp["policy_kwargs"].get("log_std_init", 0.0),
                                           std_final, timesteps, explore))
-        imitation = (imitate_scripted(model, env_id, action_mode, env_kwargs, seed, imitate)
+        imitation = (imitate_scripted(model, env_id, action_mode, env_kwargs, seed, imitate,
+                                      imitate_noise, imitate_updates)
                      if imitate else None)
         model.learn(total_timesteps=timesteps, callback=callbacks, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:

@@ -164,38 +164,62 @@ def check_explore(algo: str, hp: dict[str, Any]) -> float:
     return float(rate)
 
 
-def check_imitate(algo: str, hp: dict[str, Any]) -> int:
+def check_imitate(algo: str, hp: dict[str, Any]) -> tuple[int, float, int]:
     """``hp["imitate"]`` (0 without it): the scripted agent's env steps to clone before PPO
     trains (:func:`imitate_scripted`), an int in [0, :data:`MAX_IMITATE`]; only for PPO with
-    ``MlpPolicy``, observations not normalised and no frame stacking (the clone reads what
-    the scripted agent reads). ValueError naming the key otherwise."""
+    ``MlpPolicy`` or ``PointerPolicy``, observations not normalised and no frame stacking
+    (the clone reads what the scripted agent reads). ``hp["imitate_noise"]`` (default
+    :data:`IMITATE_NOISE`, and only beside ``imitate``): the Gaussian noise (action units) on
+    the actions the scripted agent executes while it is recorded, a number in [0, 1];
+    ``hp["imitate_updates"]`` (default :data:`IMITATE_POLICY_UPDATES`, only beside
+    ``imitate``): the Adam updates of the policy's fit. Returns the three; ValueError naming
+    the key otherwise."""
     steps = hp.get("imitate", 0)
     if type(steps) is not int or not 0 <= steps <= MAX_IMITATE:
         raise ValueError(f"hyperparams: imitate must be an int in [0, {MAX_IMITATE}] (the "
                          f"scripted agent's env steps to clone), got {steps!r}")
-    if steps and (algo != "ppo" or hp.get("policy", "MlpPolicy") != "MlpPolicy"
+    if steps and (algo != "ppo"
+                  or hp.get("policy", "MlpPolicy") not in ("MlpPolicy", "PointerPolicy")
                   or hp.get("normalize", False) or int(hp.get("frame_stack", 1)) != 1):
-        raise ValueError("hyperparams: imitate clones the scripted agent into a PPO MlpPolicy "
+        raise ValueError("hyperparams: imitate clones the scripted agent into a PPO policy "
                          "that reads the observation as the agent does: it needs algo ppo, "
-                         "policy MlpPolicy, normalize false and no frame_stack")
-    return steps
+                         "policy MlpPolicy or PointerPolicy, normalize false and no "
+                         "frame_stack")
+    noise = hp.get("imitate_noise", IMITATE_NOISE)
+    if type(noise) not in (int, float) or not 0 <= noise <= 1:
+        raise ValueError(f"hyperparams: imitate_noise must be a number in [0, 1] (action "
+                         f"units), got {noise!r}")
+    updates = hp.get("imitate_updates", IMITATE_POLICY_UPDATES)
+    if type(updates) is not int or not 1 <= updates <= MAX_IMITATE:
+        raise ValueError(f"hyperparams: imitate_updates must be an int in [1, {MAX_IMITATE}] "
+                         f"(the policy's Adam updates), got {updates!r}")
+    for key in ("imitate_noise", "imitate_updates"):
+        if key in hp and not steps:
+            raise ValueError(f"hyperparams: {key} sets how the scripted agent is cloned; it "
+                             "needs imitate")
+    return steps, float(noise), updates
 
 
 def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
-                     seed: int, steps: int) -> dict[str, float]:
+                     seed: int, steps: int, noise: float = IMITATE_NOISE,
+                     updates: int | None = None) -> dict[str, float]:
     """Start PPO's ``model`` from a clone of the task's scripted agent (rl extra).
 
     ``steps`` env steps of the scripted agent (:data:`IMITATE_COPIES` copies of the native
     vector env, episodes seeded from :data:`IMITATE_SEED_START` ``+ 100 seed``, Gaussian
-    noise of :data:`IMITATE_NOISE` on the actions executed) give pairs (observation, the
-    agent's action); the policy's mean is fit to them by least squares
-    (:data:`IMITATE_POLICY_UPDATES` Adam updates of :data:`IMITATE_BATCH` pairs). The value
+    noise of ``noise`` on the actions executed) give pairs (observation, the agent's action);
+    the policy is fit to them (``updates`` Adam updates of :data:`IMITATE_BATCH` pairs, None
+    for :data:`IMITATE_POLICY_UPDATES`): an ``MlpPolicy``'s mean by least squares, a
+    ``PointerPolicy``'s point scores by maximum likelihood of the agent's actions under its
+    mixture (each action is some observed point and its target: the likelihood is a
+    cross-entropy over the points). The value
     function is then fit to the discounted returns (the model's ``gamma``) of the clone's
     own deterministic play over :data:`IMITATE_VALUE_STEPS` env steps, so that PPO's first
     updates start from a critic that knows what the clone earns (from an untrained one, the
     first updates undo the clone). Its standard deviation is left at ``log_std_init``.
-    Returns the final mean squared errors (``policy_mse``, action units squared;
-    ``value_mse``) and the clone's mean discounted return (``clone_return``)."""
+    Returns the policy's final loss (``policy_mse``, action units squared, or
+    ``policy_nll``, the mean negative log-likelihood of an action), the value function's mean
+    squared error (``value_mse``) and the clone's mean discounted return (``clone_return``)."""
     import torch
 
     from .agents import make_agent
@@ -212,7 +236,7 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
             a = agent(obs)
             seen.append(obs.copy())
             acts.append(a.copy())
-            noisy = np.clip(a + rng.normal(0.0, IMITATE_NOISE, a.shape), -1.0, 1.0)
+            noisy = np.clip(a + rng.normal(0.0, noise, a.shape), -1.0, 1.0)
             obs, *_ = vec.step(noisy.astype(np.float32))
         policy = model.policy
         x = torch.as_tensor(np.concatenate(seen), dtype=torch.float32, device=policy.device)
@@ -222,10 +246,14 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
                  if n != "log_std" and not n.startswith(value_names)]
         critic = [p for n, p in policy.named_parameters() if n.startswith(value_names)]
         opt = torch.optim.Adam(actor, lr=1e-3)
-        for _ in range(IMITATE_POLICY_UPDATES):
+        likelihood = hasattr(policy, "points")  # (PointerPolicy)
+        for _ in range(IMITATE_POLICY_UPDATES if updates is None else updates):
             idx = torch.randint(0, len(x), (IMITATE_BATCH,), generator=gen)
-            mean = policy.get_distribution(x[idx]).distribution.mean
-            policy_loss = ((mean - y[idx]) ** 2).mean()
+            dist = policy.get_distribution(x[idx])
+            if likelihood:
+                policy_loss = -dist.log_prob(y[idx]).mean()
+            else:
+                policy_loss = ((dist.distribution.mean - y[idx]) ** 2).mean()
             opt.zero_grad()
             policy_loss.backward()
             opt.step()
@@ -234,10 +262,10 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
         for _ in range(max(1, IMITATE_VALUE_STEPS // IMITATE_COPIES)):
             seen.append(obs.copy())
             with torch.no_grad():
-                mean = policy.get_distribution(torch.as_tensor(
-                    obs, dtype=torch.float32, device=policy.device)).distribution.mean
+                mode = policy.get_distribution(torch.as_tensor(
+                    obs, dtype=torch.float32, device=policy.device)).mode()
             obs, r, terminated, truncated, _ = vec.step(
-                np.clip(mean.cpu().numpy(), -1.0, 1.0).astype(np.float32))
+                np.clip(mode.cpu().numpy(), -1.0, 1.0).astype(np.float32))
             rewards.append(r)
             ends.append(terminated | truncated)
         returns, future = [], np.zeros(IMITATE_COPIES)
@@ -256,7 +284,8 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
             opt.step()
     finally:
         vec.close()
-    return {"policy_mse": float(policy_loss.detach()), "value_mse": float(value_loss.detach()),
+    return {"policy_nll" if likelihood else "policy_mse": float(policy_loss.detach()),
+            "value_mse": float(value_loss.detach()),
             "clone_return": float(target.mean())}
 
 

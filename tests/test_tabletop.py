@@ -306,6 +306,41 @@ def test_rope_shape_observes_the_rope_in_the_order_that_matches_its_target(obs_m
         assert np.allclose(t.observed_points(o)[0], t.to_world(t.goal_part(o)[0].reshape(-1, 2)),
                            atol=1e-6)
 
+@pytest.mark.parametrize("obs_mode", ["state", "particles"])
+def test_cloth_flatten_observes_where_each_particle_belongs_on_the_nearest_flat_cloth(obs_mode):
+    env = ClothFlattenEnv(obs_mode=obs_mode)
+    t = env.task
+    obs, _ = env.reset(seed=3)
+    x = t.positions()[0]
+    seen = t.observed_points(obs)[0]
+    goal = t.to_world(t.goal_part(obs)[0].reshape(-1, 2))
+    assert goal.shape == seen.shape == ((t.n, 2) if obs_mode == "particles" else (4, 2))
+    # the goal points are the flat cloth's (pairwise distances of the flat grid) ...
+    rows = slice(None) if obs_mode == "particles" else t.keypoints
+    flat = t.flat[rows]
+    dist = np.linalg.norm(goal[:, None] - goal[None], axis=2)
+    assert np.allclose(dist, np.linalg.norm(flat[:, None] - flat[None], axis=2), atol=1e-5)
+    # ... at the least-squares pose: no small rotation or shift of it lies nearer the cloth
+    full = t.to_world(t.to_normalized(t.flat_fit(x[None])[0]))[rows]
+    assert np.allclose(full, goal, atol=1e-5)
+    fitted = t.flat_fit(x[None])[0]
+    cost = ((fitted - x) ** 2).sum()
+    c = fitted.mean(axis=0)
+    for th, shift in [(1e-3, (0, 0)), (-1e-3, (0, 0)), (0, (1e-3, 0)), (0, (0, -1e-3))]:
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        moved = (fitted - c) @ rot.T + c + shift
+        assert ((moved - x) ** 2).sum() > cost
+    # a flat cloth near the middle is its own goal; one spread far off is brought back in
+    for centre, angle in [((0.02, -0.05), 0.4), ((0.3, 0.0), -1.0)]:
+        flat_x = t.posed(np.array(centre), angle)
+        env.set_state(dict(env.get_state(), x=flat_x, v=np.zeros_like(flat_x)))
+        o = t.observe()
+        g = t.to_world(t.goal_part(o)[0].reshape(-1, 2))
+        shift = g - t.observed_points(o)[0]
+        assert np.allclose(shift, shift[0], atol=1e-5)  # a translation only
+        assert np.allclose(shift[0], [min(centre[0], 0.5 * t.view_half) - centre[0], 0.0],
+                           atol=1e-5)
+
 # ------------------------------------------------------------------ spaces and arguments
 @pytest.mark.parametrize("env_id", TABLETOP)
 def test_particles_mode_observes_every_particle_and_goal_mode_is_refused(env_id):
