@@ -223,6 +223,7 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
     import torch
 
     from .agents import make_agent
+    from .policies import PointerPolicy
 
     vec = gym.make_vec(env_id, num_envs=IMITATE_COPIES, vectorization_mode="vector_entry_point",
                        action_mode=action_mode, **env_kwargs)
@@ -246,7 +247,7 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
                  if n != "log_std" and not n.startswith(value_names)]
         critic = [p for n, p in policy.named_parameters() if n.startswith(value_names)]
         opt = torch.optim.Adam(actor, lr=1e-3)
-        likelihood = hasattr(policy, "points")  # (PointerPolicy)
+        likelihood = isinstance(policy, PointerPolicy)
         for _ in range(IMITATE_POLICY_UPDATES if updates is None else updates):
             idx = torch.randint(0, len(x), (IMITATE_BATCH,), generator=gen)
             dist = policy.get_distribution(x[idx])
