@@ -27,12 +27,22 @@ ROOT = Path(__file__).with_name("pretrained")
 
 def _variant(config: dict) -> str:
     """The variant (:func:`envs.task.variant_key` form, ``""`` for the default
-    configuration) a run's ``config.json`` trained on."""
-    from .task import variant_key
+    configuration) a run's ``config.json`` trained on: its env keyword arguments but those
+    its action mode's shipped settings give themselves (ClothFlatten's PPO settings observe
+    every particle: a run with them plays the default configuration)."""
+    from .task import task_spec, variant_key
 
     kwargs = config.get("hyperparams", {}).get("env_kwargs", {})
+    if not isinstance(kwargs, dict):
+        return ""
     try:
-        return variant_key(kwargs if isinstance(kwargs, dict) else {})
+        own = task_spec(str(config.get("env"))).hyperparams.get(
+            str(config.get("algo")), {}).get(str(config.get("action_mode")), {}).get(
+            "env_kwargs", {})
+    except ValueError:  # (a task not registered here)
+        own = {}
+    try:
+        return variant_key({k: v for k, v in kwargs.items() if own.get(k, object()) != v})
     except ValueError:
         return ""
 

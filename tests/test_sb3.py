@@ -15,7 +15,7 @@ import torch  # noqa: E402
 from stable_baselines3 import PPO  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
 
-import envs  # noqa: E402, F401
+import envs  # noqa: E402
 from cparticles import cli  # noqa: E402
 from envs import pretrained  # noqa: E402
 from envs.agents import make_agent  # noqa: E402
@@ -320,6 +320,27 @@ def test_pretrained_names_what_is_shipped(capsys, monkeypatch):
             cli.main(argv)
         assert exc.value.code == 2
         assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_shipped_agent_is_named_by_the_env_arguments_its_settings_do_not_give():
+    """An agent's variant is the env keyword arguments it trained with beyond those of its
+    mode's shipped settings: ClothFlatten's PPO settings observe every particle, so a run with
+    them is the default configuration's agent, and one with two grippers too is that
+    variant's; ChainSwing's swing-up is a variant."""
+    def config(env, kwargs, algo="ppo", mode="pick_place"):
+        return {"env": env, "algo": algo, "action_mode": mode,
+                "hyperparams": {"env_kwargs": kwargs}}
+
+    flat = envs.task_spec("ClothFlatten-v0").settings("ppo")["env_kwargs"]
+    assert flat == {"obs_mode": "particles"}
+    assert pretrained._variant(config("ClothFlatten-v0", flat)) == ""
+    assert pretrained._variant(config("ClothFlatten-v0", {**flat, "num_grippers": 2})) \
+        == "num_grippers=2"
+    assert pretrained._variant(config("ClothFlatten-v0", {"obs_mode": "state"})) \
+        == "obs_mode=state"
+    assert pretrained._variant(config("ChainSwing-v0", {"target": "swingup"}, mode="force")) \
+        == "target=swingup"
+    assert pretrained._variant(config("ClothFlatten-v0", {})) == ""
 
 
 @pytest.mark.parametrize("env_id, mode", [("ChainSwing-v0", "spring"), ("ClothPin-v1", None)])
@@ -838,10 +859,10 @@ def test_imitation_teaches_the_pointer_policy_which_particle_to_move(monkeypatch
         return float(np.mean(np.abs(mode - y).max(axis=1) < 1e-4))
 
     before = agreement()
-    out = T.imitate_scripted(model, "ClothFlatten-v0", "pick_place", kwargs, 3, 4000, 0.003,
-                             1000)
+    out = T.imitate_scripted(model, "ClothFlatten-v0", "pick_place", kwargs, 3, 3000, 0.003,
+                             600)
     after = agreement()
-    assert after > 0.5 and after > before + 0.4, (before, after)
+    assert after > 0.7 and after > before + 0.5, (before, after)
     assert set(out) == {"policy_nll", "value_mse", "clone_return"}
     assert np.isfinite(out["policy_nll"]) and np.isfinite(out["clone_return"])
 
