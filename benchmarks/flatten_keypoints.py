@@ -1,6 +1,8 @@
 """Benchmark (not a test): how much of the cloth a ClothFlatten-v0 policy must see.
 
-``obs_mode="state"`` observes the cloth's four corners. This plays the scripted agent's rule
+``obs_mode="state"`` observes the cloth's four corners and where they belong on the flat cloth
+fitted to the whole cloth; this measures what a policy could do from the particles alone, as
+before the fitted places were observed. It plays the scripted agent's rule
 (fit the flat cloth rigidly to the current one, take the particle furthest from its place on
 the fitted cloth and put it there: ``envs.cloth_flatten.ClothFlattenController``) reading only
 a ``k x k`` grid of evenly spaced particles (``k = 2``: the corners), over ``--episodes``

@@ -90,6 +90,8 @@ class RopeShape(Rope):
     def set_obs_mode(self, obs_mode: str) -> spaces.Box:
         """As the base, with the goal's entries: the target curve at the observed particles
         (the keypoints', or every particle's)."""
+        if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:
+            return super().set_obs_mode(obs_mode)  # (the base's ValueError, nothing changed)
         self.goal_dim = 2 * (self.n if obs_mode == "particles" else len(self.keypoints))
         return super().set_obs_mode(obs_mode)
 

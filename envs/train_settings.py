@@ -24,8 +24,9 @@ if TYPE_CHECKING:  # (the rl extra)
 MAX_IMITATE = 10_000_000
 #: How :func:`imitate_scripted` clones: env copies that collect the scripted agent's steps,
 #: the Gaussian noise (action units) on the actions they execute (so that the clone also sees
-#: states a little off the agent's path; it learns the agent's own actions), the minibatch and
-#: the Adam updates of the policy's mean and then of its value function (learning rate 1e-3),
+#: states a little off the agent's path; it learns the agent's own actions; the setting
+#: ``imitate_noise`` overrides it), the minibatch and the Adam updates of the policy's fit
+#: (``imitate_updates`` overrides them) and then of its value function (learning rate 1e-3),
 #: and the clone's own env steps whose discounted returns the value function is fit to.
 IMITATE_COPIES, IMITATE_NOISE, IMITATE_BATCH = 16, 0.1, 512
 IMITATE_POLICY_UPDATES, IMITATE_VALUE_UPDATES, IMITATE_VALUE_STEPS = 15_000, 5_000, 20_000
@@ -169,11 +170,11 @@ def check_imitate(algo: str, hp: dict[str, Any]) -> tuple[int, float, int]:
     trains (:func:`imitate_scripted`), an int in [0, :data:`MAX_IMITATE`]; only for PPO with
     ``MlpPolicy`` or ``PointerPolicy``, observations not normalised and no frame stacking
     (the clone reads what the scripted agent reads). ``hp["imitate_noise"]`` (default
-    :data:`IMITATE_NOISE`, and only beside ``imitate``): the Gaussian noise (action units) on
-    the actions the scripted agent executes while it is recorded, a number in [0, 1];
-    ``hp["imitate_updates"]`` (default :data:`IMITATE_POLICY_UPDATES`, only beside
-    ``imitate``): the Adam updates of the policy's fit. Returns the three; ValueError naming
-    the key otherwise."""
+    :data:`IMITATE_NOISE`): the Gaussian noise (action units) on the actions the scripted
+    agent executes while it is recorded, a number in [0, 1]; ``hp["imitate_updates"]``
+    (default :data:`IMITATE_POLICY_UPDATES`): the Adam updates of the policy's fit (both
+    unused with ``imitate`` 0, so that ``--hyperparams imitate=0`` trains a task's settings
+    from scratch). Returns the three; ValueError naming the key otherwise."""
     steps = hp.get("imitate", 0)
     if type(steps) is not int or not 0 <= steps <= MAX_IMITATE:
         raise ValueError(f"hyperparams: imitate must be an int in [0, {MAX_IMITATE}] (the "
@@ -193,10 +194,6 @@ def check_imitate(algo: str, hp: dict[str, Any]) -> tuple[int, float, int]:
     if type(updates) is not int or not 1 <= updates <= MAX_IMITATE:
         raise ValueError(f"hyperparams: imitate_updates must be an int in [1, {MAX_IMITATE}] "
                          f"(the policy's Adam updates), got {updates!r}")
-    for key in ("imitate_noise", "imitate_updates"):
-        if key in hp and not steps:
-            raise ValueError(f"hyperparams: {key} sets how the scripted agent is cloned; it "
-                             "needs imitate")
     return steps, float(noise), updates
 
 

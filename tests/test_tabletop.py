@@ -306,8 +306,11 @@ def test_rope_shape_observes_the_rope_in_the_order_that_matches_its_target(obs_m
         assert np.allclose(t.observed_points(o)[0], t.to_world(t.goal_part(o)[0].reshape(-1, 2)),
                            atol=1e-6)
 
+
 @pytest.mark.parametrize("obs_mode", ["state", "particles"])
 def test_cloth_flatten_observes_where_each_particle_belongs_on_the_nearest_flat_cloth(obs_mode):
+    """The goal entries are the flat cloth (its grid's distances) at the least-squares pose on
+    the cloth, its centre brought within half the view box."""
     env = ClothFlattenEnv(obs_mode=obs_mode)
     t = env.task
     obs, _ = env.reset(seed=3)
