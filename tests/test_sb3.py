@@ -791,6 +791,21 @@ def test_bad_imitation_settings_are_value_errors_naming_the_key(hp, algo):
     assert check_imitate("ppo", flat) == (0, 0.003, 2000)
 
 
+def scripted_steps(env_id: str, steps: int, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """The observations and the scripted agent's actions over ``steps`` steps of 8 copies of
+    ``env_id`` seeded 12345 (episodes no imitation in these tests records)."""
+    probe = gym.make_vec(env_id, num_envs=8, vectorization_mode="vector_entry_point", **kwargs)
+    agent = make_agent("scripted", probe)
+    obs, _ = probe.reset(seed=12345)
+    seen, acts = [], []
+    for _ in range(steps):
+        a = agent(obs)
+        seen.append(obs)
+        acts.append(a)
+        obs, *_ = probe.step(a)
+    return np.concatenate(seen), np.concatenate(acts)
+
+
 def test_imitation_clones_the_scripted_agent_and_fits_the_critic(monkeypatch):
     """imitate_scripted on ClothFold in drag mode (fewer updates than shipped): the policy's
     mean moves from far off the scripted agent's actions to near them, on states of other
@@ -804,17 +819,7 @@ def test_imitation_clones_the_scripted_agent_and_fits_the_critic(monkeypatch):
     venv = native("ClothFold-v0", n=2, action_mode="drag")
     model = PPO("MlpPolicy", venv, n_steps=16, batch_size=32, seed=3, gamma=0.95,
                 policy_kwargs={"net_arch": [64, 64]})
-    probe = gym.make_vec("ClothFold-v0", num_envs=8, vectorization_mode="vector_entry_point",
-                         action_mode="drag")
-    agent = make_agent("scripted", probe)
-    obs, _ = probe.reset(seed=12345)
-    seen, acts = [], []
-    for _ in range(12):
-        a = agent(obs)
-        seen.append(obs)
-        acts.append(a)
-        obs, *_ = probe.step(a)
-    x, y = np.concatenate(seen), np.concatenate(acts)
+    x, y = scripted_steps("ClothFold-v0", 12, action_mode="drag")
 
     def error() -> float:
         with torch.no_grad():
@@ -844,17 +849,7 @@ def test_imitation_teaches_the_pointer_policy_which_particle_to_move(monkeypatch
     venv = native("ClothFlatten-v0", n=2, **kwargs)
     model = PPO(PointerPolicy, venv, n_steps=16, batch_size=32, seed=3,
                 policy_kwargs={"points": 81, "log_std_init": -5.0})
-    probe = gym.make_vec("ClothFlatten-v0", num_envs=8, vectorization_mode="vector_entry_point",
-                         **kwargs)
-    agent = make_agent("scripted", probe)
-    obs, _ = probe.reset(seed=12345)
-    seen, acts = [], []
-    for _ in range(10):
-        a = agent(obs)
-        seen.append(obs)
-        acts.append(a)
-        obs, *_ = probe.step(a)
-    x, y = np.concatenate(seen), np.concatenate(acts)
+    x, y = scripted_steps("ClothFlatten-v0", 10, **kwargs)
 
     def agreement() -> float:
         with torch.no_grad():
