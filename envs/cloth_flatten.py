@@ -4,7 +4,6 @@ ClothFlatten); and :class:`TableCloth`, the cloth on a table both cloth tasks sh
 from __future__ import annotations
 
 import numpy as np
-from gymnasium import spaces
 
 from constrained_particles import DampedSpring, ParticleSystem, raster
 
@@ -116,7 +115,9 @@ class ClothFlatten(TableCloth):
     """The ClothFlatten physics and task (see :class:`ClothFlattenEnv`)."""
 
     target_size = 1
-    goal_dim = 0
+    #: The goal's entries: the flat cloth fitted to the cloth (:meth:`flat_fit`) at the
+    #: observed particles (the corners, or every particle).
+    goal_per_point = True
     p_goal = 1.0
 
     def __init__(self, num_envs: int = 1, *, action_mode: str = "pick_place",
@@ -178,14 +179,6 @@ class ClothFlatten(TableCloth):
                 break
         shift = rng.uniform(-0.1, 0.1, 2) * self.view_half
         return x - x.mean(axis=0) + shift
-
-    def set_obs_mode(self, obs_mode: str) -> spaces.Box:
-        """As the base, with the goal's entries: the flat cloth fitted to the cloth
-        (:meth:`flat_fit`) at the observed particles (the corners, or every particle)."""
-        if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:
-            return super().set_obs_mode(obs_mode)  # (the base's ValueError, nothing changed)
-        self.goal_dim = 2 * (self.n if obs_mode == "particles" else len(self.keypoints))
-        return super().set_obs_mode(obs_mode)
 
     def flat_fit(self, x: np.ndarray) -> np.ndarray:
         """Where each particle of cloths ``x`` (B, n, 2) m belongs: the flat cloth moved

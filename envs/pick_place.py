@@ -73,7 +73,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
 
     Subclasses define :meth:`build_object`, :meth:`sample_episode`, :meth:`progress`,
     :meth:`success`, :attr:`p_goal`, :attr:`keypoints` and :attr:`goal_dim` (the goal's
-    entries in the observation, from :meth:`goal_features`).
+    entries in the observation, from :meth:`goal_features`) or :attr:`goal_per_point`.
     """
 
     force_dim = 1
@@ -83,6 +83,10 @@ class PickPlaceTask(ShapedTask, ParticleTask):
     target_size: ClassVar[int] = 1
     #: The goal's entries in the observation.
     goal_dim: ClassVar[int] = 0
+    #: True for a goal observed as one point per observed particle (where that particle
+    #: belongs): :attr:`goal_dim` is then twice the observed particles, set by
+    #: :meth:`set_obs_mode`.
+    goal_per_point: ClassVar[bool] = False
 
     def __init__(self, num_envs: int, *, action_mode: str, num_grippers: int, dt: float,
                  integrator: str, speed: float, grab_radius: float, mouse_ks: float,
@@ -133,13 +137,16 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         self.set_obs_mode("state")
 
     def set_obs_mode(self, obs_mode: str) -> spaces.Box:
-        """Observe the keypoints (``"state"``) or every particle (``"particles"``); returns the
-        observation space of one copy (ValueError naming ``obs_mode`` for another value)."""
+        """Observe the keypoints (``"state"``) or every particle (``"particles"``), each with
+        its goal point if :attr:`goal_per_point`; returns the observation space of one copy
+        (ValueError naming ``obs_mode`` for another value)."""
         if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:
             raise ValueError(f"obs_mode must be one of {PP_OBS_MODES}, got {obs_mode!r}")
         self.obs_mode = obs_mode
-        size = (2 * (self.n if obs_mode == "particles" else len(self.keypoints)) + self.goal_dim
-                + 3 * self.num_grippers * (self.action_mode == "drag"))
+        seen = 2 * (self.n if obs_mode == "particles" else len(self.keypoints))
+        if self.goal_per_point:
+            self.goal_dim = seen
+        size = seen + self.goal_dim + 3 * self.num_grippers * (self.action_mode == "drag")
         self.single_observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (size,), np.float32)
         return self.single_observation_space
 

@@ -4,7 +4,6 @@ RopeConfiguration)."""
 from __future__ import annotations
 
 import numpy as np
-from gymnasium import spaces
 
 from .checks import check_positive
 from .pick_place import (
@@ -63,6 +62,9 @@ class RopeShape(Rope):
     the target curve's ``num_particles`` points (m), then the shape's id."""
 
     p_goal = 0.0
+    #: The goal's entries: the target curve at the observed particles (the keypoints', or
+    #: every particle's).
+    goal_per_point = True
 
     def __init__(self, num_envs: int = 1, *, action_mode: str = "pick_place",
                  num_grippers: int = 1, num_particles: int = 20, link: float = 0.025,
@@ -78,7 +80,6 @@ class RopeShape(Rope):
         n = check_positive("num_particles", num_particles, integer=True, minimum=8,
                            maximum=200)
         self.target_size = 2 * n + 1
-        self.goal_dim = 2 * len(np.unique(np.round(np.linspace(0, n - 1, min(10, n)))))
         super().__init__(num_envs, num_particles=num_particles, link=link,
                          particle_mass=particle_mass, bend_k=bend_k, mu=mu,
                          view_half=view_half, action_mode=action_mode,
@@ -86,14 +87,6 @@ class RopeShape(Rope):
                          grab_radius=grab_radius, mouse_ks=mouse_ks, mouse_kd=mouse_kd,
                          hold_time=hold_time, settle_time=settle_time, rest_speed=rest_speed,
                          chunk=chunk, residual_limit=residual_limit, max_move=max_move)
-
-    def set_obs_mode(self, obs_mode: str) -> spaces.Box:
-        """As the base, with the goal's entries: the target curve at the observed particles
-        (the keypoints', or every particle's)."""
-        if not isinstance(obs_mode, str) or obs_mode not in PP_OBS_MODES:
-            return super().set_obs_mode(obs_mode)  # (the base's ValueError, nothing changed)
-        self.goal_dim = 2 * (self.n if obs_mode == "particles" else len(self.keypoints))
-        return super().set_obs_mode(obs_mode)
 
     def sample_episode(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """The rope: a gentle random walk (heading turning by N(0, ``turn``^2) rad per link)
