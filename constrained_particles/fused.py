@@ -180,6 +180,8 @@ def run(system: ParticleSystem, dt: float, method: str, steps: int, lam: np.ndar
     if ready is None:
         return FALLBACK, None, None, 0
     p, start, settings = ready
+    # (the pack, current and refreshed for this call: see envs._measure.packed)
+    system.__dict__["_fresh_pack"] = p
     code, rattle = integrator_args(method)
     h = float(dt)
     if pieces is not None and (pieces.shape != (p.n,) or pieces.dtype != np.int64):

@@ -190,7 +190,10 @@ class Packed:
         self.constraint_versions = [c.version for c in self.constraints]
         self.valid = self.supported = supported(system)
         self._mouse_blocks: list[MouseSpring] = []
-        self._refresh: list[tuple[np.ndarray, tuple[np.ndarray, ...], bool]] = []
+        #: ``(joined, ((part, its rows of joined), ...), read by the measures)`` per joined
+        #: parameter array (:meth:`refresh`)
+        self._refresh: list[tuple[np.ndarray, tuple[tuple[np.ndarray, np.ndarray], ...],
+                                  bool]] = []
         #: the parameter arrays held zero copy, with the shapes they had (checked every call:
         #: an in-place ``arr.shape = ...`` must not send the kernel past their ends)
         self.params: list[tuple[np.ndarray, tuple[int, ...]]] = []
@@ -240,7 +243,11 @@ class Packed:
                     joined = _ro(joined)
                 elif not all(any(a is f for f in fresh) for a in col):
                     # (arrays made here never change)
-                    self._refresh.append((joined, col, measured))
+                    ends = np.cumsum([0, *(len(a) for a in col)])
+                    views = tuple(joined[lo:hi] for lo, hi in zip(ends[:-1], ends[1:],
+                                                                    strict=True))
+                    self._refresh.append((joined, tuple(zip(col, views, strict=True)),
+                                          measured))
                 out.append(joined)
             return tuple(out)
 
@@ -598,9 +605,13 @@ class Packed:
     def refresh(self, measured_only: bool = False) -> None:
         """Copy the parameter arrays of types with several blocks into their joined arrays
         (``measured_only``: only those the env measures read, walls' and constraints')."""
-        for joined, parts, read_by_measures in self._refresh:
+        for joined, pairs, read_by_measures in self._refresh:
             if read_by_measures or not measured_only:
-                np.concatenate(parts, out=joined)
+                for part, view in pairs:  # (each block's rows of the joined array)
+                    if part.shape != view.shape:  # (reshaped in place: as concatenate does,
+                        np.concatenate([a for a, _ in pairs], out=joined)  # or its error)
+                        break
+                    view[...] = part
 
     def current(self, system: ParticleSystem) -> bool:
         """True if this pack still describes ``system``: the same blocks, none of them with an

@@ -377,6 +377,7 @@ class ParticleSystem:
             term._bound_n = out.n
         out._solver = None
         out.__dict__.pop("_packed", None)
+        out.__dict__.pop("_fresh_pack", None)
         out.__dict__.pop("_partition", None)  # (threads of its own, on first use)
         out.__dict__.pop("_whole_for", None)
         out.__dict__.pop("_stepping", None)
@@ -387,6 +388,7 @@ class ParticleSystem:
         # gets its own step lock (made on first use)
         state = self.__dict__.copy()
         state.pop("_packed", None)
+        state.pop("_fresh_pack", None)
         state.pop("_stepping", None)
         state.pop("_partition", None)
         state.pop("_whole_for", None)

@@ -98,11 +98,18 @@ class Episode(NamedTuple):
     ended: np.ndarray  #: (N,) bool out
 
 
-def packed(system: Any) -> Any:
+def packed(system: Any, fresh: Any = None) -> Any:
     """The system's compiled description (``fused.Packed``), or None when the compiled
-    bookkeeping is off or does not cover the system (then the numpy reference runs)."""
+    bookkeeping is off or does not cover the system (then the numpy reference runs).
+
+    ``fresh``: the pack that the step just taken made current and refreshed
+    (:meth:`envs.base.ParticleTask.simulate_step`), or None. If it is still the system's, it
+    is taken as it is: the measures of a step then read the parameters that step was taken
+    with (an in-place edit made meanwhile by another thread is seen at the next step)."""
     if not ENABLED:
         return None
+    if fresh is not None and fresh is system.__dict__.get("_packed") and fresh.valid:
+        return fresh
     p = pack(system)
     if not p.valid:
         return None

@@ -608,12 +608,13 @@ class ParticleTask(SteppedCopies):
         (compiled bookkeeping off, no tracked particles, blocks it does not know, or arrays
         not of the shapes and types it reads)."""
         N = self.num_envs
+        fresh = self.__dict__.pop("_fresh_pack", None)  # (see simulate_step: taken once)
         track = self._tracking() if _measure.ENABLED else None
         state = self._compiled_state()
         if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
                 or not self._rest_owned() or not self._goal_fits()):
             return None
-        p = _measure.packed(self.system)
+        p = _measure.packed(self.system, fresh)
         if p is None or p.n != self.num_envs * self.n:
             return None
         return p, self._goal_record(track), state
@@ -684,11 +685,24 @@ class ParticleTask(SteppedCopies):
         self.__dict__["_tracked_particles"] = idx
         self._track = None
 
+    def __getstate__(self) -> dict[str, Any]:
+        """The task's attributes for a copy or a pickle, less what is remembered of the
+        original's arrays (the tracked indices as checked, the step's compiled pack): the copy
+        checks its own again."""
+        state = self.__dict__.copy()
+        state["_track"] = None
+        state.pop("_fresh_pack", None)
+        return state
+
     def _tracking(self) -> tuple[np.ndarray, float] | None:
         """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
         None if it is not set (a subclass computes :meth:`tracked` its own way). The indices
         are immutable: checked against the copy's particle count once. A copied or unpickled
-        task holds a plain copy of them, which is validated and made immutable again here."""
+        task holds a plain copy of them, which is validated and made immutable again here
+        (it holds no ``_track``: :meth:`__getstate__`)."""
+        track = self._track
+        if track is not None and track[0] is self.__dict__.get("_tracked_particles"):
+            return track  # (made from the frozen indices, below)
         idx = self.tracked_particles
         if idx is not None and not is_frozen(idx):
             self.tracked_particles = idx

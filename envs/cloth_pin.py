@@ -452,6 +452,8 @@ class ClothPin(ShapedTask, ParticleTask):
         cls = type(self)
         paths["measure_observe"] = (cls.measure is ParticleTask.measure
                                     and cls.observe is ClothPin.observe)
+        paths["plan_center"] = cls.tracked is ClothPin.tracked  # (the kernel's own mean)
+        paths["plan"] = cls.plan_distance is ClothPin.plan_distance  # (in measure_observe)
         return paths
 
     def observe(self) -> np.ndarray:
@@ -489,7 +491,10 @@ class ClothPin(ShapedTask, ParticleTask):
                 self._mask(stepped), self._mask(None), out, success, tuple(self._view()), pin,
                 obs):
             return self.measure(stepped), self.observe()
-        return self.add_measures(_measured(out, success), out[4]), obs
+        plan = (cloth_pin_kernels.plan_checked(  # (arrays pin_record, _compiled_post checked)
+            self, x, pin[2:6], (N, goal.n, nc, pin[0]), goal.goal,
+            (PLAN_NEWTON_STEPS, PLAN_TOLERANCE)) if self._paths["plan"] else None)
+        return self.add_measures(_measured(out, success), out[4], plan), obs
 
     @staticmethod
     def _obs(N: int, nc: int, slots: int) -> np.ndarray:
@@ -525,15 +530,15 @@ class ClothPin(ShapedTask, ParticleTask):
 
     measure_walls = True
 
-    def add_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray
-                     ) -> dict[str, np.ndarray]:
+    def add_measures(self, m: dict[str, np.ndarray], wall_force: np.ndarray,
+                     plan: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The common measures (``speed`` over the cloth only) plus ``wall_force`` (N), the
         ``springs`` placed so far, ``placed`` (a spring was placed on the last step) and
-        ``plan_distance`` (m, see :meth:`plan_distance`)."""
+        ``plan_distance`` (m, :meth:`plan_distance`; ``plan`` if the caller has it)."""
         m["wall_force"] = wall_force
         m["springs"] = self.placed.copy()
         m["placed"] = self.placed_now.copy()
-        m["plan_distance"] = self.plan_distance()
+        m["plan_distance"] = self.plan_distance() if plan is None else plan
         return m
 
     def plan_distance(self) -> np.ndarray:

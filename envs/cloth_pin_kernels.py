@@ -87,9 +87,26 @@ def plan(task: ClothPin, newton: tuple[int, float]) -> np.ndarray | None:
             and _owned(sj, np.int64, (N * B,)) and _owned(ks, np.float64, (N * B,))
             and _owned(rest, np.float64, (N * B,))):
         return None
+    return plan_checked(task, flat, (si, sj, ks, rest), (N, n, nc, B), goal, newton)
+
+
+#: ``center`` for :data:`pin_plan` to compute the cloth's centre of mass itself
+NO_CENTER = np.zeros(0)
+
+
+def plan_checked(task: ClothPin, flat: np.ndarray, springs: tuple, sizes: tuple[int, ...],
+                 goal: np.ndarray, newton: tuple[int, float]) -> np.ndarray | None:
+    """:func:`plan` from arrays the caller read once and checked as :func:`plan` does
+    (``sizes = (N, n, nc, B)``): the centre of mass is computed in the compiled pass (the
+    task keeps :meth:`ClothPin.tracked` as written, and the cloth has at most 128 particles:
+    numpy's order of additions), else by ``task.tracked``."""
+    N, n, nc, B = sizes
     out = np.empty(N)
-    center = task.tracked(flat.reshape(N, n, 2))
-    if pin_plan(flat, (si, sj, ks, rest), n, nc, B, center, goal,
+    if task._paths["plan_center"] and nc <= 128:
+        center = NO_CENTER
+    else:
+        center = task.tracked(flat.reshape(N, n, 2))
+    if pin_plan(flat, springs, n, nc, B, center, goal,
                 (task.wall_x, float(task.nx * task.push), *newton), out):
         return out
     return None
@@ -310,7 +327,9 @@ if _measure.ENABLED:
         """``ClothPin.plan_distance_reference`` of every copy into ``out`` (N,), with its
         arithmetic in its order (numpy's pairwise sums over the ``slots`` springs of a copy):
         the same bits. ``springs = (i, j, ks, rest)`` of ``N * slots`` springs, ``center`` the
-        cloth's centre of mass x per copy (m), ``plan = (wall_x, push, steps, tolerance)``.
+        cloth's centre of mass x per copy (m; empty: computed here, as ``ClothPin.tracked``
+        computes it, ``np.mean`` of the first ``nc`` particles' x, with numpy's order of
+        additions, for ``nc <= 128``), ``plan = (wall_x, push, steps, tolerance)``.
         False, writing nothing, unless the arrays fit (N copies of ``n`` particles, ``0 < nc
         <= n``, spring ends particles of ``x``) and ``slots <= 128``."""
         si, sj, ks, rest = springs
@@ -319,7 +338,8 @@ if _measure.ENABLED:
         if not (0 < nc <= n and 0 <= slots <= 128 and x.shape[0] == N * n
                 and si.shape[0] == N * slots and sj.shape[0] == N * slots
                 and ks.shape[0] == N * slots and rest.shape[0] == N * slots
-                and center.shape[0] == N and out.shape[0] == N):
+                and (center.shape[0] == N or (center.shape[0] == 0 and nc <= 128))
+                and out.shape[0] == N):
             return False
         for e in range(si.shape[0]):
             if si[e] < 0 or si[e] >= x.shape[0] or sj[e] < 0 or sj[e] >= x.shape[0]:
@@ -329,8 +349,16 @@ if _measure.ENABLED:
         k = np.empty(slots)
         pull = np.empty(slots)
         bend = np.empty(slots)
+        own = center.shape[0] == 0
+        cloth = np.empty(nc if own else 0)
         for c in range(N):
             base, e0 = c * n, c * slots
+            if own:
+                for q in range(nc):
+                    cloth[q] = x[base + q, 0]
+                mean = _pairwise_sum(cloth, nc) / nc
+            else:
+                mean = center[c]
             for b in range(slots):
                 e = e0 + b
                 sign = (1.0 if sj[e] - base < nc else 0.0) - (1.0 if si[e] - base < nc else 0.0)
@@ -364,7 +392,7 @@ if _measure.ENABLED:
                     break
                 if slope < 0:
                     shift = shift - excess / _np_min(slope, -1e-12)
-            out[c] = abs(center[c] + _np_min(shift, wall) - goal[c])
+            out[c] = abs(mean + _np_min(shift, wall) - goal[c])
         return True
 
     pin_plan = _pin_plan

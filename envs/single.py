@@ -178,7 +178,7 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         """Apply ``action`` for one env step (``substeps`` physics steps)."""
         a = self.task.check_actions(action, single=True)
         self.task.apply(a)
-        diverged = self.task.simulate()
+        diverged = self.task.simulate_step()
         obs, info = self._result(diverged, ~diverged)
         if self.obs_mode == "goal":
             reward = self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)

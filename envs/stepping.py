@@ -218,6 +218,20 @@ class SteppedCopies:
             self._put(frozen, x0, v0)
         return frozen
 
+    def simulate_step(self) -> np.ndarray:
+        """:meth:`simulate`, as an env's step calls it: the measures that follow it
+        (:meth:`~envs.base.ParticleTask.measure_observe`) then take the system's compiled pack
+        as the step's last compiled call left it, current and refreshed, instead of checking
+        and refreshing it again (:func:`envs._measure.packed`)."""
+        s = self.system
+        s.__dict__.pop("_fresh_pack", None)
+        self.__dict__.pop("_fresh_pack", None)
+        diverged = self.simulate()
+        fresh = s.__dict__.pop("_fresh_pack", None)
+        if fresh is not None:
+            self.__dict__["_fresh_pack"] = fresh
+        return diverged
+
     def pass_time(self) -> None:
         """Advance the clock by one env step (``substeps`` steps of ``dt``, added as a step
         adds them) without stepping: for an env step in which every copy starts anew, whose

@@ -180,7 +180,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         a = self.task.check_actions(actions)
         if calm_start:
             self.task.apply(a)
-            diverged = self.task.simulate()
+            diverged = self.task.simulate_step()
             calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks to apply
             done = self.task._finish_step(self.steps, self.max_episode_steps) if calm else None
             if done is not None:  # the task's compiled end of the step (the same values)
@@ -199,7 +199,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 self.task.pass_time()
                 diverged = np.zeros(self.num_envs, bool)
             else:
-                diverged = self.task.simulate()
+                diverged = self.task.simulate_step()
                 # the resetting copies were stepped along (no actuation); put their start back
                 self.task.write_starts(envs, *starts)
                 diverged[resetting] = False

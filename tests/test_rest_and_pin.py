@@ -356,3 +356,31 @@ def test_cloth_pin_compiled_plan_distance_refuses_arrays_that_do_not_fit():
                 {"nc": 0}, {"center": center[:1].copy()}, {"B": 129}):
         done, out = run(**bad)
         assert not done and np.all(out == 7.0)  # nothing written
+
+
+@pytest.mark.skipif(not _measure.ENABLED, reason="compiled bookkeeping off")
+@pytest.mark.parametrize("nc", [1, 7, 8, 9, 35, 64, 127, 128])
+def test_cloth_pin_compiled_plan_takes_numpys_mean_of_the_cloth(nc):
+    """With no centre given, the compiled plan computes the cloth's centre of mass itself in
+    numpy's order of additions: the same bits as with ``np.mean`` of the first ``nc``
+    particles' x given (random positions of every size numpy sums with its eight running sums,
+    and below and above them); more than 128 particles are refused (the caller gives
+    ``np.mean``)."""
+    rng = np.random.default_rng(nc)
+    N, n, B = 4, nc + 2, 3
+    springs = (np.zeros(N * B, np.int64), np.ones(N * B, np.int64), np.zeros(N * B),
+               np.zeros(N * B))
+    plan = (1.0, 0.5, 6, 1e-9)
+    for _ in range(50):
+        x = rng.normal(0.0, rng.choice([1e-3, 1.0, 1e3]), (N * n, 2))
+        goal = rng.normal(0.0, 1.0, N)
+        given, own = np.empty(N), np.empty(N)
+        center = np.mean(np.ascontiguousarray(x.reshape(N, n, 2)[:, :nc, 0]), axis=1)
+        assert cloth_pin_kernels.pin_plan(x, springs, n, nc, B, center, goal, plan, given)
+        assert cloth_pin_kernels.pin_plan(x, springs, n, nc, B, cloth_pin_kernels.NO_CENTER,
+                                          goal, plan, own)
+        assert own.tobytes() == given.tobytes()
+    if nc == 128:
+        x = np.zeros((N * 131, 2))
+        assert not cloth_pin_kernels.pin_plan(x, springs, 131, 129, B,
+                                              cloth_pin_kernels.NO_CENTER, goal, plan, own)
