@@ -311,3 +311,60 @@ def test_a_variant_ships_settings_of_its_own():
         assert parse_variant(variant_key(kwargs)) == kwargs
     with pytest.raises(ValueError, match="variant"):
         parse_variant("target")
+
+
+class RopeCarryTimed(RopeCarry):
+    """RopeCarry whose spring mode's episodes last longer than its force mode's."""
+
+
+class RopeCarryTimedEnv(ParticleEnv):
+    task_class = RopeCarryTimed
+
+
+class RopeCarryTimedVectorEnv(ParticleVectorEnv):
+    task_class = RopeCarryTimed
+
+
+def test_an_action_mode_may_have_a_time_limit_of_its_own():
+    """``mode_episode_steps``: ``gym.make`` truncates each mode's episodes at its own limit
+    (which ``env.spec`` reports, and a diverged step pays for), the native vector env takes it
+    as its default, ``max_episode_steps`` given to ``gym.make`` shortens it, and the task
+    passes the conformance loop in both modes (the native vector env against single envs
+    through their episode ends included)."""
+    timed_id = "RopeCarryTimed-v0"
+    spec = envs.register_task(TaskSpec(
+        id=timed_id, env=RopeCarryTimedEnv, vector_env=RopeCarryTimedVectorEnv,
+        action_modes=ACTION_MODES, scripted_agent=RopeCarryController, summary="timed",
+        max_episode_steps=20, mode_episode_steps={"spring": 35}))
+    try:
+        assert gym.spec(timed_id).max_episode_steps is None  # (no one limit for the id)
+        assert spec.episode_steps() == spec.episode_steps("force") == 20
+        assert spec.episode_steps("spring") == 35
+        rng = np.random.default_rng(0)
+        for mode, limit in (("force", 20), ("spring", 35), ("spring", 9)):
+            made = {} if limit != 9 else {"max_episode_steps": 9}
+            env = gym.make(timed_id, action_mode=mode, **made)
+            assert env.spec.max_episode_steps == limit
+            assert env.unwrapped.task.episode_steps == (35 if mode == "spring" else 20)
+            env.reset(seed=1)
+            steps, truncated, terminated = 0, False, False
+            while not (truncated or terminated) and steps < 100:
+                _, _, terminated, truncated, _ = env.step(
+                    rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+                steps += 1
+            assert truncated and not terminated and steps == limit
+            if limit != 9:
+                vec = gym.make_vec(timed_id, num_envs=2, vectorization_mode="vector_entry_point",
+                                   action_mode=mode)
+                assert vec.unwrapped.max_episode_steps == limit
+                assert RopeCarryTimedVectorEnv(1, action_mode=mode).max_episode_steps == limit
+        for mode in ACTION_MODES:
+            check_task(timed_id, kwargs={"action_mode": mode})
+    finally:
+        unregister_task(timed_id)
+    for bad, words in (({"draw": 5}, "not an action mode"), ({"spring": 0}, "positive int"),
+                       ({"spring": 2.5}, "positive int")):
+        with pytest.raises(ValueError, match=words):
+            TaskSpec(id="X-v0", env=RopeCarryEnv, vector_env=RopeCarryVectorEnv,
+                     action_modes=ACTION_MODES, scripted_agent=RopeCarryController, summary="",
+                     mode_episode_steps=bad)
