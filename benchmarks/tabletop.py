@@ -16,11 +16,11 @@ For each task, over ``--episodes`` episodes seeded ``--seed``, ``--seed + 1``, .
 
     python -m benchmarks.tabletop [--episodes 100] [--seed 1000000] [--only ID ...]
     python -m benchmarks.tabletop --pictures docs/envs
-    python -m benchmarks.tabletop --drag
+    python -m benchmarks.tabletop --drag [--max-episode-steps 100]
 
 ``--drag`` measures the agents in ``action_mode="drag"`` instead (SoftGym's low-level mode,
-at the registered episode lengths): the success rates, lengths and normalized performance
-only.
+at the registered episode lengths, or at ``--max-episode-steps``: one pick-and-place takes
+several drag steps): the success rates, lengths and normalized performance only.
 
 Prints a table, then the figures as JSON. ``--pictures DIR`` writes each task's picture for
 the README instead (``DIR/<module>.png``: the start of a seeded episode beside where the
@@ -229,7 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", nargs="*", default=None, help="task ids (default: all)")
     p.add_argument("--pictures", type=Path, default=None, help="write the README pictures here")
     p.add_argument("--drag", action="store_true", help="the agents in drag mode only")
+    p.add_argument("--max-episode-steps", type=int, default=None,
+                   help="drag mode: episodes of this many steps (default: the registered)")
     args = p.parse_args(argv)
+    if args.max_episode_steps is not None and (not args.drag or args.max_episode_steps < 1):
+        p.error("--max-episode-steps takes a positive number, with --drag")
     ids = pick_place_ids() if not args.only else args.only
     if args.pictures is not None:
         from benchmarks.raster import png
@@ -241,13 +245,17 @@ def main(argv: list[str] | None = None) -> int:
             print(path)
         return 0
     results: dict[str, Any] = {"machine": platform.processor() or platform.machine(),
-                               "episodes": args.episodes, "seed": args.seed, "tasks": {}}
+                               "episodes": args.episodes, "seed": args.seed, "tasks": {},
+                               "max_episode_steps": args.max_episode_steps}
     if args.drag:
         print("| task (drag mode) | scripted success | random success | scripted steps "
               "| scripted perf | random perf |\n|---|---|---|---|---|---|")
         for env_id in ids:
+            limit = ({} if args.max_episode_steps is None
+                     else {"max_episode_steps": args.max_episode_steps})
             scripted, random = (rates(env_id, agent, args.episodes, args.seed, args.batch,
-                                      action_mode="drag") for agent in ("scripted", "random"))
+                                      action_mode="drag", **limit)
+                                for agent in ("scripted", "random"))
             results["tasks"][env_id] = {"scripted": scripted, "random": random}
             print(f"| {env_id} | {scripted['success']:.0%} | {random['success']:.0%} | "
                   f"{scripted['length']:.1f} | {scripted['normalized_performance']:.2f} | "

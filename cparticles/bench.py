@@ -342,7 +342,7 @@ def bench_vector(env_id: str, copies: tuple[int, ...], repeats: int, seconds: fl
             progress.section(f"{env_id} x{count}")
         # warm up through the end of an episode, so that every path the timed steps take
         # (the copies' resets included) has loaded its compiled code before timing starts
-        episode = vec.unwrapped.max_episode_steps
+        episode = gym.spec(env_id).max_episode_steps or 0
         times = alternate({"env": lambda vec=vec, b=batches: vec.step(next(b)),
                            "bare": bare_step},
                           repeats, seconds, progress, warmup=episode + 2)

@@ -69,7 +69,7 @@ def _vector(env_id: str, copies: int, threads: int, warmup: int | None = None
     vec.reset(seed=0)
     batches = _random_batches(vec, 0)
     if warmup is None:
-        warmup = vec.unwrapped.max_episode_steps + 2
+        warmup = (gym.spec(env_id).max_episode_steps or 0) + 2
     for _ in range(warmup):
         vec.step(next(batches))
     return vec, batches

@@ -547,12 +547,15 @@ class ParticleTask(SteppedCopies):
         - ``measure_observe``: :meth:`measure_observe` in one compiled call;
         - ``goal``: the compiled measures compute :meth:`goal_distance`;
         - ``restart_all``: an env step in which every copy starts anew may skip the physics
-          (:meth:`simulate` is the base one, which only steps the copies' physics)."""
+          (:meth:`simulate` is the base one, which only steps the copies' physics);
+        - ``fresh_pack``: the measures after :meth:`simulate_step` take the pack its physics
+          left checked (:meth:`simulate`, the base one, changes no block after it)."""
         cls = type(self)
         return {"measure_observe": (cls.measure is ParticleTask.measure
                                     and cls.observe is ParticleTask.observe),
                 "goal": cls.goal_distance is ParticleTask.goal_distance,
-                "restart_all": cls.simulate is ParticleTask.simulate}
+                "restart_all": cls.simulate is ParticleTask.simulate,
+                "fresh_pack": cls.simulate is ParticleTask.simulate}
 
     def measure_observe(self, stepped: np.ndarray | None = None
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -686,13 +689,14 @@ class ParticleTask(SteppedCopies):
         self._track = None
 
     def __getstate__(self) -> dict[str, Any]:
-        """The task's attributes for a copy or a pickle, less what is remembered of the
-        original's arrays (the tracked indices as checked, the step's compiled pack): the copy
-        checks its own again."""
-        state = self.__dict__.copy()
-        state["_track"] = None
-        state.pop("_fresh_pack", None)
-        return state
+        """The attributes for a copy or a pickle, less what is remembered of this task's
+        arrays (the tracked indices as checked, the step's pack): the copy checks its own."""
+        return {**self.__dict__, "_track": None, "_fresh_pack": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """As :meth:`__getstate__` leaves them (a subclass's own, or an older pickle, too)."""
+        self.__dict__.update(state, _track=None)
+        self.__dict__.pop("_fresh_pack", None)
 
     def _tracking(self) -> tuple[np.ndarray, float] | None:
         """``(particles, 1 / count)`` of :attr:`tracked_particles` for the compiled measures, or
@@ -701,8 +705,9 @@ class ParticleTask(SteppedCopies):
         task holds a plain copy of them, which is validated and made immutable again here
         (it holds no ``_track``: :meth:`__getstate__`)."""
         track = self._track
-        if track is not None and track[0] is self.__dict__.get("_tracked_particles"):
-            return track  # (made from the frozen indices, below)
+        if (track is not None and track[0] is self.__dict__.get("_tracked_particles")
+                and not track[0].flags.writeable):
+            return track  # (made from the frozen indices below; a copy of them is writeable)
         idx = self.tracked_particles
         if idx is not None and not is_frozen(idx):
             self.tracked_particles = idx

@@ -290,7 +290,8 @@ if _measure.ENABLED:
     @njit
     def _pairwise_sum(a, n):  # pragma: no cover - compiled
         """``np.sum`` of ``a[:n]`` with numpy's own order of additions (its pairwise sum, for
-        ``n <= 128``: eight running sums), so that the compiled pass gives numpy's bits."""
+        ``n <= 128``: eight running sums, added to the reduction's identity ``0.0``, which
+        makes a sum of ``-0.0`` ``+0.0``), so that the compiled pass gives numpy's bits."""
         if n < 8:
             res = 0.0
             for q in range(n):
@@ -312,7 +313,7 @@ if _measure.ENABLED:
         while q < n:
             res += a[q]
             q += 1
-        return res
+        return 0.0 + res
 
     @njit
     def _np_min(a, b):  # pragma: no cover - compiled

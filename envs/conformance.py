@@ -191,19 +191,11 @@ def check_state_round_trip(env_id: str, kwargs: dict[str, Any]) -> None:
         env.set_state({"x": state["x"]})
 
 
-def _limit(env_id: str, kwargs: dict[str, Any], steps: int) -> int:
-    """``steps``, or the task's own time limit in the mode of ``kwargs`` if that is shorter
-    (``gym.make``'s ``max_episode_steps`` shortens a per-mode limit, never lengthens it:
-    ``TaskSpec.episode_steps``), so that the native vector env and the single envs end their
-    episodes at the same step."""
-    return min(steps, task_spec(env_id).episode_steps(kwargs.get("action_mode")))
-
-
 def check_vector_matches_single(env_id: str, kwargs: dict[str, Any]) -> None:
     """Copy i of the native vector env is a single env seeded ``seed + i``, bit for bit,
     through both kinds of episode end and the next-step autoreset (Gymnasium's
     ``SyncVectorEnv`` of single envs is the reference)."""
-    N, limit = 4, _limit(env_id, kwargs, 60)
+    N, limit = 4, 60
     native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point",
                           max_episode_steps=limit, **kwargs)
     sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", max_episode_steps=limit,
@@ -333,7 +325,7 @@ def check_obs_modes(env_id: str, kwargs: dict[str, Any]) -> None:
     assert image.dtype == np.uint8 and image.shape == (40, 56, 1) and image in \
         grey.observation_space
     assert len(np.unique(image)) > 3, "a blank image"
-    N, limit = 3, _limit(env_id, kwargs, 12)
+    N, limit = 3, 12
     made = dict(obs_mode="state_pixels", max_episode_steps=limit, **kwargs)
     native = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point", **made)
     sync = gym.make_vec(env_id, num_envs=N, vectorization_mode="sync", **made)

@@ -504,6 +504,7 @@ class PickPlaceTask(ShapedTask, ParticleTask):
 
     def _compiled_paths(self) -> dict[str, bool]:
         paths = super()._compiled_paths()
+        paths["fresh_pack"] = type(self).simulate is PickPlaceTask.simulate
         paths["measure_observe"] = False  # (the observation is the task's own)
         return paths
 

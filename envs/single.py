@@ -166,15 +166,13 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         return obs, info
 
     def _registered_limit(self) -> int | None:
-        """The time limit (env steps) the task is registered with in its action mode, None if
-        it is not registered."""
+        """The time limit (env steps) the task is registered with, None if it is not."""
         from .task import spec_of_task
 
         try:
-            spec = spec_of_task(self.task)
+            return spec_of_task(self.task).max_episode_steps
         except ValueError:
             return None
-        return spec.episode_steps(getattr(self.task, "action_mode", None))
 
     def step(self, action: ArrayLike) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` for one env step (``substeps`` physics steps)."""

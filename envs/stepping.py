@@ -219,16 +219,17 @@ class SteppedCopies:
         return frozen
 
     def simulate_step(self) -> np.ndarray:
-        """:meth:`simulate`, as an env's step calls it: the measures that follow it
-        (:meth:`~envs.base.ParticleTask.measure_observe`) then take the system's compiled pack
-        as the step's last compiled call left it, current and refreshed, instead of checking
-        and refreshing it again (:func:`envs._measure.packed`)."""
+        """:meth:`simulate`, as an env's step calls it: where :meth:`simulate` is the task
+        class's own (it changes no block after its physics: ``_paths["fresh_pack"]``), the
+        measures that follow (:meth:`~envs.base.ParticleTask.measure_observe`) take the
+        system's compiled pack as the step's last compiled call checked and refreshed it,
+        instead of checking and refreshing it again (:func:`envs._measure.packed`)."""
         s = self.system
         s.__dict__.pop("_fresh_pack", None)
         self.__dict__.pop("_fresh_pack", None)
         diverged = self.simulate()
         fresh = s.__dict__.pop("_fresh_pack", None)
-        if fresh is not None:
+        if fresh is not None and self._paths.get("fresh_pack"):
             self.__dict__["_fresh_pack"] = fresh
         return diverged
 

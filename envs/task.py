@@ -55,9 +55,6 @@ class TaskSpec:
     :mod:`envs.train`), with ``notes`` saying how they were chosen; ``variants``: keyword
     arguments of further configurations that the conformance tests run besides each action
     mode (ChainSwing's swing-up); ``max_episode_steps``: the registered time limit (env steps);
-    ``mode_episode_steps``: the time limits of action modes whose episodes last otherwise
-    (``{"drag": 100}``: one drag step moves a gripper a few centimetres, a pick-and-place moves
-    it anywhere), see :meth:`episode_steps`;
     ``bench_vector``: ``cparticles bench`` times the native vector env and threads on it;
     ``obs_modes``: the values of the envs' ``obs_mode`` argument, the default first (a
     pick-and-place task's goal is no point, so it takes ``"particles"`` instead of
@@ -82,7 +79,6 @@ class TaskSpec:
     obs_modes: tuple[str, ...] = ("state", "goal", "pixels", "state_pixels")
     variant_hyperparams: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]] = field(
         default_factory=dict)
-    mode_episode_steps: Mapping[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or "-v" not in self.id:
@@ -128,23 +124,6 @@ class TaskSpec:
                 or self.max_episode_steps < 1):
             raise ValueError(f"max_episode_steps must be a positive int, "
                              f"got {self.max_episode_steps!r}")
-        for mode, steps in dict(self.mode_episode_steps).items():
-            if mode not in modes:
-                raise ValueError(f"mode_episode_steps: {mode!r} is not an action mode of "
-                                 f"{self.id} ({', '.join(modes)})")
-            if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-                raise ValueError(f"mode_episode_steps[{mode!r}] must be a positive int, "
-                                 f"got {steps!r}")
-
-    def episode_steps(self, action_mode: str | None = None) -> int:
-        """The time limit (env steps) of an episode in ``action_mode`` (None: the default
-        mode): its :attr:`mode_episode_steps` entry, else :attr:`max_episode_steps`. A task
-        with entries registers no single limit with Gymnasium (``gym.spec(id)
-        .max_episode_steps`` is None): ``gym.make`` wraps each env in a ``TimeLimit`` of its
-        mode's limit (``env.spec.max_episode_steps`` says it), and the native vector env takes
-        it as its default ``max_episode_steps``."""
-        mode = self.default_mode if action_mode is None else action_mode
-        return self.mode_episode_steps.get(mode, self.max_episode_steps)
 
     @property
     def default_mode(self) -> str:
@@ -270,30 +249,10 @@ def register_task(spec: TaskSpec) -> TaskSpec:
             raise ValueError(f"spec: a class named {cls.__name__} is already registered")
     _SPECS[spec.id] = spec
     if spec.id not in registry:
-        timed = bool(spec.mode_episode_steps)  # (a limit per mode: see TaskSpec.episode_steps)
-        register(id=spec.id, entry_point=f"envs.cparticles:{spec.env.__name__}"
-                                         f"{TIMED if timed else ''}",
+        register(id=spec.id, entry_point=f"envs.cparticles:{spec.env.__name__}",
                  vector_entry_point=f"envs.cparticles:{spec.vector_env.__name__}",
-                 max_episode_steps=None if timed else spec.max_episode_steps)
+                 max_episode_steps=spec.max_episode_steps)
     return spec
-
-
-#: The suffix of an entry point (``envs.cparticles:RopeShapeEnv.timed``) that makes the env
-#: wrapped in a ``TimeLimit`` of its action mode's limit (:func:`timed_maker`).
-TIMED = ".timed"
-
-
-def timed_maker(env_class: type) -> Callable[..., gym.Env]:
-    """``gym.make``'s entry point for ``env_class`` of a task with a time limit per action
-    mode (:meth:`TaskSpec.episode_steps`): the env in a ``TimeLimit`` of its mode's limit."""
-    from gymnasium.wrappers import TimeLimit
-
-    def make(**kwargs: Any) -> gym.Env:
-        env = env_class(**kwargs)
-        task = env.unwrapped.task
-        return TimeLimit(env, spec_of_task(task).episode_steps(task.action_mode))
-
-    return make
 
 
 def unregister_task(env_id: str) -> None:
@@ -308,29 +267,24 @@ def _by_class_name() -> dict[str, type]:
     return {cls.__name__: cls for s in _SPECS.values() for cls in (s.env, s.vector_env)}
 
 
-def environment_class(name: str) -> Any:
+def environment_class(name: str) -> type:
     """The registered environment class called ``name`` (:mod:`envs.cparticles`'s entry
-    points), or with the suffix :data:`TIMED` its :func:`timed_maker`; AttributeError if none
-    is."""
-    if name.endswith(TIMED):
-        return timed_maker(environment_class(name[:-len(TIMED)]))
+    points); AttributeError if none is."""
     found = _by_class_name().get(name)
     if found is None:
         raise AttributeError(f"no registered environment class {name!r}")
     return found
 
 
-def registered_episode_steps(vector_env: type, action_mode: str | None = None) -> int:
-    """The time limit declared for ``action_mode`` (None: the default mode) by the task whose
-    native vector env is ``vector_env`` (a subclass of one counts as it;
-    :meth:`TaskSpec.episode_steps`), a declaration's default (200) for a class no declaration
-    names: the vector envs' default, as ``gym.make`` applies the registered limit to a single
-    env."""
+def registered_episode_steps(vector_env: type) -> int:
+    """The ``max_episode_steps`` declared by the task whose native vector env is
+    ``vector_env`` (a subclass of one counts as it), a declaration's default (200) for a
+    class no declaration names: the vector envs' default, as ``gym.make`` applies the
+    registered limit to a single env."""
     for cls in vector_env.__mro__:
         for spec in _SPECS.values():
             if spec.vector_env is cls:
-                return spec.episode_steps(action_mode if action_mode in spec.action_modes
-                                          else None)
+                return spec.max_episode_steps
     return TaskSpec.max_episode_steps
 
 

@@ -72,7 +72,7 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         threads = check_positive("num_threads", num_threads, integer=True)
         if max_episode_steps is None:  # (the task's declaration says, else 200)
             from .task import registered_episode_steps
-            max_episode_steps = registered_episode_steps(type(self), kwargs.get("action_mode"))
+            max_episode_steps = registered_episode_steps(type(self))
         self.max_episode_steps = check_positive("max_episode_steps", max_episode_steps,
                                                 integer=True)
         #: ``"state"`` (a flat Box), ``"goal"`` (Gymnasium-Robotics' Dict: see envs.goals),

@@ -109,3 +109,99 @@ def test_a_vector_env_step_takes_the_compiled_paths(env_id, kwargs, arm):
         _, reward, _, _, _ = env.step(a)
         assert np.isfinite(reward).all()
     assert trapped
+
+
+ALL_CASES = [(spec.id, kwargs) for spec in envs.task_specs() for kwargs in spec.cases]
+
+
+def _episode_record(env_id: str, kwargs: dict, fresh: bool) -> list:
+    """Observations, rewards, ends and infos of a vector env of 3 copies over 9 random steps
+    (episodes of 4 steps: autoresets included), with the measures taking the step's pack
+    (``fresh``) or checking and refreshing it anew."""
+    env = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point",
+                       max_episode_steps=4, **kwargs)
+    task = env.unwrapped.task
+    task._paths["fresh_pack"] = fresh
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=3)
+    out = [obs.tobytes()]
+    for _ in range(9):
+        obs, r, te, tr, info = env.step(
+            rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        out.append((obs.tobytes(), r.tobytes(), te.tobytes(), tr.tobytes(),
+                    sorted((k, np.asarray(v).tobytes()) for k, v in info.items())))
+    env.close()
+    return out
+
+
+@pytest.mark.parametrize(("env_id", "kwargs"), ALL_CASES,
+                         ids=[f"{i}-{'-'.join(map(str, k.values()))}" for i, k in ALL_CASES])
+def test_the_measures_after_a_step_take_its_pack_with_the_same_bits(env_id, kwargs,
+                                                                   monkeypatch):
+    """The measures after an env step take the compiled pack the step's own call checked and
+    refreshed (``ParticleTask.simulate_step``): the same observations, rewards, ends and
+    infos, bit for bit, as with the pack checked and refreshed again, in every task and
+    mode."""
+    packed, taken = _measure.packed, []
+
+    def counted(system, fresh=None):
+        p = packed(system, fresh)
+        taken.append(fresh is not None and p is fresh)
+        return p
+
+    monkeypatch.setattr(_measure, "packed", counted)
+    fresh = _episode_record(env_id, kwargs, True)
+    assert sum(taken) >= 5  # (the steps' packs were taken: most steps end in no reset)
+    taken.clear()
+    assert fresh == _episode_record(env_id, kwargs, False)
+    assert not any(taken)
+
+
+def test_a_task_that_changes_a_block_after_its_physics_is_measured_anew():
+    """A task whose own ``simulate`` reassigns a block's attribute after its physics does not
+    hand the step's pack to its measures: they see the block as it is now."""
+
+    class Moving(ClothPin):
+        def simulate(self) -> np.ndarray:
+            diverged = super().simulate()
+            self.wall.offset = -1.0  # (the wall moves in: the cloth is far through it)
+            return diverged
+
+    task = Moving(2)
+    task.reset_envs([0, 1], [np.random.default_rng(0), np.random.default_rng(1)])
+    task.apply(np.zeros((2, 6)))
+    task.simulate_step()
+    m, _ = task.measure_observe(None)
+    assert np.all(m["wall_force"] > 0)
+    assert m["wall_force"].tobytes() == task.measure(None)["wall_force"].tobytes()
+
+
+def test_a_copied_tasks_tracked_particles_are_checked_again():
+    """A task copied through a subclass's own ``__getstate__`` (or pickled by an older
+    version) remembers nothing of the original's checked indices: an index the copy's array
+    is edited to out of range is refused with a ValueError, not read (in a subprocess: a read
+    out of bounds would end it)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import copy, numpy as np\n"
+        "from envs.chain_swing import ChainSwing\n"
+        "class Logged(ChainSwing):\n"
+        "    def __getstate__(self):\n"
+        "        return self.__dict__.copy()\n"
+        "t = Logged(2)\n"
+        "t.reset_envs([0, 1], [np.random.default_rng(0), np.random.default_rng(1)])\n"
+        "t.measure()\n"
+        "c = copy.deepcopy(t)\n"
+        "idx = c.__dict__['_tracked_particles']\n"
+        "assert idx.flags.writeable\n"
+        "idx[0] = 10**11\n"
+        "try:\n"
+        "    c.measure()\n"
+        "except ValueError as e:\n"
+        "    print('refused:', e)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "refused:" in done.stdout and "tracked_particles" in done.stdout
