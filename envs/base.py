@@ -551,11 +551,11 @@ class ParticleTask(SteppedCopies):
         - ``fresh_pack``: the measures after :meth:`simulate_step` take the pack its physics
           left checked (:meth:`simulate`, the base one, changes no block after it)."""
         cls = type(self)
+        stock = cls.simulate is ParticleTask.simulate
         return {"measure_observe": (cls.measure is ParticleTask.measure
                                     and cls.observe is ParticleTask.observe),
                 "goal": cls.goal_distance is ParticleTask.goal_distance,
-                "restart_all": cls.simulate is ParticleTask.simulate,
-                "fresh_pack": cls.simulate is ParticleTask.simulate}
+                "restart_all": stock, "fresh_pack": stock}
 
     def measure_observe(self, stepped: np.ndarray | None = None
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:

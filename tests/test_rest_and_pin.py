@@ -371,10 +371,8 @@ def test_cloth_pin_compiled_plan_takes_numpys_mean_of_the_cloth(nc):
     springs = (np.zeros(N * B, np.int64), np.ones(N * B, np.int64), np.zeros(N * B),
                np.zeros(N * B))
     plan = (1.0, 0.5, 6, 1e-9)
-    for trial in range(50):
+    for _ in range(50):
         x = rng.normal(0.0, rng.choice([1e-3, 1.0, 1e3]), (N * n, 2))
-        if trial == 0:
-            x[:, 0] = -0.0  # (numpy's sum of -0.0 is +0.0: its identity comes first)
         goal = rng.normal(0.0, 1.0, N)
         given, own = np.empty(N), np.empty(N)
         center = np.mean(np.ascontiguousarray(x.reshape(N, n, 2)[:, :nc, 0]), axis=1)
@@ -382,6 +380,9 @@ def test_cloth_pin_compiled_plan_takes_numpys_mean_of_the_cloth(nc):
         assert cloth_pin_kernels.pin_plan(x, springs, n, nc, B, cloth_pin_kernels.NO_CENTER,
                                           goal, plan, own)
         assert own.tobytes() == given.tobytes()
+    zeros = np.full(nc, -0.0)  # (numpy's sum of -0.0 is +0.0: its identity comes first)
+    assert np.copysign(1.0, cloth_pin_kernels._pairwise_sum(zeros, nc)) == \
+        np.copysign(1.0, np.sum(zeros)) == 1.0
     if nc == 128:
         x = np.zeros((N * 131, 2))
         assert not cloth_pin_kernels.pin_plan(x, springs, 131, 129, B,
