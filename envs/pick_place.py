@@ -62,6 +62,8 @@ __all__ = ["PICK_PLACE_MODES", "PP_OBS_MODES", "DragPlan", "PickPlaceEnv", "Pick
 #: Valid values of a pick-and-place task's ``action_mode`` argument: one pick-and-place per
 #: step (the default), or SoftGym's low-level ``"drag"`` (see :class:`PickPlaceTask`).
 PICK_PLACE_MODES = ("pick_place", "drag")
+#: Distance (m) from its place within which a scripted drag agent's gripper lets go.
+PLACE_TOLERANCE = 1e-3
 #: Valid values of a pick-and-place env's ``obs_mode`` argument: ``"state"`` (keypoints and
 #: the goal), ``"particles"`` (every particle and the goal), or the pixel modes every env has,
 #: ``"pixels"`` and ``"state_pixels"`` (the keypoints beside the image; :mod:`envs.pixels`).
@@ -548,6 +550,18 @@ class PickPlaceTask(ShapedTask, ParticleTask):
         tail = o[:, o.shape[1] - 3 * G:]
         return self.to_world(tail[:, :2 * G].reshape(len(o), G, 2)), tail[:, 2 * G:] > 0.5
 
+    def drag_pointer(self) -> dict[str, float]:
+        """The drag-mode geometry of the scripted agents' rule (:func:`finish_action`) in
+        normalised view units, as :class:`envs.policies.PointerPolicy` takes it (``drag``):
+        ``move_scale``, the action per unit of offset (the view's half-width over
+        ``max_move``); ``reach``, where a gripper grips (half of ``grab_radius``); ``place``,
+        where it lets go (1 mm)."""
+        half = float(self.half[0])
+        if not np.isclose(self.half[1], half):
+            raise ValueError("drag_pointer: the view is not square")
+        return {"move_scale": half / self.max_move, "reach": 0.5 * self.grab_radius / half,
+                "place": PLACE_TOLERANCE / half}
+
     # ------------------------------------------------------------------ state
     def get_state(self, i: int) -> dict[str, Any]:
         """The base state plus the goal data ``target``, ``p_start`` and ``settled``."""
@@ -645,6 +659,9 @@ class DragPlan:
     def __init__(self) -> None:
         self.place: np.ndarray | None = None  # (B, G, 2) m: each gripper's kept place
         self.kept = np.zeros((0, 0), dtype=bool)  # (B, G): the place is kept
+        #: The pick and place points (B, G, 2) m each gripper headed for in the last action
+        #: (:func:`finish_action`): the pair it works on, which a clone learns to choose.
+        self.heading: tuple[np.ndarray, np.ndarray] | None = None
 
     def follow(self, pos: np.ndarray, holding: np.ndarray, pick: np.ndarray,
                place: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -691,8 +708,9 @@ def finish_action(task: PickPlaceTask, obs: np.ndarray, pick_place: np.ndarray,
         pick, place = task.to_world(pp[:, :, :2]), task.to_world(pp[:, :, 2:])
         if plan is not None:
             pick, place = plan.follow(pos, holding, pick, place)
+            plan.heading = (pick, place)
         at_pick = np.linalg.norm(pick - pos, axis=2) <= 0.5 * task.grab_radius
-        at_place = np.linalg.norm(place - pos, axis=2) <= 1e-3
+        at_place = np.linalg.norm(place - pos, axis=2) <= PLACE_TOLERANCE
         carrying = holding | at_pick
         if plan is not None:
             plan.carrying(carrying & ~(holding & at_place))

@@ -63,6 +63,7 @@ from constrained_particles.extras import require
 from .checks import check_positive
 from .task import check_env_kwargs, check_env_mode, task_spec
 from .train_settings import (
+    check_episode_steps,
     check_explore,
     check_imitate,
     check_std_final,
@@ -90,7 +91,7 @@ NEAR_GOAL = 0.1
 #: Keys of a hyperparameter entry that ``train`` consumes itself (the rest go to the algorithm).
 OWN_KEYS = ("n_envs", "n_timesteps", "normalize", "normalize_reward", "policy", "env_kwargs",
             "frame_stack", "log_std_final", "explore_until_success", "imitate",
-            "imitate_noise", "imitate_updates")
+            "imitate_noise", "imitate_updates", "max_episode_steps")
 #: Largest ``--seed`` (the seeds of the env copies follow it; numpy's legacy seeding, which
 #: Stable-Baselines3 uses, takes at most 2**32 - 1).
 MAX_SEED = 2**31 - 1
@@ -159,18 +160,22 @@ def check_overrides(algo: str, overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
-                   env_kwargs: dict[str, Any] | None = None) -> VecEnv:
+                   env_kwargs: dict[str, Any] | None = None,
+                   max_episode_steps: int | None = None) -> VecEnv:
     """An SB3 ``VecEnv`` for training, with episode statistics (``VecMonitor``).
 
     ``n_envs > 1``: the native vector env (all copies one particle system) through
     :func:`envs.sb3.to_sb3`; ``n_envs == 1``: a ``DummyVecEnv`` of one single env. Copy ``i``'s
-    first episode is seeded with ``seed + i``.
+    first episode is seeded with ``seed + i``. ``max_episode_steps``: the time limit (env
+    steps), None for the registered one.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     from .sb3 import to_sb3
 
     kwargs = dict(env_kwargs or {}, action_mode=action_mode)
+    if max_episode_steps is not None:
+        kwargs["max_episode_steps"] = max_episode_steps
     if n_envs > 1:
         venv = to_sb3(gym.make_vec(env_id, num_envs=n_envs,
                                    vectorization_mode="vector_entry_point", **kwargs))
@@ -200,11 +205,13 @@ def stack_frames(stack: np.ndarray | None, obs: np.ndarray, frames: int) -> np.n
 
 def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
                  action_mode: str = "force", env_kwargs: dict[str, Any] | None = None,
-                 batch: int = 100, frame_stack: int = 1) -> dict[str, Any]:
+                 batch: int = 100, frame_stack: int = 1,
+                 max_episode_steps: int | None = None) -> dict[str, Any]:
     """Play ``episodes`` episodes (seeds ``seed_start + k``) with ``policy`` (batched raw
     observations -> actions) in native vector envs of up to ``batch`` copies;
     ``frame_stack > 1`` hands the policy each copy's last ``frame_stack`` observations
-    (:func:`stack_frames`), as training with that setting did.
+    (:func:`stack_frames`), as training with that setting did; ``max_episode_steps``: the
+    time limit (env steps), None for the registered one.
 
     Returns the per-episode arrays ``return``, ``length``, ``success``, ``final_distance`` (m),
     ``final_speed`` (m/s), ``final_performance`` (the last ``info["normalized_performance"]``,
@@ -222,8 +229,9 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
     near: list[np.ndarray] = []
     for start in range(0, episodes, batch):
         n = min(batch, episodes - start)
+        limit = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
         env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
-                           action_mode=action_mode, **(env_kwargs or {}))
+                           action_mode=action_mode, **(env_kwargs or {}), **limit)
         task = env.unwrapped.task
         obs, _ = env.reset(seed=seed_start + start)
         seen = stack_frames(None, obs, frame_stack) if frame_stack > 1 else obs
@@ -288,8 +296,21 @@ def sb3_policy(model: BaseAlgorithm | BasePolicy,
     return policy
 
 
+def drag_geometry(env_id: str, env_kwargs: dict[str, Any]) -> dict[str, float]:
+    """The drag-mode geometry of ``env_id``'s task with ``env_kwargs``
+    (:meth:`envs.pick_place.PickPlaceTask.drag_pointer`), for
+    :class:`envs.policies.PointerPolicy` in drag mode."""
+    env = gym.make_vec(env_id, num_envs=1, vectorization_mode="vector_entry_point",
+                       action_mode="drag", **env_kwargs)
+    try:
+        return dict(env.unwrapped.task.drag_pointer())
+    finally:
+        env.close()
+
+
 def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
-              eval_freq: int, eval_episodes: int, started: float, frame_stack: int = 1) -> Any:
+              eval_freq: int, eval_episodes: int, started: float, frame_stack: int = 1,
+              max_episode_steps: int | None = None) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class PeriodicEvaluation(BaseCallback):
@@ -306,7 +327,7 @@ def _callback(out: Path, env_id: str, action_mode: str, env_kwargs: dict[str, An
             vn = _obs_normalizer(self.model)
             res = run_episodes(sb3_policy(self.model, vn), env_id, eval_episodes,
                                EVAL_SEED_START, action_mode, env_kwargs,
-                               frame_stack=frame_stack)
+                               frame_stack=frame_stack, max_episode_steps=max_episode_steps)
             s = summarize(res)
             rec = {"timesteps": int(self.num_timesteps),
                    "seconds": round(time.perf_counter() - started, 1),
@@ -460,12 +481,17 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     if env_kwargs:
         hp["env_kwargs"] = {**hp.get("env_kwargs", {}), **env_kwargs}
         overrides["env_kwargs"] = env_kwargs
+    if (hp.get("policy") == "PointerPolicy" and action_mode == "drag"
+            and "drag" not in hp.get("policy_kwargs", {})):  # (the task's drag geometry)
+        hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}),
+                               "drag": drag_geometry(env_id, hp.get("env_kwargs", {}))}
     _check_policy_settings(Path("hyperparams"), hp, algo)  # (what evaluate will accept)
     for key, value in hp.items():  # (a schedule's notation, before any work)
         schedule(key, value)
     std_final = check_std_final(algo, hp)
     explore = check_explore(algo, hp)
     imitate, imitate_noise, imitate_updates = check_imitate(algo, hp)
+    episode_steps = check_episode_steps(hp)
     if timesteps is None:
         timesteps = int(hp["n_timesteps"])
     if isinstance(timesteps, bool) or not isinstance(timesteps, (int, np.integer)) \
@@ -489,8 +515,8 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
     partial = _partial_directory(out)
     venv = None
     try:
-        venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs)
-        _check_policy_fits(hp, venv.observation_space)
+        venv = make_train_env(env_id, action_mode, n_envs, seed, env_kwargs, episode_steps)
+        _check_policy_fits(hp, venv.observation_space, venv.action_space, action_mode)
         env_space = venv.observation_space
         frame_stack = int(hp.get("frame_stack", 1))
         if frame_stack > 1:
@@ -516,13 +542,13 @@ def train(env_id: str, algo: str, seed: int, out: str | Path, action_mode: str |
                                               str(Path(tensorboard_log) / out.name)))
         model.set_logger(Logger(str(partial), writers))
         callback = _callback(partial, env_id, action_mode, env_kwargs, eval_freq,
-                             eval_episodes, started, frame_stack)
+                             eval_episodes, started, frame_stack, episode_steps)
         callbacks: list[Any] = [callback]
         if std_final is not None:
             callbacks.append(_std_ceiling(hp["policy_kwargs"].get("log_std_init", 0.0),
                                           std_final, timesteps, explore))
         imitation = (imitate_scripted(model, env_id, action_mode, env_kwargs, seed, imitate,
-                                      imitate_noise, imitate_updates)
+                                      imitate_noise, imitate_updates, episode_steps)
                      if imitate else None)
         model.learn(total_timesteps=timesteps, callback=callbacks, progress_bar=progress_bar)
         if not callback.records or callback.records[-1]["timesteps"] < timesteps:
@@ -614,6 +640,10 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
     if not isinstance(env_kwargs, dict):
         raise ValueError(f"{config_path}: hyperparams.env_kwargs must be an object")
     _check_policy_settings(config_path, config["hyperparams"], config["algo"])
+    try:
+        check_episode_steps(config["hyperparams"])
+    except ValueError as exc:
+        raise ValueError(f"{config_path}: {exc}") from None
     policy = out / POLICY_FILES[which]
     if not policy.is_file():
         raise ValueError(f"{str(out)!r} has no {policy.name} (train writes it when a run "
@@ -626,7 +656,8 @@ def read_run(out: str | Path, which: str = "final") -> dict[str, Any]:
     spaces = {"observation": env.observation_space, "action": env.action_space}
     env.close()
     try:
-        _check_policy_fits(config["hyperparams"], spaces["observation"])
+        _check_policy_fits(config["hyperparams"], spaces["observation"], spaces["action"],
+                           config["action_mode"])
     except ValueError as exc:
         raise ValueError(f"{config_path}: hyperparams.{exc}") from None
     if not isinstance(config.get("normalized", False), bool):
@@ -762,11 +793,14 @@ def _evaluate(out: str | Path, episodes: int, seed_start: int, deterministic: bo
             raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
                              f"space the run was trained on")
     torch.manual_seed(seed_start)  # stochastic actions: the same noise on every call
+    limit = config["hyperparams"].get("max_episode_steps")
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
                        seed_start, config["action_mode"], kwargs,
-                       frame_stack=config["hyperparams"].get("frame_stack", 1))
+                       frame_stack=config["hyperparams"].get("frame_stack", 1),
+                       max_episode_steps=limit)
     return {"env": config["env"], "action_mode": config["action_mode"],
             **({"env_kwargs": kwargs} if kwargs else {}),
+            **({"max_episode_steps": limit} if limit is not None else {}),
             "algo": config["algo"], "seed": config["seed"], "timesteps": config["timesteps"],
             "model": which, "deterministic": deterministic, "seed_start": seed_start,
             **summarize(res)}

@@ -23,6 +23,7 @@ from .train import (
     _check_policy_fits,
     _check_policy_settings,
     check_convertible,
+    check_episode_steps,
     check_explore,
     check_imitate,
     check_overrides,
@@ -112,10 +113,12 @@ def check_train_arguments(parser: argparse.ArgumentParser, args: argparse.Namesp
                 _check_policy_settings(Path("hyperparams"), hp, args.algo)
                 check_explore(args.algo, hp)
                 check_imitate(args.algo, hp)
+                check_episode_steps(hp)
                 env = task_spec(args.env).env(action_mode=args.action_mode,
                                               **{**hp.get("env_kwargs", {}), **args.env_kwargs})
                 try:
-                    _check_policy_fits(hp, env.observation_space)
+                    _check_policy_fits(hp, env.observation_space, env.action_space,
+                                       args.action_mode)
                 finally:
                     env.close()
         except ImportError:
@@ -230,7 +233,9 @@ def main_evaluate(args: argparse.Namespace) -> int:
         print(f"# {res['algo']} on {res['env']} ({res['action_mode']}), seed {res['seed']}, "
               f"{'best' if args.best else 'final'} model, "
               f"{'deterministic' if res['deterministic'] else 'stochastic'}, seeds "
-              f"{args.seed_start}..{args.seed_start + args.episodes - 1}")
+              f"{args.seed_start}..{args.seed_start + args.episodes - 1}"
+              + ("" if res.get("max_episode_steps") is None else
+                 f", episodes of at most {res['max_episode_steps']} steps (its settings)"))
         print(f"success rate {res['success_rate']:.0%}, mean return {res['mean_return']:.2f}, "
               f"mean length {res['mean_length']:.1f} steps"
               + ("" if res.get("mean_normalized_performance") is None else

@@ -43,7 +43,7 @@ MAX_FRAME_STACK = 16
 #: takes one of the observed points and places it near its target).
 POLICIES = ("MlpPolicy", "CnnPolicy", "PointerPolicy")
 #: Keys of ``policy_kwargs`` a run directory may give, and the widest layer it may ask for.
-POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init", "points")
+POLICY_KWARGS = ("net_arch", "log_std_init", "use_sde", "ortho_init", "points", "drag")
 #: Keys of :data:`POLICY_KWARGS` only PPO's policy takes (SB3's SAC policy has no such argument).
 PPO_POLICY_KWARGS = ("ortho_init",)
 MAX_LAYER = 4096
@@ -199,7 +199,8 @@ def check_imitate(algo: str, hp: dict[str, Any]) -> tuple[int, float, int]:
 
 def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict[str, Any],
                      seed: int, steps: int, noise: float = IMITATE_NOISE,
-                     updates: int | None = None) -> dict[str, float]:
+                     updates: int | None = None,
+                     max_episode_steps: int | None = None) -> dict[str, float]:
     """Start PPO's ``model`` from a clone of the task's scripted agent (rl extra).
 
     ``steps`` env steps of the scripted agent (:data:`IMITATE_COPIES` copies of the native
@@ -209,36 +210,47 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
     for :data:`IMITATE_POLICY_UPDATES`): an ``MlpPolicy``'s mean by least squares, a
     ``PointerPolicy``'s point scores by maximum likelihood of the agent's actions under its
     mixture (each action is some observed point and its target: the likelihood is a
-    cross-entropy over the points). The value
+    cross-entropy over the points); in drag mode by cross-entropy of the point the agent
+    works on (:func:`chosen_points`: its moves alone would not tell, as several points share
+    a clipped move). The value
     function is then fit to the discounted returns (the model's ``gamma``) of the clone's
-    own deterministic play over :data:`IMITATE_VALUE_STEPS` env steps, so that PPO's first
+    own deterministic play over :data:`IMITATE_VALUE_STEPS` env steps (episodes of
+    ``max_episode_steps``, None for the registered limit), so that PPO's first
     updates start from a critic that knows what the clone earns (from an untrained one, the
     first updates undo the clone). Its standard deviation is left at ``log_std_init``.
-    Returns the policy's final loss (``policy_mse``, action units squared, or
-    ``policy_nll``, the mean negative log-likelihood of an action), the value function's mean
+    Returns the policy's final loss (``policy_mse``, action units squared, ``policy_nll``,
+    the mean negative log-likelihood of an action, or ``policy_choice_nll``, of a chosen
+    point), the value function's mean
     squared error (``value_mse``) and the clone's mean discounted return (``clone_return``)."""
     import torch
 
     from .agents import make_agent
     from .policies import PointerPolicy
 
+    limit = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
     vec = gym.make_vec(env_id, num_envs=IMITATE_COPIES, vectorization_mode="vector_entry_point",
-                       action_mode=action_mode, **env_kwargs)
+                       action_mode=action_mode, **env_kwargs, **limit)
     try:
         agent = make_agent("scripted", vec)
         rng = np.random.default_rng(seed)
         gen = torch.Generator().manual_seed(seed)
         obs, _ = vec.reset(seed=IMITATE_SEED_START + 100 * seed)
+        policy = model.policy
+        # (drag mode: the pointer learns the agent's choice of point, read from its plan; its
+        # moves alone do not tell it, as several points share a clipped move)
+        plan = (getattr(agent, "plan", None)
+                if isinstance(policy, PointerPolicy) and policy.drag is not None else None)
         seen, acts = [], []
         for _ in range(max(1, steps // IMITATE_COPIES)):
             a = agent(obs)
             seen.append(obs.copy())
-            acts.append(a.copy())
+            acts.append(a.copy() if plan is None else chosen_points(vec.unwrapped.task, obs,
+                                                                    plan, policy.points))
             noisy = np.clip(a + rng.normal(0.0, noise, a.shape), -1.0, 1.0)
             obs, *_ = vec.step(noisy.astype(np.float32))
-        policy = model.policy
         x = torch.as_tensor(np.concatenate(seen), dtype=torch.float32, device=policy.device)
-        y = torch.as_tensor(np.concatenate(acts), dtype=torch.float32, device=policy.device)
+        y = torch.as_tensor(np.concatenate(acts), device=policy.device)
+        y = y if plan is not None else y.float()
         value_names = ("mlp_extractor.value_net.", "value_net.")
         actor = [p for n, p in policy.named_parameters()
                  if n != "log_std" and not n.startswith(value_names)]
@@ -248,7 +260,9 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
         for _ in range(IMITATE_POLICY_UPDATES if updates is None else updates):
             idx = torch.randint(0, len(x), (IMITATE_BATCH,), generator=gen)
             dist = policy.get_distribution(x[idx])
-            if likelihood:
+            if plan is not None:  # cross-entropy of the chosen points (B, G)
+                policy_loss = -dist.log_w.gather(2, y[idx][:, :, None]).mean()
+            elif likelihood:
                 policy_loss = -dist.log_prob(y[idx]).mean()
             else:
                 policy_loss = ((dist.distribution.mean - y[idx]) ** 2).mean()
@@ -282,9 +296,27 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
             opt.step()
     finally:
         vec.close()
-    return {"policy_nll" if likelihood else "policy_mse": float(policy_loss.detach()),
+    return {("policy_choice_nll" if plan is not None else "policy_nll" if likelihood
+             else "policy_mse"): float(policy_loss.detach()),
             "value_mse": float(value_loss.detach()),
             "clone_return": float(target.mean())}
+
+
+def chosen_points(task: Any, obs: np.ndarray, plan: Any, points: int) -> np.ndarray:
+    """The observed point (B, G) int64 each gripper of a scripted drag agent works on, in
+    observations ``obs`` (B, D): the one whose point and target lie nearest the pick and
+    place points its plan headed for (``plan.heading``, :class:`envs.pick_place.DragPlan`);
+    for a gripper that holds a particle, whose point lies nearest the gripper and target
+    nearest the place it carries it to."""
+    pick, place = plan.heading
+    pos, holding = task.gripper_part(obs)
+    pick = np.where(holding[:, :, None], pos, pick)
+    o = np.asarray(obs, dtype=np.float64)
+    B, K = len(o), points
+    x = o[:, :2 * K].reshape(B, 1, K, 2)
+    t = o[:, 2 * K:4 * K].reshape(B, 1, K, 2)
+    p, q = task.to_normalized(pick)[:, :, None], task.to_normalized(place)[:, :, None]
+    return np.argmin(((x - p) ** 2).sum(-1) + ((t - q) ** 2).sum(-1), axis=2)
 
 
 def check_std_final(algo: str, hp: dict[str, Any]) -> float | None:
@@ -312,9 +344,43 @@ def is_image(space: gym.Space) -> bool:
             and (space.shape[-1] in (1, 3, 4) or space.shape[0] in (1, 3, 4)))
 
 
-def check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
+#: The entries of PointerPolicy's ``drag`` setting (:class:`envs.policies.PointerPolicy`).
+DRAG_KEYS = ("move_scale", "reach", "place")
+
+
+def check_drag(drag: object) -> dict[str, float] | None:
+    """``drag`` (PointerPolicy's setting) checked: None, or a dict of positive finite numbers
+    ``move_scale`` (action per normalised view unit), ``reach`` and ``place`` (normalised view
+    units): ValueError otherwise."""
+    if drag is None:
+        return None
+    if not (isinstance(drag, dict) and set(drag) == set(DRAG_KEYS)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                    and np.isfinite(v) and v > 0 for v in drag.values())):
+        raise ValueError(f"drag must be None or a dict of positive numbers {DRAG_KEYS}, got "
+                         f"{drag!r}")
+    return {k: float(drag[k]) for k in DRAG_KEYS}
+
+
+def check_episode_steps(hp: dict[str, Any]) -> int | None:
+    """``hp["max_episode_steps"]``: the time limit (env steps) the run trains and is evaluated
+    with, over the registered one (as ``gym.make(id, max_episode_steps=...)``; for an action
+    mode whose episodes need more steps than the task's registered limit gives, such as drag
+    mode's many steps per pick-and-place); None without it. ValueError unless a positive
+    int of at most 100,000."""
+    steps = hp.get("max_episode_steps")
+    if steps is not None and (type(steps) is not int or not 1 <= steps <= 100_000):
+        raise ValueError(f"hyperparams: max_episode_steps must be an int in [1, 100000], got "
+                         f"{steps!r}")
+    return steps
+
+
+def check_policy_fits(hp: dict[str, Any], space: gym.Space,
+                      action_space: gym.Space | None = None, action_mode: str = "") -> None:
     """ValueError naming the setting unless the policy suits the observation: images go to
-    ``CnnPolicy``, anything else to ``MlpPolicy``."""
+    ``CnnPolicy``, anything else to ``MlpPolicy``, or ``PointerPolicy`` where the observation
+    is its points and their targets (in drag mode then the grippers of ``action_space``, 3
+    action entries each)."""
     policy = hp.get("policy", "MlpPolicy")
     if is_image(space):
         if policy != "CnnPolicy":
@@ -325,12 +391,18 @@ def check_policy_fits(hp: dict[str, Any], space: gym.Space) -> None:
         raise ValueError(f"policy: CnnPolicy takes image observations (obs_mode='pixels'), "
                          f"got a {type(space).__name__} of shape {space.shape}")
     elif policy == "PointerPolicy":
-        points = hp.get("policy_kwargs", {}).get("points", 10)
+        pk = hp.get("policy_kwargs", {})
+        points = pk.get("points", 10)
+        size = 4 * points
+        tail = ""
+        if pk.get("drag") is not None or action_mode == "drag":
+            size += getattr(action_space, "shape", (3,))[0]
+            tail = " and the grippers' positions and holding flags"
         shape = getattr(space, "shape", None)
         if not (isinstance(space, gym.spaces.Box) and shape is not None and len(shape) == 1
-                and shape[0] == 4 * points):
+                and shape[0] == size):
             raise ValueError(f"policy: PointerPolicy with points={points} reads an observation "
-                             f"of {points} points and their {points} targets ({4 * points} "
+                             f"of {points} points and their {points} targets{tail} ({size} "
                              f"numbers), got a {type(space).__name__} of shape {shape} (set "
                              "policy_kwargs.points to the observed points)")
 
@@ -377,13 +449,19 @@ def check_policy_settings(config_path: Path, hp: dict[str, Any], algo: str) -> N
         if pk.get("use_sde", False):
             raise ValueError(f"{config_path}: hyperparams.policy_kwargs.use_sde does not go "
                              "with PointerPolicy (its noise is the mixture's)")
+        try:
+            check_drag(pk.get("drag"))
+        except ValueError as exc:
+            raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{exc}") from None
         points = pk.get("points", 10)
         if type(points) is not int or not 1 <= points <= 512:
             raise ValueError(f"{config_path}: hyperparams.policy_kwargs.points must be a "
                              f"whole number in [1, 512], got {points!r}")
-    elif "points" in pk:
-        raise ValueError(f"{config_path}: hyperparams.policy_kwargs.points is a setting of "
-                         f"PointerPolicy, not of {policy}")
+    else:
+        for key in ("points", "drag"):
+            if key in pk:
+                raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{key} is a setting"
+                                 f" of PointerPolicy, not of {policy}")
     for flag in ("use_sde", "ortho_init"):
         if not isinstance(pk.get(flag, False), bool):
             raise ValueError(f"{config_path}: hyperparams.policy_kwargs.{flag} must be true or "

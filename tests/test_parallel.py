@@ -11,6 +11,7 @@ import copy
 import pickle
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -596,9 +597,8 @@ def test_ranges_run_on_one_thread_give_the_same_bits() -> None:
             assert part is not None and part.gauge.threaded
             gauge = part.gauge
             gauge.threaded = False
-            asked = gauge.use_threads
 
-            def logged() -> bool:
+            def logged(asked: Callable[[], bool] = gauge.use_threads) -> bool:
                 ways.append(asked())
                 return ways[-1]
 
