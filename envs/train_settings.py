@@ -20,6 +20,8 @@ if TYPE_CHECKING:  # (the rl extra)
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
 
+    from .pick_place import DragPlan, PickPlaceTask
+
 #: Most scripted-agent env steps ``imitate`` may clone.
 MAX_IMITATE = 10_000_000
 #: How :func:`imitate_scripted` clones: env copies that collect the scripted agent's steps,
@@ -302,7 +304,8 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
             "clone_return": float(target.mean())}
 
 
-def chosen_points(task: Any, obs: np.ndarray, plan: Any, points: int) -> np.ndarray:
+def chosen_points(task: PickPlaceTask, obs: np.ndarray, plan: DragPlan,
+                  points: int) -> np.ndarray:
     """The observed point (B, G) int64 each gripper of a scripted drag agent works on, in
     observations ``obs`` (B, D): the one whose point and target lie nearest the pick and
     place points its plan headed for (``plan.heading``, :class:`envs.pick_place.DragPlan`);
