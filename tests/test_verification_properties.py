@@ -78,7 +78,10 @@ def test_rk4_energy_error_has_no_low_order_term(s):
     hs = (0.005, 0.0025, 0.00125, 0.000625)
     errors = P.energy_errors(s, "rk4", hs, duration=0.3)
     usable = [(h, e) for h, e in zip(hs, errors, strict=True) if e > 1e-14]
-    assume(len(usable) >= 3)  # the system has forces that do work, measurably
+    # the system has forces that do work, measurably: errors that stay within a few times
+    # round-off at every step (1.0e-14 to 1.4e-14 J on a spring between a line wire and a
+    # fixed point) have no slope to fit
+    assume(len(usable) >= 3 and max(errors) > 1e-12)
     assert P.fit_slope(*zip(*usable, strict=True)) > 3.0
 
 
