@@ -395,6 +395,9 @@ def check_policy_fits(hp: dict[str, Any], space: gym.Space,
                          f"got a {type(space).__name__} of shape {space.shape}")
     elif policy == "PointerPolicy":
         pk = hp.get("policy_kwargs", {})
+        if pk.get("drag") is not None and action_mode and action_mode != "drag":
+            raise ValueError(f"policy: PointerPolicy's drag setting is for action_mode "
+                             f"'drag', not {action_mode!r}")
         points = pk.get("points", 10)
         size = 4 * points
         tail = ""

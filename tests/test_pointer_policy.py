@@ -124,6 +124,11 @@ def test_a_pointer_run_trains_and_is_rebuilt_from_its_weights(tmp_path, monkeypa
     (["--hyperparams", "policy=MlpPolicy", "normalize=true", 'policy_kwargs={"points": 10}'],
      "setting of PointerPolicy"),
     (["--env-kwargs", "obs_mode=particles"], "points=10"),
+    (["--hyperparams", 'policy_kwargs={"points": 10, "drag": {"move_scale": 1, "reach": 1, '
+      '"place": 1}}'], "for action_mode 'drag'"),
+    (["--hyperparams", 'policy_kwargs={"points": 10, "drag": {"move_scale": 1}}'],
+     "dict of positive numbers"),
+    (["--hyperparams", "max_episode_steps=0"], "max_episode_steps must be"),
 ])
 def test_pointer_settings_that_cannot_work_are_refused_before_training(tmp_path, capsys,
                                                                         monkeypatch, argv, says):
