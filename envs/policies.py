@@ -201,8 +201,8 @@ class PointerPolicy(ActorCriticPolicy):
         to_point, to_target = xs - g, ts - g
         # (the offset from the gripper in action units, clipped: the held point and its
         # neighbours a link apart differ by O(1) there, not by a few hundredths)
-        near = (to_point * self.drag["move_scale"]).clamp(-NEAR_CLIP, NEAR_CLIP)
         scale = self.drag["move_scale"]
+        near = (to_point * scale).clamp(-NEAR_CLIP, NEAR_CLIP)
         feats = th.cat([xs, ts, (ts - xs) * scale, near, holding.expand(B, G, K, 1)], dim=-1)
         logits = self.score(feats)[..., 0]  # (B, G, K)
         return self.action_dist.proba_distribution(

@@ -69,6 +69,7 @@ from .train_settings import (
     check_std_final,
     imitate_scripted,
     schedule,
+    time_limit,
 )
 from .train_settings import check_policy_fits as _check_policy_fits
 from .train_settings import check_policy_settings as _check_policy_settings
@@ -173,9 +174,7 @@ def make_train_env(env_id: str, action_mode: str, n_envs: int, seed: int,
 
     from .sb3 import to_sb3
 
-    kwargs = dict(env_kwargs or {}, action_mode=action_mode)
-    if max_episode_steps is not None:
-        kwargs["max_episode_steps"] = max_episode_steps
+    kwargs = dict(env_kwargs or {}, action_mode=action_mode, **time_limit(max_episode_steps))
     if n_envs > 1:
         venv = to_sb3(gym.make_vec(env_id, num_envs=n_envs,
                                    vectorization_mode="vector_entry_point", **kwargs))
@@ -229,9 +228,9 @@ def run_episodes(policy: Policy, env_id: str, episodes: int, seed_start: int,
     near: list[np.ndarray] = []
     for start in range(0, episodes, batch):
         n = min(batch, episodes - start)
-        limit = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
         env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point",
-                           action_mode=action_mode, **(env_kwargs or {}), **limit)
+                           action_mode=action_mode, **(env_kwargs or {}),
+                           **time_limit(max_episode_steps))
         task = env.unwrapped.task
         obs, _ = env.reset(seed=seed_start + start)
         seen = stack_frames(None, obs, frame_stack) if frame_stack > 1 else obs

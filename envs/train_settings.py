@@ -229,9 +229,8 @@ def imitate_scripted(model: PPO, env_id: str, action_mode: str, env_kwargs: dict
     from .agents import make_agent
     from .policies import PointerPolicy
 
-    limit = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
     vec = gym.make_vec(env_id, num_envs=IMITATE_COPIES, vectorization_mode="vector_entry_point",
-                       action_mode=action_mode, **env_kwargs, **limit)
+                       action_mode=action_mode, **env_kwargs, **time_limit(max_episode_steps))
     try:
         agent = make_agent("scripted", vec)
         rng = np.random.default_rng(seed)
@@ -376,6 +375,12 @@ def check_episode_steps(hp: dict[str, Any]) -> int | None:
         raise ValueError(f"hyperparams: max_episode_steps must be an int in [1, 100000], got "
                          f"{steps!r}")
     return steps
+
+
+def time_limit(max_episode_steps: int | None) -> dict[str, int]:
+    """The keyword arguments that give ``gym.make``/``gym.make_vec`` a time limit of
+    ``max_episode_steps`` env steps: none for None (the registered limit)."""
+    return {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
 
 
 def check_policy_fits(hp: dict[str, Any], space: gym.Space,
