@@ -791,6 +791,11 @@ def _evaluate(out: str | Path, episodes: int, seed_start: int, deterministic: bo
         if spaces != (config["spaces"]["observation"], config["spaces"]["action"]):
             raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
                              f"space the run was trained on")
+        drag = config["hyperparams"].get("policy_kwargs", {}).get("drag")
+        if drag is not None and drag_geometry(config["env"], kwargs) != drag:
+            raise ValueError(f"env_kwargs: {env_kwargs} change the drag geometry (the "
+                             f"gripper's largest move, where it grips and lets go) that the "
+                             f"run's PointerPolicy was trained with: {drag}")
     torch.manual_seed(seed_start)  # stochastic actions: the same noise on every call
     limit = config["hyperparams"].get("max_episode_steps")
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,

@@ -158,3 +158,7 @@ def test_a_drag_pointer_run_trains_with_its_time_limit_and_is_rebuilt(tmp_path, 
     # (an agent this short-trained rarely finishes: its episodes run past the registered 40)
     assert max(evals[-1]["mean_length"], res["mean_length"]) > 40
     assert isinstance(load_policy(read_run(out), out / "policy.pt"), PointerPolicy)
+    # a variant whose moves the trained pointer would misjudge is refused, naming the cause
+    max_move = env.unwrapped.task.max_move
+    with pytest.raises(ValueError, match="drag geometry"):
+        evaluate(out, episodes=1, env_kwargs={"max_move": 2 * max_move})
