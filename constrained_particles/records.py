@@ -457,21 +457,26 @@ if kernels.ENABLED:
         exec("\n".join(lines), scope)  # (a field name is an attribute name: one line each)
         return scope["impl"]
 
+    # A record held by reference holds its arrays borrowed (records.borrowed: no reference
+    # counts): a field read in a kernel's loop then costs no atomic increment and decrement
+    # per array. The arrays are kept alive by Python instead: each reference made below
+    # holds the arrays it was made from (``_keep``, see _kept), and the caller of a kernel
+    # holds the reference.
     @njit
-    def _blocks_ref(t):  # pragma: no cover - compiled
-        return _by_reference(_blocks_record(t))
+    def _blocks_ref_compiled(t):  # pragma: no cover - compiled
+        return _by_reference(borrowed(_blocks_record(t)))
 
     @njit
-    def _rows_ref(t):  # pragma: no cover - compiled
-        return _by_reference(Rows(*t))
+    def _rows_ref_compiled(t):  # pragma: no cover - compiled
+        return _by_reference(borrowed(Rows(*t)))
 
     _workspace_named = njit(inline="always")(_name_workspace)
 
     @njit
-    def _workspace_ref(per_particle, per_entry, per_row, per_coordinate, dense, factor):
-        # pragma: no cover - compiled
-        return _by_reference(_workspace_named(per_particle, per_entry, per_row,
-                                              per_coordinate, dense, factor))
+    def _workspace_ref_compiled(per_particle, per_entry, per_row, per_coordinate, dense,
+                                factor):  # pragma: no cover - compiled
+        return _by_reference(borrowed(_workspace_named(per_particle, per_entry, per_row,
+                                                       per_coordinate, dense, factor)))
 
     @njit(inline="always")
     def _live_record(t):  # pragma: no cover - compiled
@@ -493,19 +498,41 @@ if kernels.ENABLED:
             return lambda live: (None, None, None, None)
         return lambda live: (live.particles, live.rows, live.components, live.elements)
 
+    def _kept(ref: Any, arrays: object) -> Any:
+        """``ref`` holding ``arrays`` (what its borrowed fields point into) for as long as it
+        lives."""
+        ref._keep = arrays
+        return ref
+
+    def _blocks_ref(t: tuple) -> Any:
+        return _kept(_blocks_ref_compiled(t), t)
+
+    def _rows_ref(t: tuple) -> Any:
+        return _kept(_rows_ref_compiled(t), t)
+
+    def _workspace_ref(*backing: np.ndarray) -> Any:
+        return _kept(_workspace_ref_compiled(*backing), backing)
+
     live_lists = _live_lists
     blocks_ref = _blocks_ref
     rows_ref = _rows_ref
     workspace_ref = _workspace_ref
 
     @njit
-    def _live_ref(t):  # pragma: no cover - compiled
-        return _by_reference(_live_record(t))
+    def _live_ref_compiled(t):  # pragma: no cover - compiled
+        return _by_reference(borrowed(_live_record(t)))
+
+    def _live_ref(t: tuple) -> Any:
+        return _kept(_live_ref_compiled(t), t)
 
     live_ref = _live_ref
 
     @njit
-    def _engine_ref(blocks, rows, work):  # pragma: no cover - compiled
+    def _engine_ref_compiled(blocks, rows, work):  # pragma: no cover - compiled
         return _by_reference(Engine(blocks, rows, work))
+
+    def _engine_ref(blocks: Any, rows: Any, work: Any) -> Any:
+        # (it holds the three references counted; their proxies hold the arrays)
+        return _kept(_engine_ref_compiled(blocks, rows, work), (blocks, rows, work))
 
     engine_ref = _engine_ref

@@ -610,35 +610,41 @@ class ParticleTask(SteppedCopies):
         test's :class:`envs._measure.Goal`), or None where the numpy reference must run
         (compiled bookkeeping off, no tracked particles, blocks it does not know, or arrays
         not of the shapes and types it reads)."""
-        N = self.num_envs
         fresh = self.__dict__.pop("_fresh_pack", None)  # (see simulate_step: taken once)
-        track = self._tracking() if _measure.ENABLED else None
+        if not _measure.ENABLED:
+            return None
+        track = self._tracking()
         state = self._compiled_state()
-        if (track is None or state is None or not _owned(self.goal, np.float64, (N,))
-                or not self._rest_owned() or not self._goal_fits()):
+        goal = None if track is None or state is None else self._goal_record(track)
+        if goal is None:
             return None
         p = _measure.packed(self.system, fresh)
-        if p is None or p.n != self.num_envs * self.n:
+        if p is None or p.n != len(state[0]):
             return None
-        return p, self._goal_record(track), state
+        return p, goal, state
 
-    def _goal_fits(self) -> bool:
-        """True if the compiled measures compute this task's goal distance and rest test: its
-        own :meth:`goal_distance` (a subclass's redefinition runs in numpy), a
-        :attr:`rest_count` in [1, n] and, for a :attr:`planar_goal`, a finite number as
-        ``goal_height``."""
-        count, height = self.rest_count, self.goal_height
-        return (self._paths["goal"] and type(count) is int and 0 < count <= self.n
-                and (not self.planar_goal
-                     or (isinstance(height, (int, float)) and not isinstance(height, bool)
-                         and math.isfinite(height))))
-
-    def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal:
-        """The success test as the compiled measures read it (``track``: :meth:`_tracking`)."""
-        return _measure.Goal(self.n, self.goal, track[0], track[1], float(self.goal_tolerance),
-                             float(self.rest_speed), int(self.hold_steps),
-                             float(self.goal_height) if self.planar_goal else math.nan,
-                             int(self.rest_count), bool(self.wall_rest))
+    def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal | None:
+        """The success test as the compiled measures read it (``track``: :meth:`_tracking`),
+        or None unless they compute this task's goal distance and rest test: its own
+        :meth:`goal_distance` (a subclass's redefinition runs in numpy), the goal and the rest
+        test's arrays of the shapes and types they read, a :attr:`rest_count` in [1, n] and,
+        for a :attr:`planar_goal`, a finite number as ``goal_height``. Each attribute is read
+        once."""
+        N, n = self.num_envs, self.n
+        goal, count = self.goal, self.rest_count
+        if not (self._paths["goal"] and type(count) is int and 0 < count <= n
+                and _owned(goal, np.float64, (N,)) and _owned(self.hold, np.int64, (N,))
+                and _owned(self.mean_v, np.float64, (N * n, 2))):
+            return None
+        height = math.nan
+        if self.planar_goal:
+            height = self.goal_height
+            if not (isinstance(height, (int, float)) and not isinstance(height, bool)
+                    and math.isfinite(height)):
+                return None
+        return _measure.Goal(n, goal, track[0], track[1], float(self.goal_tolerance),
+                             float(self.rest_speed), int(self.hold_steps), float(height),
+                             count, bool(self.wall_rest))
 
     def measure(self, stepped: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Per-copy measures: ``distance`` to the goal (m, :meth:`goal_distance`), ``speed``

@@ -88,12 +88,19 @@ def check_goal_range(goal_range: object, min_distance: object) -> tuple[tuple[fl
     return (low, high), gap
 
 
-def _owned(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
+#: NumPy's dtype objects of the scalar types :func:`_owned` is asked about (one object each),
+#: tested by identity before the comparison that also accepts an equal dtype
+_DTYPES = {t: np.dtype(t) for t in (np.float64, np.float32, np.int64, np.bool_)}
+
+
+def _owned(a: Any, dtype: Any, shape: tuple[int, ...], _dtype_of: Any = _DTYPES.get) -> bool:
     """True if ``a`` is a C-ordered ndarray of ``dtype`` and ``shape``, as the task made it:
     the compiled bookkeeping reads (and writes) such arrays without bounds checks, so one a
     user replaced with another shape takes the numpy path and its checks instead."""
-    return (type(a) is np.ndarray and a.dtype == dtype and a.shape == shape
-            and a.flags.c_contiguous)
+    if type(a) is not np.ndarray or a.shape != shape:
+        return False
+    dt = a.dtype
+    return (dt is _dtype_of(dtype) or dt == dtype) and a.flags.c_contiguous
 
 
 def scaled(u: float, low: float, high: float) -> float:

@@ -133,7 +133,8 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
                 ) -> tuple[np.ndarray, dict[str, Any]]:
         m, obs = self.task.measure_observe(stepped)
         values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
-        info = {k: v for k, v in values.items() if k != "speed"}
+        info = values.copy()
+        info.pop("speed", None)
         info["diverged"] = diverged.item()
         self._last, self._values = m, values
         if self.obs_mode == "state":

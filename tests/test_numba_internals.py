@@ -156,3 +156,35 @@ def test_records_by_reference() -> None:
 
     assert read(ref) == (2, 2)
     assert backing[0][0, 0, 0] == 7.0
+
+
+@compiled
+def test_a_record_by_reference_keeps_its_borrowed_arrays_alive() -> None:
+    """A record held by reference holds its arrays borrowed (no reference counts in compiled
+    code): the reference itself keeps them alive. With every other Python reference to a
+    large workspace dropped (NumPy would hand its pages back to the system), a kernel still
+    reads and writes it through the reference; run in a child process, so that a reference
+    that failed to keep its arrays fails this test instead of crashing the run."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gc\n"
+        "from constrained_particles import records\n"
+        "from constrained_particles.jit import njit\n"
+        "@njit\n"
+        "def touch(w):\n"
+        "    w.spare_x[-1, 1] = 5.0\n"
+        "    s = 0.0\n"
+        "    for q in range(w.spare_x.shape[0]):\n"
+        "        s += w.spare_x[q, 0] + w.spare_x[q, 1]\n"
+        "    return s\n"
+        "ref = records.workspace_ref(*records.workspace(200_000, 3, 2))\n"
+        "gc.collect()\n"
+        "import numpy as np\n"  # (arrays of the workspace's sizes take over freed memory)
+        "filler = [np.full(a.shape, 7.0) for a in records.workspace(200_000, 3, 2)]\n"
+        "assert touch(ref) == 5.0, touch(ref)\n"
+        "print('ok')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
