@@ -157,3 +157,25 @@ def test_bench_env_kwargs_are_checked_before_any_work(capsys):
             cli.main(["bench", *argv])
         err = capsys.readouterr().err
         assert exc.value.code == 2 and all(w in err for w in words), err
+
+
+def test_the_step_floor_takes_the_envs_own_steps():
+    """benchmarks.step_floor times the env's compiled calls without its checks: stepped so
+    from the same state under the same actions, it gives the env's states, observations,
+    rewards and infos bit for bit (so the floor it times is the same work)."""
+    import gymnasium as gym
+
+    from benchmarks.step_floor import ENV_ID, floor_stepper
+
+    env, low = gym.make(ENV_ID), gym.make(ENV_ID)
+    env.reset(seed=3)
+    low.reset(seed=3)
+    floor = floor_stepper(low)
+    rng = np.random.default_rng(4)
+    for _ in range(60):
+        a = rng.uniform(-1.2, 1.2, 1).astype(np.float32)  # (some beyond the Box: clipped)
+        got, want = floor(a), env.step(a)
+        assert np.array_equal(got[0], want[0]) and got[1] == want[1]
+        assert got[2:4] == want[2:4] and got[4] == want[4]
+    one, two = env.unwrapped.task.system, low.unwrapped.task.system
+    assert np.array_equal(one.x, two.x) and np.array_equal(one.v, two.v) and one.t == two.t
