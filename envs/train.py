@@ -792,10 +792,13 @@ def _evaluate(out: str | Path, episodes: int, seed_start: int, deterministic: bo
             raise ValueError(f"env_kwargs: {env_kwargs} change the observation or action "
                              f"space the run was trained on")
         drag = config["hyperparams"].get("policy_kwargs", {}).get("drag")
-        if drag is not None and drag_geometry(config["env"], kwargs) != drag:
+        if drag is not None and (now := drag_geometry(config["env"], kwargs)) != drag:
+            def shown(d: dict[str, float]) -> str:
+                return ", ".join(f"{k} {v:.4g}" for k, v in d.items())
             raise ValueError(f"env_kwargs: {env_kwargs} change the drag geometry (the "
                              f"gripper's largest move, where it grips and lets go) that the "
-                             f"run's PointerPolicy was trained with: {drag}")
+                             f"run's PointerPolicy was trained with ({shown(drag)}; with "
+                             f"them: {shown(now)})")
     torch.manual_seed(seed_start)  # stochastic actions: the same noise on every call
     limit = config["hyperparams"].get("max_episode_steps")
     res = run_episodes(sb3_policy(policy, normalizer, deterministic), config["env"], episodes,
