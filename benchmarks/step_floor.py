@@ -34,8 +34,9 @@ import numpy as np
 import envs  # noqa: F401  (registers the ids)
 from constrained_particles import fused
 from envs import _measure
+from envs.chain_swing import TASK
 
-ENV_ID = "ChainSwing-v0"
+ENV_ID = TASK.id  #: the env timed (ChainSwing's)
 
 
 def floor_stepper(env: Any) -> Callable[[np.ndarray], tuple]:

@@ -607,9 +607,8 @@ class ParticleTask(SteppedCopies):
 
     def _compiled_post(self) -> tuple[Any, _measure.Goal, tuple] | None:
         """``(pack, goal, (x, v, mass))`` for the compiled measures (``goal``: the success
-        test's :class:`envs._measure.Goal`), or None where the numpy reference must run
-        (compiled bookkeeping off, no tracked particles, blocks it does not know, or arrays
-        not of the shapes and types it reads)."""
+        test's :class:`envs._measure.Goal`), or None where the numpy reference must run (the
+        compiled bookkeeping off, or what it reads not of the blocks, shapes, types it takes)."""
         fresh = self.__dict__.pop("_fresh_pack", None)  # (see simulate_step: taken once)
         if not _measure.ENABLED:
             return None
@@ -624,24 +623,19 @@ class ParticleTask(SteppedCopies):
         return p, goal, state
 
     def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal | None:
-        """The success test as the compiled measures read it (``track``: :meth:`_tracking`),
-        or None unless they compute this task's goal distance and rest test: its own
-        :meth:`goal_distance` (a subclass's redefinition runs in numpy), the goal and the rest
-        test's arrays of the shapes and types they read, a :attr:`rest_count` in [1, n] and,
-        for a :attr:`planar_goal`, a finite number as ``goal_height``. Each attribute is read
-        once."""
+        """The success test as the compiled measures read it (``track``: :meth:`_tracking`), or
+        None unless they compute it: the task's own :meth:`goal_distance`, the goal's and rest
+        test's arrays as they read them, a :attr:`rest_count` in [1, n], a finite ``goal_height``
+        for a :attr:`planar_goal` (each attribute read once)."""
         N, n = self.num_envs, self.n
         goal, count = self.goal, self.rest_count
+        height = self.goal_height if self.planar_goal else math.nan
         if not (self._paths["goal"] and type(count) is int and 0 < count <= n
                 and _owned(goal, np.float64, (N,)) and _owned(self.hold, np.int64, (N,))
-                and _owned(self.mean_v, np.float64, (N * n, 2))):
+                and _owned(self.mean_v, np.float64, (N * n, 2))
+                and isinstance(height, (int, float)) and not isinstance(height, bool)
+                and (math.isfinite(height) or not self.planar_goal)):
             return None
-        height = math.nan
-        if self.planar_goal:
-            height = self.goal_height
-            if not (isinstance(height, (int, float)) and not isinstance(height, bool)
-                    and math.isfinite(height)):
-                return None
         return _measure.Goal(n, goal, track[0], track[1], float(self.goal_tolerance),
                              float(self.rest_speed), int(self.hold_steps), float(height),
                              count, bool(self.wall_rest))
