@@ -296,11 +296,15 @@ class ClothFlattenVectorEnv(PickPlaceVectorEnv):
 class ClothFlattenController:
     """The oracle (it reads the task's particles, as SoftGym's oracles read the simulator's
     state): fit the flat cloth rigidly to the current one (:func:`rigid_fit`), pick the
-    particle furthest from its place on the fitted flat cloth and put it there."""
+    particle furthest from its place on the fitted flat cloth and put it there. In drag mode a
+    gripper that holds a particle keeps it (the particle nearest the gripper) and heads for
+    its place on the flat cloth fitted at each step, which moves a little with the cloth it
+    drags: a rule with no memory (``DragPlan(keep_places=False)``), which a policy that sees
+    the particles, their places and the grippers can follow."""
 
     def __init__(self, task: ClothFlatten) -> None:
         self.task = task
-        self.plan = DragPlan()  # (drag mode)
+        self.plan = DragPlan(keep_places=False)  # (drag mode: where the grippers head)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         t = self.task
@@ -311,6 +315,12 @@ class ClothFlattenController:
         err = np.linalg.norm(x - goal, axis=2)
         rows = np.arange(B)
         k = np.argmax(err, axis=1)
+        held = None
+        if t.action_mode == "drag":  # (a holding gripper keeps the particle nearest to it)
+            pos, holding = t.gripper_part(obs)
+            near = np.argmin(np.linalg.norm(x[:, None] - pos[:, :, None], axis=3), axis=2)
+            held = np.where(holding, near, -1)  # (B, G)
+            k = np.where(held[:, 0] >= 0, held[:, 0], k)
         a = np.concatenate([t.to_normalized(x[rows, k]), t.to_normalized(goal[rows, k])], axis=1)
         if t.num_grippers == 2:
             err2 = err.copy()
@@ -319,6 +329,8 @@ class ClothFlattenController:
             far = np.linalg.norm(x - x[rows, k][:, None], axis=2) < 0.25 * t.side
             err2[far] = -1.0
             k2 = np.argmax(err2, axis=1)
+            if held is not None:
+                k2 = np.where(held[:, 1] >= 0, held[:, 1], k2)
             a = np.concatenate([a, t.to_normalized(x[rows, k2]), t.to_normalized(goal[rows, k2])],
                                axis=1)
         return finish_action(t, obs, a, self.plan)

@@ -654,9 +654,15 @@ class DragPlan:
     place, say) would otherwise turn towards another particle's place as soon as the one it
     carries is no longer the furthest. One plan per agent (and batch size: a plan whose batch
     size changes starts afresh); a row whose gripper holds nothing plans afresh, so an
-    episode's reset needs no notice."""
+    episode's reset needs no notice.
 
-    def __init__(self) -> None:
+    ``keep_places=False``: a holding gripper heads for its particle's place as the agent gives
+    it at each step (an agent that picks the particle a gripper holds while it holds it, and
+    whose places move with the object, as ClothFlatten's flat cloth fitted to the cloth as it
+    lies); the plan then only records where the grippers head (:attr:`heading`)."""
+
+    def __init__(self, keep_places: bool = True) -> None:
+        self.keep_places = keep_places
         self.place: np.ndarray | None = None  # (B, G, 2) m: each gripper's kept place
         self.kept = np.zeros((0, 0), dtype=bool)  # (B, G): the place is kept
         #: The pick and place points (B, G, 2) m each gripper headed for in the last action
@@ -681,7 +687,7 @@ class DragPlan:
                 j = int(free[np.argmin(np.linalg.norm(pick[b, free] - pos[b, g], axis=1))])
                 pick[b, [g, j]], place[b, [g, j]] = pick[b, [j, g]], place[b, [j, g]]
                 claimed[g] = True
-        keep = holding & self.kept
+        keep = holding & self.kept if self.keep_places else np.zeros_like(holding)
         place = np.where(keep[:, :, None], self.place, place)
         self.place = place.copy()
         return pick, place

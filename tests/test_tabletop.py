@@ -15,7 +15,13 @@ import pytest
 
 import envs
 from envs.agents import make_agent
-from envs.cloth_flatten import ClothFlattenEnv, fold_across, grid_cells, rigid_fit
+from envs.cloth_flatten import (
+    ClothFlattenController,
+    ClothFlattenEnv,
+    fold_across,
+    grid_cells,
+    rigid_fit,
+)
 from envs.cloth_fold import ClothFoldEnv
 from envs.pick_place import DragPlan, PickPlaceTask
 from envs.rope_shape import SHAPES, RopeShapeEnv, curve
@@ -413,6 +419,48 @@ def test_a_drag_plan_keeps_a_carried_particles_place_and_its_pair():
     two = plan.follow(np.zeros((2, 2, 2)), np.ones((2, 2), dtype=bool), np.zeros((2, 2, 2)),
                       np.ones((2, 2, 2)))[1]
     assert np.array_equal(two, np.ones((2, 2, 2)))
+
+
+def test_a_plan_that_keeps_no_places_follows_the_agents_pairs():
+    """DragPlan(keep_places=False): a holding gripper heads for the place the agent gives at
+    each step (it records where the grippers head, for a clone), not the one it had when it
+    took its particle."""
+    plan = DragPlan(keep_places=False)
+    pos = np.array([[[0.0, 0.0]]])
+    pick, place = np.array([[[0.0, 0.0]]]), np.array([[[0.5, 0.0]]])
+    plan.follow(pos, np.array([[False]]), pick, place)
+    plan.carrying(np.array([[True]]))
+    moved = np.array([[[0.45, 0.02]]])  # (the place moved with the object dragged)
+    p, q = plan.follow(pos, np.array([[True]]), pick, moved)
+    assert np.array_equal(q, moved) and np.array_equal(p, pick)
+
+
+def test_the_flatten_oracle_keeps_the_particle_it_holds_in_drag_mode():
+    """In drag mode ClothFlatten's oracle heads, while a gripper holds a particle, for that
+    particle's place on the flat cloth fitted at this step (the place moves with the dragged
+    cloth), however the particles rank; it heads for the furthest particle only with nothing
+    held."""
+    env = gym.make("ClothFlatten-v0", action_mode="drag", obs_mode="particles")
+    task = env.unwrapped.task
+    obs, _ = env.reset(seed=5)
+    agent = ClothFlattenController(task)
+    held_steps = 0
+    for _ in range(60):
+        action = agent(obs)
+        pos, holding = task.gripper_part(obs[None])
+        x = task.observed_points(obs[None])
+        goal = task.flat_fit(x)
+        pick, place = agent.plan.heading
+        if holding[0, 0]:
+            held_steps += 1
+            k = np.argmin(np.linalg.norm(x[0] - pos[0, 0], axis=1))
+            assert np.allclose(place[0, 0], goal[0, k], atol=1e-12)
+        else:
+            k = np.argmax(np.linalg.norm(x[0] - goal[0], axis=1))
+            assert np.allclose(pick[0, 0], x[0, k], atol=1e-12)
+        obs, *_ = env.step(action)
+    assert held_steps > 5
+    env.close()
 
 
 def test_the_fold_oracle_folds_in_drag_mode():
