@@ -34,6 +34,7 @@ import numpy as np
 import envs  # noqa: F401  (registers the ids)
 from constrained_particles import fused
 from envs import _measure
+from envs.base import _measured
 from envs.chain_swing import TASK
 
 ENV_ID = TASK.id  #: the env timed (ChainSwing's)
@@ -80,8 +81,7 @@ def floor_stepper(env: Any) -> Callable[[np.ndarray], tuple]:
         s.x, s.v, s.t = xo, vo, t
         _measure.measures_observe((xo, vo, mass), goal, blocks, walls, rest, every, none,
                                   out, success, view, obs)
-        m = {"distance": out[0], "speed": out[1], "kinetic_energy": out[2],
-             "constraint_residual": out[3], "is_success": success}
+        m = task.add_measures(_measured(out, success), out[4])
         values = {k: val.item() for k, val in m.items()}
         reward = task.reward_one(m, values)
         info = values.copy()
