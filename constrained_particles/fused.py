@@ -109,6 +109,12 @@ _INTEGRATOR_ARGS = {name: (code, True if name == "rattle" else None)
                     for name, code in METHOD_CODES.items()}
 
 
+def schedule(steps: int, h: float) -> tuple[int, float, np.ndarray, np.ndarray]:
+    """The ``schedule`` argument of :func:`fused_steps` for ``steps`` steps of ``h`` seconds
+    (no step counted to a separate rate)."""
+    return (steps, h, _F0, _NO_COUNTS)
+
+
 #: ``(x, v, mass, inv_mass)`` as a caller read them from the system
 StateArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 

@@ -83,7 +83,20 @@ if os.environ.get("CPARTICLES_NUMBA", "1") != "0":
             angle (rad)."""
             k, kd, rest = spring
             theta = math.atan2(ux * wy - uy * wx, ux * wx + uy * wy)
-            d = math.pi - ((math.pi - (theta - rest)) % (2.0 * math.pi))
+            # d = pi - ((pi - (theta - rest)) % 2 pi), the modulo as Python's (the sign of the
+            # divisor) without its library call where the argument is within one turn of
+            # [0, 2 pi): the same bits (fmod is exact there, and so is y - 2 pi, by Sterbenz)
+            y = math.pi - (theta - rest)
+            tau = 2.0 * math.pi
+            if 0.0 <= y < tau:
+                wrapped = y
+            elif -tau <= y < 0.0:
+                wrapped = y + tau
+            elif tau <= y < 2.0 * tau:
+                wrapped = y - tau
+            else:
+                wrapped = y % tau
+            d = math.pi - wrapped
             uu = ux * ux + uy * uy
             ww = wx * wx + wy * wy
             gax = gay = gcx = gcy = 0.0

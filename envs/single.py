@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import goals, pixels
 from .base import FRAME_SIZE, ParticleTask
 from .checks import check_options, check_seed, check_task_kwargs
+from .driver import StepPlan
 from .goals import check_obs_mode
 
 
@@ -128,10 +129,17 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
         self._renderer = None
         self._window = None
         self._clock = None
+        #: The prepared step of the task (envs.driver), None where it has none
+        self._plan = StepPlan.make(self.task)
 
     def _result(self, diverged: np.ndarray, stepped: np.ndarray | None = None
                 ) -> tuple[np.ndarray, dict[str, Any]]:
-        m, obs = self.task.measure_observe(stepped)
+        return self._package(*self.task.measure_observe(stepped), diverged)
+
+    def _package(self, m: dict[str, np.ndarray], obs: np.ndarray, diverged: np.ndarray
+                 ) -> tuple[np.ndarray, dict[str, Any]]:
+        """The observation (in this env's ``obs_mode``) and info of the one copy's measures
+        ``m`` and state observation ``obs``."""
         values = {k: v.item() for k, v in m.items()}  # one copy: arrays of one element
         info = values.copy()
         info.pop("speed", None)
@@ -177,10 +185,18 @@ class ParticleEnv(_Rendering, gym.Env[np.ndarray, np.ndarray]):
 
     def step(self, action: ArrayLike) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` for one env step (``substeps`` physics steps)."""
-        a = self.task.check_actions(action, single=True)
-        self.task.apply(a)
-        diverged = self.task.simulate_step()
-        obs, info = self._result(diverged, ~diverged)
+        task = self.task
+        a = task.check_actions(action, single=True)
+        task.apply(a)
+        plan = self._plan
+        # the prepared step where it can take it (the same bits: see envs.driver), else the
+        # general path
+        done = plan.physics() if plan is not None and plan.task is task else None
+        if done is not None:
+            obs, info = self._package(*plan.measure_observe(*done), np.zeros(1, bool))
+        else:
+            diverged = task.simulate_step()
+            obs, info = self._result(diverged, ~diverged)
         if self.obs_mode == "goal":
             reward = self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
         else:

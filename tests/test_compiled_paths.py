@@ -22,6 +22,7 @@ from constrained_particles.system import ParticleSystem
 from envs import _measure
 from envs.base import ParticleTask
 from envs.cloth_pin import ClothPin
+from envs.driver import StepPlan
 from envs.pick_place import PickPlaceTask
 
 pytestmark = pytest.mark.skipif(not _measure.ENABLED,
@@ -71,6 +72,15 @@ def arm(monkeypatch):
             return ok
 
         monkeypatch.setattr(ParticleSystem, "_fused_step", fused_step)
+        physics = StepPlan.physics
+
+        def planned(self):  # (a single env's prepared step: the same fused kernel)
+            done = physics(self)
+            assert done is not None, "a normal step left the prepared step"
+            taken.append(True)
+            return done
+
+        monkeypatch.setattr(StepPlan, "physics", planned)
         return taken
 
     return arm_now

@@ -188,3 +188,27 @@ def test_distance_error_elements_match_the_constraint_blocks(seed):
     np.testing.assert_allclose(circle, wire.distance_error(x), rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(rods, rod.distance_error(x), rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(lines, line.distance_error(x), rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="the compiled kernels are off")
+def test_angular_element_wraps_the_angle_as_pythons_modulo():
+    """The compiled angular spring wraps ``theta - rest`` into (-pi, pi] without a library
+    call where it can: the same bits as Python's ``%`` (the formula written out here), for
+    angles and rest angles that take every branch, the turn's ends included."""
+    import math
+
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([rng.uniform(-math.pi, math.pi, 400), [math.pi, -math.pi, 0.0]])
+    rests = np.concatenate([rng.uniform(-3 * math.pi, 3 * math.pi, 60),
+                            [0.0, math.pi, -math.pi, 2 * math.pi, -2 * math.pi, 7.0, -7.0]])
+    k, kd = 3.0, 0.0
+    for rest in rests:
+        for theta in angles:
+            u = (1.0, 0.0)
+            w = (math.cos(theta), math.sin(theta))
+            got = kernels.angular_element(*u, *w, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                                          (k, kd, float(rest)))
+            th = math.atan2(u[0] * w[1] - u[1] * w[0], u[0] * w[0] + u[1] * w[1])
+            d = math.pi - ((math.pi - (th - float(rest))) % (2.0 * math.pi))
+            # (arm a on the x axis: the force on a is -k d dtheta/dx_a = -k d (0, -1))
+            assert got[1] == -(k * d) * -1.0, (theta, rest)

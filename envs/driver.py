@@ -1,0 +1,219 @@
+"""The prepared env step: an env step's physics and measures with what they were checked
+against remembered, so that a step of an unchanged task pays for its compiled calls and a few
+identity tests instead of every layer between the env and its kernels.
+
+A :class:`StepPlan` is made for a task when the env is built and holds what does not change
+from step to step: the integrator's compiled code, the schedule of substeps, the success
+test's record, the rest test's and the view's. It takes the env step (after the task's
+:meth:`~envs.base.ParticleTask.apply`) only where the general path would take the same
+compiled calls: the task's :meth:`~envs.base.ParticleTask.simulate` and
+:meth:`~envs.base.ParticleTask.measure_observe` are the base class's (decided once, when the
+plan is made), the physics is one fused call (no split steps, no projection, one thread) and
+every check of that call holds. Anywhere else it answers None with nothing changed and the
+general path takes the step, so both give the same bits: the plan calls the same compiled
+functions with the same arguments (``tests/test_driver.py`` ties them step by step).
+
+What keeps it safe is what keeps the general path safe: the state arrays are checked at every
+step as :meth:`ParticleSystem.step <constrained_particles.system.ParticleSystem.step>` checks
+them (``fused.prepare``, under the system's step lock), and every array the measures read
+without bounds checks is either made by this step (the new state, the outputs) or tested at
+every step (the goal, hold and moving-average arrays). A remembered record is reused only
+while every attribute it was made from is the very object it was made from (an attribute
+reassigned makes it anew, through the task's own method)."""
+
+from __future__ import annotations
+
+import math
+import operator
+from typing import Any
+
+import numpy as np
+
+from constrained_particles import fused
+from constrained_particles.packing import Packed
+from constrained_particles.system import ParticleSystem
+
+from . import _measure
+from .base import ParticleTask, _measured
+from .checks import _owned
+
+
+class StepPlan:
+    """The prepared step of ``task`` (see the module's docstring); :meth:`make` returns None
+    for a task whose step it cannot take."""
+
+    def __init__(self, task: ParticleTask) -> None:
+        self.task = task
+        #: (integrator, dt, substeps, system) the physics arguments below were made from
+        self._physics_key: tuple | None = None
+        self._code: Any = None
+        self._schedule: tuple | None = None
+        #: the success test's record (as a plain tuple) and what it was made from
+        self._goal_key: tuple | None = None
+        self._goal: tuple | None = None
+        #: the rest test's record (as a plain tuple) and what it was made from
+        self._rest_key: tuple | None = None
+        self._rest: tuple | None = None
+        #: masks of the measures, the plan's own (never handed out): every copy stepped, none
+        #: blocked
+        self._stepped = np.ones(task.num_envs, bool)
+        self._blocked = np.zeros(task.num_envs, bool)
+        #: whether :meth:`measure_observe` measures the task (see :meth:`make`)
+        self.measured = False
+
+    @staticmethod
+    def make(task: ParticleTask) -> StepPlan | None:
+        """A plan for ``task``, or None if its physics is not the base class's
+        :meth:`~envs.base.ParticleTask.simulate` (a task that redefines it takes the general
+        path) or the compiled bookkeeping is off. Decided once: the methods are looked up on
+        the class. A task whose :meth:`~envs.base.ParticleTask.measure_observe` is the base
+        class's is measured by the plan (:meth:`measure_observe`); one with its own is
+        handed the step's pack, as :meth:`~envs.base.ParticleTask.simulate_step` hands it."""
+        cls = type(task)
+        if not (_measure.ENABLED and fused.kernels.ENABLED
+                and cls.simulate is ParticleTask.simulate and task._paths.get("fresh_pack")):
+            return None
+        plan = StepPlan(task)
+        plan.measured = bool(cls.measure_observe is ParticleTask.measure_observe
+                             and task._paths.get("measure_observe") and task._paths.get("goal"))
+        return plan
+
+    # ------------------------------------------------------------------ physics
+    def _physics_args(self, s: ParticleSystem) -> bool:
+        """Check and remember the integrator's code and the schedule of the task's substeps
+        (False: the general path must step: split steps, projection, threads, a method or
+        solver the fused kernel does not take)."""
+        task = self.task
+        method, dt, substeps = task.integrator, task.dt, task.substeps
+        key = self._physics_key
+        if (key is not None and method is key[0] and dt is key[1] and substeps is key[2]
+                and s is key[3]):
+            return True
+        self._physics_key = None
+        if not (type(dt) is float and math.isfinite(dt) and dt > 0.0 and type(substeps) is int
+                and 1 <= substeps <= 10**9 and isinstance(method, str)
+                and method in fused.METHOD_CODES and method != "rattle"):
+            return False
+        self._code = fused.integrator_args(method)
+        self._schedule = fused.schedule(substeps, dt)
+        self._physics_key = (method, dt, substeps, s)
+        return True
+
+    def physics(self) -> tuple[Packed, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Take the env step's physics (``substeps`` steps of the task's integrator) on the
+        fused kernel, as :meth:`ParticleTask.simulate_step` would: returns ``(pack, x, v,
+        mass)``, the pack the call was made with, the new state and the masses it was
+        checked with (the arguments of :meth:`measure_observe`), or None with nothing
+        changed (a divergence included: the general path then takes the step, and finds the
+        same divergence). ValueError for an invalid state,
+        RuntimeError if another thread is stepping the system, as a step raises them."""
+        task = self.task
+        s = task.system
+        if not self._physics_args(s):
+            return None
+        if (s.project_each_step or s.__dict__.get("_threads", 1) != 1
+                or not s._fusable(self._physics_key[0])):
+            return None
+        pieces = None
+        if task.step_travel != math.inf:  # (as simulate decides them, before the lock)
+            _, rows, largest = task._decide(s)
+            if largest != 1:
+                pieces = rows
+        with s.stepping():  # (RuntimeError if another thread is stepping it, as step)
+            state = s.x, s.v, s.mass, s.inv_mass, s.t
+            t = state[4]
+            if not (type(t) is float and math.isfinite(t)):
+                return None  # (the general path's error, or its conversion)
+            solver = s.constraint_solver
+            lam = solver.lam
+            # (every state array checked in full: the general path raises for a bad one)
+            ready = fused.prepare(s, lam, s.residual_limit, state[:4])
+            if ready is None:
+                return None
+            p, start, settings = ready
+            x_out, v_out = np.empty_like(state[0]), np.empty_like(state[1])
+            kept = lam.copy()
+            code, rattle = self._code
+            if pieces is None:
+                status, _ = fused.fused_steps(code, rattle, *p.variant, self._schedule,
+                                              tuple(start), (x_out, v_out), tuple(settings),
+                                              p.refs.engine, None)
+            elif pieces.shape == (p.n,) and pieces.dtype == np.int64:
+                # (each particle's steps split into its own pieces, as step_pieces takes them)
+                steps, h = self._schedule[:2]
+                status, _ = fused.fused_split(code, rattle, *p.variant,
+                                              (h, h / pieces, pieces * steps), tuple(start),
+                                              (x_out, v_out), tuple(settings), p.refs.engine,
+                                              p.live_ref)
+            else:
+                return None
+            if status != fused.OK:
+                solver.lam = kept
+                return None
+            h = self._schedule[1]
+            for _ in range(self._schedule[0]):  # (t advances step by step, as in step)
+                t = t + h
+            s.x, s.v, s.t = x_out, v_out, t
+            return p, x_out, v_out, state[2]
+
+    # ------------------------------------------------------------------ measures
+    def _goal_record(self) -> tuple | None:
+        """The success test's record as a plain tuple, remade (by the task's own
+        ``_goal_record``) only when an attribute it is made from was reassigned; None where
+        the general path must measure. The arrays the kernel writes or reads by copy index are
+        tested at every call."""
+        task = self.task
+        N = task.num_envs
+        goal, hold, mean_v = task.goal, task.hold, task.mean_v
+        if not (_owned(goal, np.float64, (N,)) and _owned(hold, np.int64, (N,))
+                and _owned(mean_v, np.float64, (N * task.n, 2))):
+            return None
+        track = task._tracking()
+        key = (goal, hold, mean_v, track, task.goal_tolerance, task.rest_speed,
+               task.hold_steps, task.goal_height, task.planar_goal, task.wall_rest,
+               task.rest_count, task._alpha)
+        last = self._goal_key
+        if last is not None and all(map(operator.is_, key, last)):  # (keys of one length)
+            return self._goal
+        self._goal_key = None
+        record = None if track is None else task._goal_record(track)
+        if record is None:
+            return None
+        self._goal = tuple(record)
+        self._rest = tuple(task._rest())
+        self._goal_key = key
+        return self._goal
+
+    def measure_observe(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
+                        ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """:meth:`ParticleTask.measure_observe` after :meth:`physics` took the step (every
+        copy stepped; its return values as arguments: ``x``, ``v`` the arrays it made,
+        ``mass`` the one it checked): the same compiled call with the same arguments where
+        the plan measures the task (:meth:`make`) and what it reads holds, else the task's
+        own, handed the step's pack as :meth:`ParticleTask.simulate_step` hands it."""
+        task = self.task
+        if self.measured:
+            done = self._measure(p, x, v, mass)
+            if done is not None:
+                return done
+        task.__dict__["_fresh_pack"] = p
+        try:
+            return task.measure_observe(np.ones(task.num_envs, bool))
+        finally:
+            task.__dict__.pop("_fresh_pack", None)  # (taken once, or not at all)
+
+    def _measure(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
+                 ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """The base class's compiled measures and observation (see :meth:`measure_observe`),
+        or None where the general path must measure (nothing is changed then)."""
+        task = self.task
+        goal = self._goal_record()
+        N, n = task.num_envs, task.n
+        if goal is None or p.n != N * n:
+            return None
+        out, success = np.empty((5, N)), np.empty(N, bool)
+        obs = np.empty((N, 4 * n + 1), np.float32)
+        _measure.measures_observe((x, v, mass), goal, p.refs.blocks, task.measure_walls,
+                                  self._rest, self._stepped, self._blocked, out, success,
+                                  tuple(task._view()), obs)
+        return task.add_measures(_measured(out, success), out[4]), obs
