@@ -609,18 +609,16 @@ class ParticleTask(SteppedCopies):
         """``(pack, goal, (x, v, mass))`` for the compiled measures (``goal``: the success
         test's :class:`envs._measure.Goal`), or None where the numpy reference must run (the
         compiled bookkeeping off, or what it reads not of the blocks, shapes, types it takes)."""
-        fresh = self.__dict__.pop("_fresh_pack", None)  # (see simulate_step: taken once)
+        fresh = self.__dict__.pop("_fresh_pack", None)  # (see simulate_step: taken once; a
+        if type(fresh) is tuple:  # prepared step hands its whole post: envs.driver)
+            return fresh
         if not _measure.ENABLED:
             return None
         track = self._tracking()
         state = self._compiled_state()
         goal = None if track is None or state is None else self._goal_record(track)
-        if goal is None:
-            return None
-        p = _measure.packed(self.system, fresh)
-        if p is None or p.n != len(state[0]):
-            return None
-        return p, goal, state
+        p = None if goal is None else _measure.packed(self.system, fresh)
+        return None if p is None or p.n != len(state[0]) else (p, goal, state)
 
     def _goal_record(self, track: tuple[np.ndarray, float]) -> _measure.Goal | None:
         """The success test as the compiled measures read it (``track``: :meth:`_tracking`), or

@@ -48,12 +48,11 @@ class StepPlan:
         self._physics_key: tuple | None = None
         self._code: Any = None
         self._schedule: tuple | None = None
-        #: the success test's record (as a plain tuple) and what it was made from
+        #: the success test's record, what it was made from, and it and the rest test's
+        #: record as the kernels take them (plain tuples)
         self._goal_key: tuple | None = None
-        self._goal: tuple | None = None
-        #: the rest test's record (as a plain tuple) and what it was made from
-        self._rest_key: tuple | None = None
-        self._rest: tuple | None = None
+        self._goal: _measure.Goal | None = None
+        self._plain: tuple = ()
         #: masks of the measures, the plan's own (never handed out): every copy stepped, none
         #: blocked
         self._stepped = np.ones(task.num_envs, bool)
@@ -119,7 +118,11 @@ class StepPlan:
             _, rows, largest = task._decide(s)
             if largest != 1:
                 pieces = rows
-        with s.stepping():  # (RuntimeError if another thread is stepping it, as step)
+        lock = s._step_lock()
+        if not lock.acquire(blocking=False):  # (another thread is stepping the system: the
+            with s.stepping():  # RuntimeError a step raises)
+                pass
+        try:
             state = s.x, s.v, s.mass, s.inv_mass, s.t
             t = state[4]
             if not (type(t) is float and math.isfinite(t)):
@@ -155,13 +158,14 @@ class StepPlan:
                 t = t + h
             s.x, s.v, s.t = x_out, v_out, t
             return p, x_out, v_out, state[2]
+        finally:
+            lock.release()
 
     # ------------------------------------------------------------------ measures
-    def _goal_record(self) -> tuple | None:
-        """The success test's record as a plain tuple, remade (by the task's own
-        ``_goal_record``) only when an attribute it is made from was reassigned; None where
-        the general path must measure. The arrays the kernel writes or reads by copy index are
-        tested at every call."""
+    def _goal_record(self) -> _measure.Goal | None:
+        """The success test's record, remade (by the task's own ``_goal_record``) only when an
+        attribute it is made from was reassigned; None where the general path must measure.
+        The arrays the kernel writes or reads by copy index are tested at every call."""
         task = self.task
         N = task.num_envs
         goal, hold, mean_v = task.goal, task.hold, task.mean_v
@@ -179,10 +183,9 @@ class StepPlan:
         record = None if track is None else task._goal_record(track)
         if record is None:
             return None
-        self._goal = tuple(record)
-        self._rest = tuple(task._rest())
+        self._goal, self._plain = record, (tuple(record), tuple(task._rest()))
         self._goal_key = key
-        return self._goal
+        return record
 
     def measure_observe(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -192,28 +195,29 @@ class StepPlan:
         the plan measures the task (:meth:`make`) and what it reads holds, else the task's
         own, handed the step's pack as :meth:`ParticleTask.simulate_step` hands it."""
         task = self.task
-        if self.measured:
-            done = self._measure(p, x, v, mass)
-            if done is not None:
-                return done
-        task.__dict__["_fresh_pack"] = p
+        goal = self._goal_record()
+        if goal is not None and p.n == task.num_envs * task.n:
+            if self.measured:
+                return self._measure(p, x, v, mass)
+            # (the task's own compiled measures take the post as _compiled_post makes it)
+            task.__dict__["_fresh_pack"] = (p, goal, (x, v, mass))
+        else:
+            task.__dict__["_fresh_pack"] = p
         try:
             return task.measure_observe(np.ones(task.num_envs, bool))
         finally:
             task.__dict__.pop("_fresh_pack", None)  # (taken once, or not at all)
 
     def _measure(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
-                 ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """The base class's compiled measures and observation (see :meth:`measure_observe`),
-        or None where the general path must measure (nothing is changed then)."""
+        with the records :meth:`_goal_record` checked for this step."""
         task = self.task
-        goal = self._goal_record()
         N, n = task.num_envs, task.n
-        if goal is None or p.n != N * n:
-            return None
         out, success = np.empty((5, N)), np.empty(N, bool)
         obs = np.empty((N, 4 * n + 1), np.float32)
-        _measure.measures_observe((x, v, mass), goal, p.refs.blocks, task.measure_walls,
-                                  self._rest, self._stepped, self._blocked, out, success,
+        goal, rest = self._plain
+        _measure.measures_observe((x, v, mass), goal, p.refs.blocks, task.measure_walls, rest,
+                                  self._stepped, self._blocked, out, success,
                                   tuple(task._view()), obs)
         return task.add_measures(_measured(out, success), out[4]), obs
