@@ -104,8 +104,8 @@ class StepPlan:
         mass)``, the pack the call was made with, the new state and the masses it was
         checked with (the arguments of :meth:`measure_observe`), or None with nothing
         changed (a divergence included: the general path then takes the step, and finds the
-        same divergence). ValueError for an invalid state,
-        RuntimeError if another thread is stepping the system, as a step raises them."""
+        same divergence). ValueError for an invalid state, RuntimeError if another thread is
+        stepping the system, as a step raises them."""
         task = self.task
         s = task.system
         if not self._physics_args(s):
@@ -113,15 +113,16 @@ class StepPlan:
         if (s.project_each_step or s.__dict__.get("_threads", 1) != 1
                 or not s._fusable(self._physics_key[0])):
             return None
+        # (the system's step lock as step takes it: made on first use)
+        lock = s.__dict__.get("_stepping") or s._step_lock()
         pieces = None
         if task.step_travel != math.inf:  # (as simulate decides them, before the lock)
             _, rows, largest = task._decide(s)
             if largest != 1:
                 pieces = rows
-        lock = s._step_lock()
         if not lock.acquire(blocking=False):  # (another thread is stepping the system: the
-            with s.stepping():  # RuntimeError a step raises)
-                pass
+            with s.stepping():  # RuntimeError a step raises; if that thread has just
+                return None  # finished, the general path takes the step)
         try:
             state = s.x, s.v, s.mass, s.inv_mass, s.t
             t = state[4]
@@ -134,7 +135,8 @@ class StepPlan:
             if ready is None:
                 return None
             p, start, settings = ready
-            x_out, v_out = np.empty_like(state[0]), np.empty_like(state[1])
+            x_out, v_out = np.empty(state[0].shape), np.empty(state[1].shape)  # (C float64,
+            # as the state arrays prepare checked)
             kept = lam.copy()
             code, rattle = self._code
             if pieces is None:

@@ -142,3 +142,20 @@ def test_tasks_with_their_own_physics_have_no_plan():
     env = gym.make(pick_place[0].id)
     assert isinstance(env.unwrapped.task, PickPlaceTask)
     assert env.unwrapped._plan is None
+
+
+def test_a_system_being_stepped_elsewhere_is_refused_as_by_a_step():
+    """The prepared step takes the system's step lock as ``ParticleSystem.step`` does: while
+    another thread holds it, the env's step raises the same RuntimeError and the state is
+    left as it was; once released, the next step goes through the plan again."""
+    planned, plain = _pair("ClothSlide-v0", {})
+    a = planned.action_space.sample()
+    for env in (planned, plain):
+        s = env.unwrapped.task.system
+        x = s.x.copy()
+        with s.stepping():  # (held, as by another thread stepping the system)
+            with pytest.raises(RuntimeError, match="another thread"):
+                env.step(a)
+        assert s.x.tobytes() == x.tobytes()
+    _same(planned.step(a), plain.step(a))
+    _states_equal(planned, plain)
