@@ -189,6 +189,20 @@ class StepPlan:
         self._goal_key = key
         return record
 
+    def hand(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray) -> bool:
+        """Hand the step :meth:`physics` took (its return values as arguments) to the task's
+        own compiled measures, as :meth:`ParticleTask.simulate_step` hands them the step's
+        pack: the whole post ``_compiled_post`` would make (the pack, the success record
+        checked now, the state), or the pack alone where the success record does not hold
+        (True in the first case). The task takes it once; the caller drops what is left."""
+        task = self.task
+        goal = self._goal_record()
+        if goal is not None and p.n == task.num_envs * task.n:
+            task.__dict__["_fresh_pack"] = (p, goal, (x, v, mass))
+            return True
+        task.__dict__["_fresh_pack"] = p
+        return False
+
     def measure_observe(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`ParticleTask.measure_observe` after :meth:`physics` took the step (every
@@ -197,14 +211,9 @@ class StepPlan:
         the plan measures the task (:meth:`make`) and what it reads holds, else the task's
         own, handed the step's pack as :meth:`ParticleTask.simulate_step` hands it."""
         task = self.task
-        goal = self._goal_record()
-        if goal is not None and p.n == task.num_envs * task.n:
-            if self.measured:
-                return self._measure(p, x, v, mass)
-            # (the task's own compiled measures take the post as _compiled_post makes it)
-            task.__dict__["_fresh_pack"] = (p, goal, (x, v, mass))
-        else:
-            task.__dict__["_fresh_pack"] = p
+        if self.hand(p, x, v, mass) and self.measured:
+            task.__dict__.pop("_fresh_pack", None)
+            return self._measure(p, x, v, mass)
         try:
             return task.measure_observe(np.ones(task.num_envs, bool))
         finally:

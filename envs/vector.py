@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import goals, pixels
 from .base import ParticleTask
 from .checks import check_options, check_positive, check_seed, check_task_kwargs
+from .driver import StepPlan
 from .single import _info, _Rendering
 
 #: Number of threads a native vector env steps its copies on unless told otherwise.
@@ -99,6 +100,8 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         self._renderer = None
         self._rngs: list[np.random.Generator] | None = None
         self._info_keys: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
+        #: The prepared step of the task (envs.driver; it steps on one thread only), or None
+        self._plan = StepPlan.make(self.task)
 
     # ------------------------------------------------------------------ seeding and reset
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
@@ -177,12 +180,22 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
         made of them."""
         # (count_nonzero: any() in a fraction of the time)
         calm_start = not np.count_nonzero(self._autoreset)  # the usual step: no copy resets
-        a = self.task.check_actions(actions)
+        task = self.task
+        a = task.check_actions(actions)
+        planned = None
         if calm_start:
-            self.task.apply(a)
-            diverged = self.task.simulate_step()
-            calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks to apply
-            done = self.task._finish_step(self.steps, self.max_episode_steps) if calm else None
+            task.apply(a)
+            plan = self._plan  # (the prepared step where it can take it: the same bits)
+            planned = plan.physics() if plan is not None and plan.task is task else None
+            if planned is None:
+                diverged = task.simulate_step()
+                calm = not np.count_nonzero(diverged)  # every copy was stepped: no masks
+            else:
+                diverged, calm = np.zeros(self.num_envs, bool), True
+                plan.hand(*planned)  # (the step's checked pack for the end of step below)
+            done = task._finish_step(self.steps, self.max_episode_steps) if calm else None
+            if planned is not None:
+                task.__dict__.pop("_fresh_pack", None)  # (handed again to the measures)
             if done is not None:  # the task's compiled end of the step (the same values)
                 obs, m, reward, terminated, truncated, self._autoreset, _ = done
                 return obs, reward, terminated, truncated, m, diverged
@@ -203,9 +216,11 @@ class ParticleVectorEnv(_Rendering, VectorEnv):
                 # the resetting copies were stepped along (no actuation); put their start back
                 self.task.write_starts(envs, *starts)
                 diverged[resetting] = False
-        m, obs = self.task.measure_observe(self.task._every_copy if calm
-                                           else ~resetting & ~diverged)
-        reward = self.task.reward(m)
+        if planned is not None:
+            m, obs = self._plan.measure_observe(*planned)
+        else:
+            m, obs = task.measure_observe(task._every_copy if calm else ~resetting & ~diverged)
+        reward = task.reward(m)
         self.steps += 1
         if calm:
             terminated = m["is_success"].copy()

@@ -159,3 +159,29 @@ def test_a_system_being_stepped_elsewhere_is_refused_as_by_a_step():
         assert s.x.tobytes() == x.tobytes()
     _same(planned.step(a), plain.step(a))
     _states_equal(planned, plain)
+
+
+@pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=IDS)
+def test_a_vector_envs_prepared_step_gives_the_general_paths_bits(env_id, kwargs):
+    """The native vector env takes the prepared step on the steps no copy resets in (one
+    thread): observations, rewards, ends and infos bit for bit those of the general path,
+    through episode ends and autoresets."""
+    made = [gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point",
+                         max_episode_steps=6, **kwargs) for _ in range(2)]
+    assert made[0].unwrapped._plan is not None
+    made[1].unwrapped._plan = None
+    records = []
+    for env in made:
+        rng = np.random.default_rng(2)
+        obs, _ = env.reset(seed=5)
+        out = [obs.tobytes()]
+        for _ in range(14):
+            obs, r, te, tr, info = env.step(
+                rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+            out.append((obs.tobytes(), r.tobytes(), te.tobytes(), tr.tobytes(),
+                        sorted((k, np.asarray(v).tobytes()) for k, v in info.items())))
+        s = env.unwrapped.task.system
+        out.append((s.x.tobytes(), s.v.tobytes(), s.t))
+        records.append(out)
+        env.close()
+    assert records[0] == records[1]
