@@ -110,8 +110,7 @@ class StepPlan:
         s = task.system
         if not self._physics_args(s):
             return None
-        if (s.project_each_step or s.__dict__.get("_threads", 1) != 1
-                or not s._fusable(self._physics_key[0])):
+        if s.project_each_step or not s._fusable(self._physics_key[0]):
             return None
         # (the system's step lock as step takes it: made on first use)
         lock = s.__dict__.get("_stepping") or s._step_lock()
@@ -130,6 +129,8 @@ class StepPlan:
                 return None  # (the general path's error, or its conversion)
             solver = s.constraint_solver
             lam = solver.lam
+            if s.__dict__.get("_threads", 1) != 1:  # (the ranges on their threads, as a
+                return self._ranges(s, solver, lam, state, pieces)  # step takes them)
             # (every state array checked in full: the general path raises for a bad one)
             ready = fused.prepare(s, lam, s.residual_limit, state[:4])
             if ready is None:
@@ -162,6 +163,25 @@ class StepPlan:
             return p, x_out, v_out, state[2]
         finally:
             lock.release()
+
+    def _ranges(self, s: ParticleSystem, solver: Any, lam: np.ndarray, state: tuple,
+                pieces: np.ndarray | None
+                ) -> tuple[Packed, np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`physics` of a system stepped on several threads (its lock held): the
+        ranges through ``fused.run``, which checks and cuts them as a step does."""
+        kept = lam.copy()
+        steps, h = self._schedule[:2]
+        status, x_out, v_out, _ = fused.run(s, h, self._physics_key[0], steps, lam,
+                                            s.residual_limit, pieces, state[:4])
+        p = s.__dict__.pop("_fresh_pack", None)
+        if status != fused.OK or p is None:
+            solver.lam = kept
+            return None
+        t = state[4]
+        for _ in range(steps):
+            t = t + h
+        s.x, s.v, s.t = x_out, v_out, t
+        return p, x_out, v_out, state[2]
 
     # ------------------------------------------------------------------ measures
     def _goal_record(self) -> _measure.Goal | None:
@@ -210,8 +230,8 @@ class StepPlan:
         ``mass`` the one it checked): the same compiled call with the same arguments where
         the plan measures the task (:meth:`make`) and what it reads holds, else the task's
         own, handed the step's pack as :meth:`ParticleTask.simulate_step` hands it."""
-        task = self.task
-        if self.hand(p, x, v, mass) and self.measured:
+        task = self.task  # (with threads, the task's measures run on the ranges)
+        if self.hand(p, x, v, mass) and self.measured and task.system.threads == 1:
             task.__dict__.pop("_fresh_pack", None)
             return self._measure(p, x, v, mass)
         try:
