@@ -185,3 +185,33 @@ def test_a_vector_envs_prepared_step_gives_the_general_paths_bits(env_id, kwargs
         records.append(out)
         env.close()
     assert records[0] == records[1]
+
+
+def test_split_steps_take_the_prepared_step_too(monkeypatch):
+    """SliderCrank's copies split their steps when they move fast (``step_travel``): the plan
+    takes those steps through the split kernel as the general path does, with the same bits
+    (16 copies pushed hard, so that some steps split)."""
+    from constrained_particles import fused
+
+    split, calls = fused.fused_split, []
+
+    def counted(*args):
+        calls.append(1)
+        return split(*args)
+
+    monkeypatch.setattr(fused, "fused_split", counted)
+    made = [gym.make_vec("SliderCrank-v0", num_envs=16, vectorization_mode="vector_entry_point")
+            for _ in range(2)]
+    made[1].unwrapped._plan = None
+    records = []
+    for env in made:
+        env.reset(seed=1)
+        out = []
+        for k in range(40):
+            a = np.full(env.action_space.shape, 1.0 if k % 10 < 6 else -1.0, np.float32)
+            obs, r, te, tr, _ = env.step(a)
+            out.append((obs.tobytes(), r.tobytes(), te.tobytes(), tr.tobytes()))
+        records.append(out)
+        env.close()
+    assert len(calls) >= 4  # (split steps were taken, by both)
+    assert records[0] == records[1]
