@@ -4,14 +4,17 @@ identity tests instead of every layer between the env and its kernels.
 
 A :class:`StepPlan` is made for a task when the env is built and holds what does not change
 from step to step: the integrator's compiled code, the schedule of substeps, the success
-test's record, the rest test's and the view's. It takes the env step (after the task's
-:meth:`~envs.base.ParticleTask.apply`) only where the general path would take the same
-compiled calls: the task's :meth:`~envs.base.ParticleTask.simulate` and
-:meth:`~envs.base.ParticleTask.measure_observe` are the base class's (decided once, when the
-plan is made), the physics is one fused call (no split steps, no projection, one thread) and
-every check of that call holds. Anywhere else it answers None with nothing changed and the
-general path takes the step, so both give the same bits: the plan calls the same compiled
-functions with the same arguments (``tests/test_driver.py`` ties them step by step).
+test's and the rest test's records. It takes the env step's physics and measures (after the
+task's :meth:`~envs.base.ParticleTask.apply`) where the general path would take the same
+compiled calls: the task's :meth:`~envs.base.ParticleTask.simulate` is the base class's
+(decided once, when the plan is made), the physics is fused calls (split steps included; on
+several threads the ranges through ``fused.run``; no projection) and every check of those
+calls holds. A task whose :meth:`~envs.base.ParticleTask.measure_observe` is the base class's
+is measured by the plan; one with its own compiled measures (SliderCrank, ClothPin) is
+handed the step's checked post. Anywhere else the plan answers None with nothing changed and
+the general path takes the step, so both give the same bits: the plan calls the same
+compiled functions with the same arguments (``tests/test_driver.py`` ties them step by step,
+single and vector envs, every task and mode).
 
 What keeps it safe is what keeps the general path safe: the state arrays are checked at every
 step as :meth:`ParticleSystem.step <constrained_particles.system.ParticleSystem.step>` checks
