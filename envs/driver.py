@@ -47,15 +47,12 @@ class StepPlan:
 
     def __init__(self, task: ParticleTask) -> None:
         self.task = task
-        #: (integrator, dt, substeps, system) the physics arguments below were made from
-        self._physics_key: tuple | None = None
-        self._code: Any = None
-        self._schedule: tuple | None = None
-        #: the success test's record, what it was made from, and it and the rest test's
-        #: record as the kernels take them (plain tuples)
-        self._goal_key: tuple | None = None
-        self._goal: _measure.Goal | None = None
-        self._plain: tuple = ()
+        #: ``((integrator, dt, substeps, system), (code, rattle), schedule)``: the physics
+        #: arguments and what they were made from (one attribute, read and written whole)
+        self._physics: tuple | None = None
+        #: ``(key, record, (goal, rest))``: the success test's record, what it was made from,
+        #: and it and the rest test's record as the kernels take them (plain tuples)
+        self._records: tuple | None = None
         #: masks of the measures, the plan's own (never handed out): every copy stepped, none
         #: blocked
         self._stepped = np.ones(task.num_envs, bool)
@@ -81,25 +78,25 @@ class StepPlan:
         return plan
 
     # ------------------------------------------------------------------ physics
-    def _physics_args(self, s: ParticleSystem) -> bool:
-        """Check and remember the integrator's code and the schedule of the task's substeps
-        (False: the general path must step: split steps, projection, threads, a method or
-        solver the fused kernel does not take)."""
+    def _physics_args(self, s: ParticleSystem) -> tuple | None:
+        """The integrator's ``(method, (code, rattle), schedule)`` for the task's substeps,
+        remade only when the integrator, ``dt``, ``substeps`` or the system was reassigned;
+        None where the general path must step (a value it would refuse or convert, or a
+        method the fused kernel does not take)."""
         task = self.task
         method, dt, substeps = task.integrator, task.dt, task.substeps
-        key = self._physics_key
-        if (key is not None and method is key[0] and dt is key[1] and substeps is key[2]
-                and s is key[3]):
-            return True
-        self._physics_key = None
+        made = self._physics
+        if (made is not None and method is made[0][0] and dt is made[0][1]
+                and substeps is made[0][2] and s is made[0][3]):
+            return method, made[1], made[2]
         if not (type(dt) is float and math.isfinite(dt) and dt > 0.0 and type(substeps) is int
                 and 1 <= substeps <= 10**9 and isinstance(method, str)
                 and method in fused.METHOD_CODES and method != "rattle"):
-            return False
-        self._code = fused.integrator_args(method)
-        self._schedule = fused.schedule(substeps, dt)
-        self._physics_key = (method, dt, substeps, s)
-        return True
+            return None
+        made = ((method, dt, substeps, s), fused.integrator_args(method),
+                fused.schedule(substeps, dt))
+        self._physics = made
+        return method, made[1], made[2]
 
     def physics(self) -> tuple[Packed, np.ndarray, np.ndarray, np.ndarray] | None:
         """Take the env step's physics (``substeps`` steps of the task's integrator) on the
@@ -111,12 +108,11 @@ class StepPlan:
         stepping the system, as a step raises them."""
         task = self.task
         s = task.system
-        if not self._physics_args(s):
+        args = self._physics_args(s)
+        if args is None or s.project_each_step or not s._fusable(args[0]):
             return None
-        if s.project_each_step or not s._fusable(self._physics_key[0]):
-            return None
-        # (the system's step lock as step takes it: made on first use)
-        lock = s.__dict__.get("_stepping") or s._step_lock()
+        method, (code, rattle), schedule = args
+        lock = s._step_lock()  # (taken as step takes it)
         pieces = None
         if task.step_travel != math.inf:  # (as simulate decides them, before the lock)
             _, rows, largest = task._decide(s)
@@ -133,7 +129,7 @@ class StepPlan:
             solver = s.constraint_solver
             lam = solver.lam
             if s.__dict__.get("_threads", 1) != 1:  # (the ranges on their threads, as a
-                return self._ranges(s, solver, lam, state, pieces)  # step takes them)
+                return self._ranges(s, solver, method, schedule, state, pieces)  # step does)
             # (every state array checked in full: the general path raises for a bad one)
             ready = fused.prepare(s, lam, s.residual_limit, state[:4])
             if ready is None:
@@ -142,14 +138,13 @@ class StepPlan:
             x_out, v_out = np.empty(state[0].shape), np.empty(state[1].shape)  # (C float64,
             # as the state arrays prepare checked)
             kept = lam.copy()
-            code, rattle = self._code
+            steps, h = schedule[:2]
             if pieces is None:
-                status, _ = fused.fused_steps(code, rattle, *p.variant, self._schedule,
+                status, _ = fused.fused_steps(code, rattle, *p.variant, schedule,
                                               tuple(start), (x_out, v_out), tuple(settings),
                                               p.refs.engine, None)
             elif pieces.shape == (p.n,) and pieces.dtype == np.int64:
                 # (each particle's steps split into its own pieces, as step_pieces takes them)
-                steps, h = self._schedule[:2]
                 status, _ = fused.fused_split(code, rattle, *p.variant,
                                               (h, h / pieces, pieces * steps), tuple(start),
                                               (x_out, v_out), tuple(settings), p.refs.engine,
@@ -159,38 +154,33 @@ class StepPlan:
             if status != fused.OK:
                 solver.lam = kept
                 return None
-            h = self._schedule[1]
-            for _ in range(self._schedule[0]):  # (t advances step by step, as in step)
-                t = t + h
-            s.x, s.v, s.t = x_out, v_out, t
-            return p, x_out, v_out, state[2]
+            return _advanced(s, p, x_out, v_out, state, steps, h)
         finally:
             lock.release()
 
-    def _ranges(self, s: ParticleSystem, solver: Any, lam: np.ndarray, state: tuple,
-                pieces: np.ndarray | None
+    def _ranges(self, s: ParticleSystem, solver: Any, method: str, schedule: tuple,
+                state: tuple, pieces: np.ndarray | None
                 ) -> tuple[Packed, np.ndarray, np.ndarray, np.ndarray] | None:
         """:meth:`physics` of a system stepped on several threads (its lock held): the
         ranges through ``fused.run``, which checks and cuts them as a step does."""
+        lam = solver.lam
         kept = lam.copy()
-        steps, h = self._schedule[:2]
-        status, x_out, v_out, _ = fused.run(s, h, self._physics_key[0], steps, lam,
-                                            s.residual_limit, pieces, state[:4])
+        steps, h = schedule[:2]
+        status, x_out, v_out, _ = fused.run(s, h, method, steps, lam, s.residual_limit,
+                                            pieces, state[:4])
         p = s.__dict__.pop("_fresh_pack", None)
         if status != fused.OK or p is None:
             solver.lam = kept
             return None
-        t = state[4]
-        for _ in range(steps):
-            t = t + h
-        s.x, s.v, s.t = x_out, v_out, t
-        return p, x_out, v_out, state[2]
+        return _advanced(s, p, x_out, v_out, state, steps, h)
 
     # ------------------------------------------------------------------ measures
-    def _goal_record(self) -> _measure.Goal | None:
-        """The success test's record, remade (by the task's own ``_goal_record``) only when an
-        attribute it is made from was reassigned; None where the general path must measure.
-        The arrays the kernel writes or reads by copy index are tested at every call."""
+    def _goal_record(self) -> tuple | None:
+        """``(record, (goal, rest))``: the success test's record and the success and rest
+        tests' records as the kernels take them, remade (by the task's own ``_goal_record``)
+        only when an attribute they are made from was reassigned; None where the general path
+        must measure. The arrays the kernel writes or reads by copy index are tested at every
+        call."""
         task = self.task
         N = task.num_envs
         goal, hold, mean_v = task.goal, task.hold, task.mean_v
@@ -201,30 +191,30 @@ class StepPlan:
         key = (goal, hold, mean_v, track, task.goal_tolerance, task.rest_speed,
                task.hold_steps, task.goal_height, task.planar_goal, task.wall_rest,
                task.rest_count, task._alpha)
-        last = self._goal_key
-        if last is not None and all(map(operator.is_, key, last)):  # (keys of one length)
-            return self._goal
-        self._goal_key = None
+        made = self._records
+        if made is not None and all(map(operator.is_, key, made[0])):  # (keys of one length)
+            return made[1:]
         record = None if track is None else task._goal_record(track)
         if record is None:
             return None
-        self._goal, self._plain = record, (tuple(record), tuple(task._rest()))
-        self._goal_key = key
-        return record
+        made = (key, record, (tuple(record), tuple(task._rest())))
+        self._records = made
+        return made[1:]
 
-    def hand(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray) -> bool:
+    def hand(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray) -> tuple | None:
         """Hand the step :meth:`physics` took (its return values as arguments) to the task's
         own compiled measures, as :meth:`ParticleTask.simulate_step` hands them the step's
         pack: the whole post ``_compiled_post`` would make (the pack, the success record
-        checked now, the state), or the pack alone where the success record does not hold
-        (True in the first case). The task takes it once; the caller drops what is left."""
+        checked now, the state), or the pack alone where the success record does not hold.
+        Returns :meth:`_goal_record`'s records in the first case, else None. The task takes
+        what is handed once; the caller drops what is left."""
         task = self.task
-        goal = self._goal_record()
-        if goal is not None and p.n == task.num_envs * task.n:
-            task.__dict__["_fresh_pack"] = (p, goal, (x, v, mass))
-            return True
+        records = self._goal_record()
+        if records is not None and p.n == task.num_envs * task.n:
+            task.__dict__["_fresh_pack"] = (p, records[0], (x, v, mass))
+            return records
         task.__dict__["_fresh_pack"] = p
-        return False
+        return None
 
     def measure_observe(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -232,26 +222,37 @@ class StepPlan:
         copy stepped; its return values as arguments: ``x``, ``v`` the arrays it made,
         ``mass`` the one it checked): the same compiled call with the same arguments where
         the plan measures the task (:meth:`make`) and what it reads holds, else the task's
-        own, handed the step's pack as :meth:`ParticleTask.simulate_step` hands it."""
+        own, handed the step as :meth:`hand` hands it."""
         task = self.task  # (with threads, the task's measures run on the ranges)
-        if self.hand(p, x, v, mass) and self.measured and task.system.threads == 1:
-            task.__dict__.pop("_fresh_pack", None)
-            return self._measure(p, x, v, mass)
         try:
+            records = self.hand(p, x, v, mass)
+            if records is not None and self.measured and task.system.threads == 1:
+                return self._measure(records[1], x, v, mass, p)
             return task.measure_observe(np.ones(task.num_envs, bool))
         finally:
             task.__dict__.pop("_fresh_pack", None)  # (taken once, or not at all)
 
-    def _measure(self, p: Packed, x: np.ndarray, v: np.ndarray, mass: np.ndarray
-                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    def _measure(self, plain: tuple, x: np.ndarray, v: np.ndarray, mass: np.ndarray,
+                 p: Packed) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """The base class's compiled measures and observation (see :meth:`measure_observe`),
-        with the records :meth:`_goal_record` checked for this step."""
+        with ``plain``, the records :meth:`_goal_record` checked for this step."""
         task = self.task
         N, n = task.num_envs, task.n
         out, success = np.empty((5, N)), np.empty(N, bool)
         obs = np.empty((N, 4 * n + 1), np.float32)
-        goal, rest = self._plain
+        goal, rest = plain
         _measure.measures_observe((x, v, mass), goal, p.refs.blocks, task.measure_walls, rest,
                                   self._stepped, self._blocked, out, success,
                                   tuple(task._view()), obs)
         return task.add_measures(_measured(out, success), out[4]), obs
+
+
+def _advanced(s: ParticleSystem, p: Packed, x: np.ndarray, v: np.ndarray, state: tuple,
+              steps: int, h: float) -> tuple[Packed, np.ndarray, np.ndarray, np.ndarray]:
+    """Put the stepped state into ``s`` (``t`` advanced ``steps`` times by ``h``, as a step
+    adds them) and return what :meth:`StepPlan.physics` returns."""
+    t = state[4]
+    for _ in range(steps):
+        t = t + h
+    s.x, s.v, s.t = x, v, t
+    return p, x, v, state[2]
